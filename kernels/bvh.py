@@ -1,0 +1,181 @@
+"""The BVH the builders produce and the traversal reads, with its configuration and
+statistics.
+
+Node layout (binary tree, flat structure-of-arrays, ``N`` nodes, root at index 0):
+
+==================  ==========  ==========================================================
+field               type        meaning
+==================  ==========  ==========================================================
+``node_min``        Array3f[N]  lower corner of the node's box
+``node_max``        Array3f[N]  upper corner of the node's box
+``node_first``      UInt32[N]   internal node: index of its left child; the right child is
+                                always ``node_first + 1`` (siblings are adjacent).
+                                leaf: index of its first primitive slot
+``node_count``      UInt32[N]   0 for an internal node; for a leaf the number of
+                                primitives (slots ``node_first .. node_first+count-1``)
+``prim_ids``        UInt32[F]   slot -> index of the triangle in the input ``faces``
+``tri_p0/p1/p2``    Array3f[F]  the triangle's vertices, stored in slot order so a leaf
+                                reads contiguous memory
+==================  ==========  ==========================================================
+
+``levels`` lists, root first, the internal nodes of each depth (one UInt32 array per
+depth); bottom-up passes (bounds, refit) walk it backwards without any synchronisation
+inside a kernel. Every array is of the backend of the input vertices.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+BUILDERS = ("hlbvh", "lbvh", "sah")
+QUANTIZATIONS = ("cube", "axis")
+
+
+@dataclass
+class BuildConfig:
+    """Options of :func:`hlbvh.build`. A user's choice is ``builder``; the rest are the
+    expert's knobs, with defaults the benchmark justified.
+
+    Attributes:
+        builder: ``"hlbvh"`` (Pantaleoni & Luebke 2010: binned SAH over the coarse
+            clusters, partial breadth-first emission below; the default), ``"lbvh"``
+            (Lauterbach et al. 2009: Morton order and emission all the way; fastest) or
+            ``"sah"`` (full binned SAH, Wald 2007; slowest, the quality reference).
+        leaf_size: most primitives in a leaf (1..16). A segment of more primitives with
+            identical keys is split at its middle index.
+        morton_bits: 30 (10 bits per axis, UInt32 keys), 60 (20 bits per axis, UInt64
+            keys) or ``"auto"`` (60 when the scene's primitives are too small for its
+            bounds to be told apart at 30 bits).
+        quantization: ``"cube"`` quantises centroids in the cube over the largest extent
+            (keeps cells square on flat scenes), ``"axis"`` per axis.
+        coarse_bits: the top ``3m`` key bits that define the coarse clusters of the CSD
+            sort and of the SAH top level (a multiple of 3).
+        p: bit planes emitted per pass of the hierarchy emission (1..5).
+        sah_bins: bins per axis of the binned SAH.
+    """
+
+    builder: str = "hlbvh"
+    leaf_size: int = 4
+    morton_bits: int | str = 30
+    quantization: str = "cube"
+    coarse_bits: int = 12
+    p: int = 3
+    sah_bins: int = 16
+
+    def validated(self) -> "BuildConfig":
+        """Self, after checking every field; raises ValueError naming the bad option."""
+        if self.builder not in BUILDERS:
+            raise ValueError(f"builder={self.builder!r}: expected one of {BUILDERS}")
+        if not isinstance(self.leaf_size, int) or not 1 <= self.leaf_size <= 16:
+            raise ValueError(f"leaf_size={self.leaf_size!r}: expected an int in 1..16")
+        if self.morton_bits not in (30, 60, "auto"):
+            raise ValueError(f"morton_bits={self.morton_bits!r}: expected 30, 60 or 'auto'")
+        if self.quantization not in QUANTIZATIONS:
+            raise ValueError(
+                f"quantization={self.quantization!r}: expected one of {QUANTIZATIONS}"
+            )
+        if not isinstance(self.p, int) or not 1 <= self.p <= 5:
+            raise ValueError(f"p={self.p!r}: expected an int in 1..5")
+        if not isinstance(self.sah_bins, int) or not 2 <= self.sah_bins <= 64:
+            raise ValueError(f"sah_bins={self.sah_bins!r}: expected an int in 2..64")
+        if (
+            not isinstance(self.coarse_bits, int)
+            or self.coarse_bits % 3
+            or not 0 <= self.coarse_bits <= 24
+        ):
+            raise ValueError(
+                f"coarse_bits={self.coarse_bits!r}: expected a multiple of 3 in 0..24"
+            )
+        return self
+
+    @classmethod
+    def from_options(cls, **options) -> "BuildConfig":
+        """A validated config from keyword options; unknown names raise ValueError."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(options) - names)
+        if unknown:
+            raise ValueError(
+                f"unknown build option(s) {unknown}: expected some of {sorted(names)}"
+            )
+        return cls(**options).validated()
+
+
+@dataclass
+class BuildStats:
+    """What a build measured about itself.
+
+    ``sah_cost`` uses C_trav = C_isect = 1: sum over internal nodes of area/root area,
+    plus sum over leaves of count * area/root area. ``stage_ms`` holds the wall time of
+    each stage, synchronised (the device finished before the clock stopped).
+    """
+
+    builder: str = ""
+    prim_count: int = 0
+    node_count: int = 0
+    leaf_count: int = 0
+    depth: int = 0
+    sah_cost: float = 0.0
+    csd_runs: int = 0
+    coarse_clusters: int = 0
+    morton_bits: int = 30
+    leaf_histogram: list[int] = field(default_factory=list)
+    stage_ms: dict[str, float] = field(default_factory=dict)
+    total_ms: float = 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class BVH:
+    """A built hierarchy over a triangle mesh (layout in the module docstring)."""
+
+    node_min: Any
+    node_max: Any
+    node_first: Any
+    node_count: Any
+    prim_ids: Any
+    tri_p0: Any
+    tri_p1: Any
+    tri_p2: Any
+    faces: Any
+    levels: list
+    config: BuildConfig
+    stats: BuildStats
+
+    @property
+    def size(self) -> int:
+        """Number of nodes."""
+        return len(self.node_count)
+
+    @property
+    def prim_count(self) -> int:
+        return len(self.prim_ids)
+
+    def refit(self, vertices) -> "BVH":
+        """Recompute the boxes for new vertex positions (same faces, same tree), in place.
+
+        Args:
+            vertices: flat Float (3·V) or Array3f (V) of the new positions.
+        Returns:
+            self, with ``stats.sah_cost`` and ``stats.stage_ms['refit']`` updated.
+        """
+        from .refit import refit
+
+        return refit(self, vertices)
+
+    def intersect(self, ray, active=True):
+        """Closest hit of ``ray`` (anything with ``o``, ``d``, ``maxt``) as a
+        ``mi.PreliminaryIntersection3f`` with ``prim_index`` the input face index and
+        the shape fields null."""
+        from .traversal import intersect
+
+        return intersect(self, ray, active)
+
+    def occluded(self, ray, active=True):
+        """Whether anything lies on ``ray`` in (0, maxt): a Bool per ray."""
+        from .traversal import occluded
+
+        return occluded(self, ray, active)
