@@ -1,0 +1,224 @@
+"""The compress-sort-decompress (CSD) sort of Morton keys (Garanzha & Loop 2010, as used
+by HLBVH, Pantaleoni & Luebke 2010; seed slides "Compress-Sort-Decompress").
+
+Meshes are spatially coherent: consecutive primitives of a mesh, and the primitives in
+last frame's order, mostly fall into the same coarse voxel. CSD exploits it:
+
+1. **Compress**: run-length encode the keys, taken in a start order (identity, or a
+   previous frame's order), on their top ``3m`` bits (the coarse key): one run per
+   maximal stretch of equal coarse keys.
+2. **Sort** the runs by their coarse key (a ``3m``-bit stable radix sort of the runs
+   only, often far fewer than the keys).
+3. **Decompress**: run-length decode the sorted runs back into primitives. Now the
+   primitives are grouped by coarse voxel, in ascending voxel order, and inside a voxel
+   in start order.
+4. **Fine sort** inside each coarse voxel on the remaining bits. Only voxels that are
+   not yet sorted are touched: their keys are gathered, stably sorted and scattered
+   back; with last frame's order and unchanged keys, nothing is.
+
+The result equals a full stable sort of the keys taken in start order:
+``start[argsort(keys[start], stable)]`` (ties keep their start order).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import drjit as dr
+
+from .arrays import namespace_of
+
+# Bits per pass of the LSD radix sort: Dr.Jit's own choice in dr.argsort (11 bits on
+# the CPU, 8 on the GPU where shared memory is smaller).
+_RADIX_BITS = {dr.JitBackend.LLVM: 11, dr.JitBackend.CUDA: 8}
+
+
+@dataclass
+class CsdResult:
+    """What :func:`csd_sort` returns.
+
+    Attributes:
+        order: UInt32[N], slot -> primitive index; a permutation of ``0..N-1``.
+        sorted_keys: keys[order], same type as the keys (UInt32 or UInt64), ascending.
+        runs: number of runs of equal coarse keys in start order (the compressed
+            length the coarse sort worked on; N when nothing is coherent).
+        coarse_clusters: number of distinct coarse keys (occupied coarse voxels).
+        resorted: number of keys in coarse voxels that the fine sort had to sort
+            (0 when every voxel already was in key order after decompression).
+    """
+
+    order: Any
+    sorted_keys: Any
+    runs: int
+    coarse_clusters: int
+    resorted: int
+
+
+def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResult:
+    """Stable sort of Morton keys by compress-sort-decompress (module docstring).
+
+    Args:
+        keys: UInt32[N] or UInt64[N], every key below ``2^key_bits``.
+        key_bits: width of the keys (1..32 for UInt32, 1..64 for UInt64), e.g. 30 or 60.
+        coarse_bits: the top bits that name a coarse voxel (``3m``), 0..key_bits. 0 is
+            one voxel (a plain stable sort); ``key_bits`` sorts runs of whole keys.
+        start_order: UInt32[N] permutation of ``0..N-1`` (e.g. last frame's
+            ``order``) to start from; None for the identity. Anything convertible to
+            the keys' UInt32 type (a list, a numpy array) is accepted.
+
+    Returns:
+        :class:`CsdResult`; ``order`` equals
+        ``start[numpy.argsort(keys[start], kind="stable")]`` exactly.
+
+    Raises:
+        TypeError: ``keys`` is not a UInt32 or UInt64 JIT array.
+        ValueError: a bit count out of range, a key wider than ``key_bits``, or a
+            ``start_order`` that is not a permutation of ``0..N-1``.
+    """
+    ns, keys = _checked_keys(keys, key_bits)
+    if not isinstance(coarse_bits, int) or not 0 <= coarse_bits <= key_bits:
+        raise ValueError(
+            f"csd_sort: coarse_bits={coarse_bits!r}: expected an int in 0..{key_bits} "
+            "(at most key_bits)"
+        )
+    Key, UInt32 = type(keys), ns.UInt32
+    n = dr.width(keys)
+    start = dr.arange(UInt32, n) if start_order is None else _checked_order(ns, start_order, n)
+    if n == 0:
+        return CsdResult(UInt32(), Key(), runs=0, coarse_clusters=0, resorted=0)
+
+    # ---- Compress: run-length encode the coarse keys in start order ----
+    key = dr.gather(Key, keys, start)
+    Coarse = UInt32 if coarse_bits <= 32 else Key
+    if coarse_bits == 0:
+        coarse = dr.zeros(Coarse, n)
+    else:
+        coarse = Coarse(key >> (key_bits - coarse_bits))
+    slot = dr.arange(UInt32, n)
+    run_head = (slot == 0) | (coarse != dr.gather(Coarse, coarse, dr.maximum(slot, 1) - 1))
+    run_start = dr.compress(run_head)  # UInt32[R]
+    runs = dr.width(run_start)
+    run = dr.arange(UInt32, runs)
+    run_end = dr.select(
+        run + 1 < runs, dr.gather(UInt32, run_start, run + 1, run + 1 < runs), n
+    )
+    run_key = dr.gather(Coarse, coarse, run_start)
+
+    # ---- Sort the runs by coarse key (stable: equal voxels keep start order) ----
+    by_key = _stable_argsort(run_key, coarse_bits)
+    src_start = dr.gather(UInt32, run_start, by_key)
+    src_length = dr.gather(UInt32, run_end - run_start, by_key)
+    dst_start = dr.prefix_sum(src_length)
+    sorted_run_key = dr.gather(Coarse, run_key, by_key)
+    voxel_head = (run == 0) | (
+        sorted_run_key != dr.gather(Coarse, sorted_run_key, dr.maximum(run, 1) - 1)
+    )
+    voxel_of_run = dr.cumsum(UInt32(voxel_head)) - 1
+    dr.eval(src_start, dst_start, voxel_of_run)
+    coarse_clusters = int(voxel_of_run[runs - 1]) + 1
+
+    # ---- Decompress: run-length decode the sorted runs into slots ----
+    is_dst_start = dr.zeros(UInt32, n)
+    dr.scatter(is_dst_start, UInt32(1), dst_start)
+    slot_run = dr.cumsum(is_dst_start) - 1
+    src = dr.gather(UInt32, src_start, slot_run) + slot - dr.gather(UInt32, dst_start, slot_run)
+    order = dr.gather(UInt32, start, src)
+    sorted_keys = dr.gather(Key, key, src)
+    slot_voxel = dr.gather(UInt32, voxel_of_run, slot_run)
+    dr.eval(order, sorted_keys, slot_voxel)
+
+    # ---- Fine sort inside each coarse voxel that is not in key order yet ----
+    # Voxels come in ascending coarse order, so a key smaller than its predecessor
+    # can only be a descent inside a voxel.
+    descent = (slot > 0) & (sorted_keys < dr.gather(Key, sorted_keys, dr.maximum(slot, 1) - 1))
+    unsorted_voxel = dr.zeros(ns.Bool, coarse_clusters)
+    dr.scatter(unsorted_voxel, True, slot_voxel, descent)
+    resort_slots = dr.compress(dr.gather(ns.Bool, unsorted_voxel, slot_voxel))  # UInt32[M]
+    resorted = dr.width(resort_slots)
+    if resorted:
+        # Whole voxels are gathered in ascending voxel order, so a stable sort of the
+        # gathered keys keeps them grouped, and writes each voxel back onto its slots.
+        sub_keys = dr.gather(Key, sorted_keys, resort_slots)
+        from_slot = dr.gather(UInt32, resort_slots, _stable_argsort(sub_keys, key_bits))
+        new_order = dr.gather(UInt32, order, from_slot)
+        new_keys = dr.gather(Key, sorted_keys, from_slot)
+        dr.eval(new_order, new_keys)  # read before the scatters write (DRJIT_NOTES 5)
+        dr.scatter(order, new_order, resort_slots)
+        dr.scatter(sorted_keys, new_keys, resort_slots)
+        dr.eval(order, sorted_keys)
+    return CsdResult(order, sorted_keys, runs, coarse_clusters, resorted)
+
+
+def _stable_argsort(values, bits: int):
+    """Stable ascending argsort of unsigned integers below ``2^bits``: an LSD radix
+    sort with as few passes as the key width needs (``dr.argsort`` always sorts all 32
+    or 64 bits), each pass one ``dr.detail.block_mkperm`` (the primitive under
+    ``dr.argsort``).
+
+    Args:
+        values: UInt32[K] or UInt64[K].
+        bits: significant low bits of ``values`` (higher bits are ignored).
+
+    Returns:
+        UInt32[K] permutation: ``values[perm]`` ascending, ties in index order.
+    """
+    ns = namespace_of(values)
+    count = dr.width(values)
+    perm = dr.arange(ns.UInt32, count)
+    if bits == 0 or count <= 1:
+        return perm
+    radix = _RADIX_BITS[dr.backend_v(values)]
+    passes = -(-bits // radix)
+    width = -(-bits // passes)  # balanced passes: 30 bits -> 10 + 10 + 10
+    Value = type(values)
+    for p in range(passes):
+        digit = ns.UInt32((values >> (p * width)) & Value((1 << width) - 1))
+        dr.eval(digit, values)
+        step = dr.detail.block_mkperm(digit, count, 1 << width)
+        values = dr.gather(Value, values, step)
+        perm = dr.gather(ns.UInt32, perm, step)
+    return perm
+
+
+def _checked_keys(keys, key_bits):
+    """``(namespace, keys)`` with keys a plain UInt32/UInt64 array and every key below
+    ``2^key_bits``; TypeError / ValueError otherwise."""
+    if not dr.is_jit_v(keys) or dr.type_v(keys) not in (dr.VarType.UInt32, dr.VarType.UInt64):
+        raise TypeError(
+            f"csd_sort: keys must be a UInt32 or UInt64 Dr.Jit array (Morton codes), "
+            f"got {type(keys).__name__}"
+        )
+    ns = namespace_of(keys)
+    wide = dr.type_v(keys) == dr.VarType.UInt64
+    keys = (ns.UInt64 if wide else ns.UInt32)(keys)
+    limit = 64 if wide else 32
+    if not isinstance(key_bits, int) or not 1 <= key_bits <= limit:
+        raise ValueError(
+            f"csd_sort: key_bits={key_bits!r}: expected an int in 1..{limit} for "
+            f"{'UInt64' if wide else 'UInt32'} keys"
+        )
+    if key_bits < limit and dr.width(keys) and dr.max(keys)[0] >> key_bits:
+        raise ValueError(
+            f"csd_sort: a key is {int(dr.max(keys)[0])}, wider than key_bits={key_bits}; "
+            "pass the width the keys were made with"
+        )
+    return ns, keys
+
+
+def _checked_order(ns, start_order, n):
+    """``start_order`` as a plain UInt32 array, checked to be a permutation of 0..n-1."""
+    order = ns.UInt32(start_order)
+    if dr.width(order) != n:
+        raise ValueError(
+            f"csd_sort: start_order has {dr.width(order)} entries for {n} keys; pass the "
+            "order of a previous sort of the same primitives (or None)"
+        )
+    hits = dr.zeros(ns.UInt32, n)
+    dr.scatter(hits, ns.UInt32(1), order, order < n)
+    if n and dr.count(hits == 1)[0] != n:
+        raise ValueError(
+            "csd_sort: start_order is not a permutation of 0..N-1 (an index repeats or "
+            "is out of range); pass the order of a previous sort of the same primitives"
+        )
+    return order
