@@ -1,0 +1,392 @@
+"""Binned SAH build (Wald 2007, "On fast construction of SAH-based bounding volume
+hierarchies"), top-down and breadth-first, as Dr.Jit array kernels.
+
+One function serves both builders that need it:
+
+- ``"hlbvh"`` builds the SAH top level over the coarse clusters (Pantaleoni & Luebke
+  2010, section 4): the items are clusters, each standing for many primitives;
+- ``"sah"`` builds the whole tree over the triangles: the quality reference.
+
+The tree grows one level at a time and every open node of a level is split at once:
+
+1. *Bin.* Every item's centroid (the centre of its box) falls into one of ``bins``
+   equal slices of its node's centroid bounds, on each axis. Per (node, axis, bin) a
+   scatter-reduction accumulates the items' weight and the union of their boxes.
+2. *Sweep.* Per node, the ``3·(bins-1)`` split planes between adjacent bins are
+   priced with the surface area heuristic ``A(L)·W(L) + A(R)·W(R)`` (C_trav = C_isect
+   = 1, ``W`` the summed item weight) and the cheapest plane that leaves both sides
+   non-empty wins. A node with no such plane (all centroids equal, or every plane
+   leaves one side empty) is split at the middle index of its item range instead.
+3. *Partition.* A prefix sum over the left/right decision of every item gives each
+   item its rank inside its child, so the two children own adjacent, contiguous slot
+   ranges of ``item_order`` (a stable partition: items keep their relative order).
+   The same pass scatter-reduces the children's boxes and centroid bounds.
+4. *Emit.* Children get adjacent indices in the next level's block of nodes; a child
+   of at most ``leaf_items`` items is a leaf, the others are the next level's open
+   nodes. Every split has two non-empty children, so the build always ends.
+
+Only the Python loop over levels (the tree's depth) and the unrolled loop over bins
+inside the sweep kernel run on the host; per-level sizes and offsets enter the kernels
+through ``dr.opaque`` so no kernel is recompiled from one level to the next.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import drjit as dr
+
+from .arrays import namespace_of, plain
+
+#: Bins per axis allowed by :func:`binned_sah` (a bin index is packed into 8 bits).
+MAX_BINS = 64
+
+#: Split code of a node split at the middle index of its range (no SAH plane).
+_MIDDLE = 0xFFFFFFFF
+
+#: Floats per node record in the staging buffer: lo.xyz, hi.xyz, first, count.
+_RECORD = 8
+
+
+@dataclass
+class SahTree:
+    """A binary tree over items, in the node layout of :mod:`hlbvh.kernels.bvh`.
+
+    Root at index 0, the two children of a node adjacent and at larger indices than
+    their parent; nodes are numbered level by level (all nodes of depth ``d`` precede
+    those of depth ``d+1``). ``T`` is the node count, ``n_items`` the item count.
+
+    Attributes:
+        node_first: UInt32[T]; internal node: index of its left child (the right child
+            is ``node_first + 1``); leaf: first slot of its items in ``item_order``.
+        node_count: UInt32[T]; 0 for an internal node, else the leaf's item count
+            (slots ``node_first .. node_first + node_count - 1``).
+        node_min: Array3f[T]; lower corner of the union of the node's item boxes.
+        node_max: Array3f[T]; upper corner of that union.
+        item_order: UInt32[n_items]; slot -> item index. Every item has exactly one
+            slot; a leaf owns a contiguous range of slots, and so does every subtree.
+        levels: list of UInt32 arrays, the internal nodes of depth 0, 1, 2, ... (root
+            first; empty when the root is a leaf).
+        leaf_depth: UInt32[T]; the depth of every node (root 0).
+        depth: number of node levels (1 for a single leaf).
+    """
+
+    node_first: Any
+    node_count: Any
+    node_min: Any
+    node_max: Any
+    item_order: Any
+    levels: list
+    leaf_depth: Any
+    depth: int
+
+    @property
+    def size(self) -> int:
+        """Number of nodes ``T``."""
+        return dr.width(self.node_count)
+
+
+def binned_sah(item_min, item_max, item_weight, leaf_items: int, bins: int = 16) -> SahTree:
+    """Build a binary tree over boxed items with the binned surface area heuristic.
+
+    Args:
+        item_min: Array3f[n]; lower corner of each item's box (finite, ``<= item_max``).
+        item_max: Array3f[n]; upper corner of each item's box.
+        item_weight: UInt32[n]; how many primitives each item stands for (1 for a
+            triangle, the primitive count for a coarse cluster). The cost of a split is
+            ``area(L)·weight(L) + area(R)·weight(R)``. Items of weight 0 cost nothing
+            and make no plane valid on their own.
+        leaf_items: int >= 1; a node of at most this many items becomes a leaf, every
+            larger node is split (the SAH top level of ``"hlbvh"`` passes 1).
+        bins: int in 2..64; bins per axis. Centroids are binned in the node's centroid
+            bounds: ``bin = min(floor((c - cmin) / (cmax - cmin) · bins), bins - 1)``
+            (bin 0 on an axis of zero extent).
+
+    Returns:
+        A :class:`SahTree` whose arrays live on the backend of ``item_min``.
+
+    Raises:
+        TypeError: an input is not a Dr.Jit JIT array.
+        ValueError: sizes differ, no items, or ``leaf_items`` / ``bins`` out of range.
+    """
+    n = _check_inputs(item_min, item_max, item_weight, leaf_items, bins)
+    ns = namespace_of(item_min)
+    lo = plain(item_min, "Array3f")
+    hi = plain(item_max, "Array3f")
+    weight = plain(item_weight, "UInt32")
+
+    # ---- Root: one node over every item, in input order ----
+    root_lo, root_hi = dr.min(lo, axis=1), dr.max(hi, axis=1)
+    centroid = _centroid(lo, hi)
+    root_open = n > leaf_items
+    records = dr.empty(ns.Float, _RECORD * (2 * n - 1))
+    _write_records(
+        ns, records, dr.opaque(ns.UInt32, 0), root_lo, root_hi,
+        ns.UInt32(1 if root_open else 0), ns.UInt32(0 if root_open else n),
+    )
+    item_order = dr.arange(ns.UInt32, n) if not root_open else dr.empty(ns.UInt32, n)
+
+    level = _Level(
+        node_id=ns.UInt32(0),
+        slot_first=ns.UInt32(0),
+        act_first=ns.UInt32(0),
+        count=ns.UInt32(n),
+        cmin=dr.min(centroid, axis=1),
+        cmax=dr.max(centroid, axis=1),
+        item=dr.arange(ns.UInt32, n),
+        node=dr.zeros(ns.UInt32, n),
+        size=1 if root_open else 0,
+    )
+    levels = []
+    block_start = [0, 1]  # first node index of each depth's block (and one past the end)
+    while level.size:
+        levels.append(level.node_id)
+        level = _split_level(ns, lo, hi, weight, level, records, item_order, block_start,
+                             leaf_items, bins)
+
+    # ---- Final arrays: unpack the node records, depth from the block starts ----
+    node_total = block_start[-1]
+    rec = dr.gather(ns.ArrayXf, records, dr.arange(ns.UInt32, node_total), shape=(_RECORD, node_total))
+    marks = dr.zeros(ns.UInt32, node_total)
+    if len(block_start) > 2:
+        dr.scatter(marks, ns.UInt32(1), ns.UInt32(block_start[1:-1]))
+    leaf_depth = dr.cumsum(marks)
+    tree = SahTree(
+        node_first=dr.reinterpret_array(ns.UInt32, rec[6]),
+        node_count=dr.reinterpret_array(ns.UInt32, rec[7]),
+        node_min=ns.Array3f(rec[0], rec[1], rec[2]),
+        node_max=ns.Array3f(rec[3], rec[4], rec[5]),
+        item_order=item_order,
+        levels=levels,
+        leaf_depth=leaf_depth,
+        depth=len(block_start) - 1,
+    )
+    dr.eval(tree.node_first, tree.node_count, tree.node_min, tree.node_max,
+            tree.item_order, tree.leaf_depth)
+    return tree
+
+
+@dataclass
+class _Level:
+    """The open nodes of one depth (``size`` of them) and the items they hold.
+
+    Per open node (UInt32[size] / Array3f[size]): ``node_id`` its index in the tree,
+    ``slot_first`` its first slot in ``item_order``, ``act_first`` its first position in
+    the active item arrays, ``count`` its item count, ``cmin``/``cmax`` the bounds of
+    its items' centroids. Per active item (UInt32[m], grouped by node, in slot order):
+    ``item`` the item index and ``node`` the position of its node in this level.
+    """
+
+    node_id: Any
+    slot_first: Any
+    act_first: Any
+    count: Any
+    cmin: Any
+    cmax: Any
+    item: Any
+    node: Any
+    size: int
+
+
+def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_start,
+                 leaf_items: int, bins: int) -> _Level:
+    """Split every open node of ``level``; write the children's node records and the
+    slots of items that reached a leaf; return the next level's open nodes."""
+    K = level.size
+    m = dr.width(level.item)
+    child_start = dr.opaque(ns.UInt32, block_start[-1])
+    grandchild_start = dr.opaque(ns.UInt32, block_start[-1] + 2 * K)
+    block_start.append(block_start[-1] + 2 * K)
+
+    # ---- Bin every active item on the three axes of its node ----
+    item_lo = dr.gather(ns.Array3f, lo, level.item)
+    item_hi = dr.gather(ns.Array3f, hi, level.item)
+    centroid = _centroid(item_lo, item_hi)
+    cmin = dr.gather(ns.Array3f, level.cmin, level.node)
+    cmax = dr.gather(ns.Array3f, level.cmax, level.node)
+    bin_lo = dr.full(ns.Float, dr.inf, 3 * K * bins * 3)
+    bin_hi = dr.full(ns.Float, -dr.inf, 3 * K * bins * 3)
+    bin_weight = dr.zeros(ns.UInt32, 3 * K * bins)
+    item_w = dr.gather(ns.UInt32, weight, level.item)
+    packed_bins = ns.UInt32(0)
+    for axis in range(3):
+        b = _bin_index(ns, centroid[axis], cmin[axis], cmax[axis], bins)
+        packed_bins |= b << (8 * axis)
+        cell = (level.node * 3 + axis) * bins + b
+        dr.scatter_reduce(dr.ReduceOp.Min, bin_lo, item_lo, cell)
+        dr.scatter_reduce(dr.ReduceOp.Max, bin_hi, item_hi, cell)
+        dr.scatter_reduce(dr.ReduceOp.Add, bin_weight, item_w, cell)
+    dr.eval(packed_bins)
+
+    # ---- Sweep the split planes of every node: cheapest valid plane or middle ----
+    split = _sweep(ns, bin_lo, bin_hi, bin_weight, K, bins)
+    dr.eval(split)
+
+    # ---- Left/right decision per item, ranks by a prefix sum ----
+    position = dr.arange(ns.UInt32, m)
+    node_split = dr.gather(ns.UInt32, split, level.node)
+    act_first = dr.gather(ns.UInt32, level.act_first, level.node)
+    count = dr.gather(ns.UInt32, level.count, level.node)
+    axis = node_split // bins
+    item_bin = (packed_bins >> (8 * dr.minimum(axis, 2))) & 0xFF
+    goes_left = ns.UInt32(dr.select(
+        node_split == _MIDDLE,
+        (position - act_first) < count // 2,
+        item_bin <= node_split % bins,
+    ))
+    left_before = dr.prefix_sum(goes_left)
+    dr.eval(goes_left, left_before)
+
+    # ---- Children: counts, slot ranges, open or leaf, next-level positions ----
+    child = dr.arange(ns.UInt32, 2 * K)
+    parent = child >> 1
+    is_right = (child & 1) == 1
+    p_first = dr.gather(ns.UInt32, level.act_first, parent)
+    p_count = dr.gather(ns.UInt32, level.count, parent)
+    p_last = p_first + p_count - 1
+    n_left = (dr.gather(ns.UInt32, left_before, p_last) + dr.gather(ns.UInt32, goes_left, p_last)
+              - dr.gather(ns.UInt32, left_before, p_first))
+    c_count = dr.select(is_right, p_count - n_left, n_left)
+    c_slot = dr.gather(ns.UInt32, level.slot_first, parent) + dr.select(is_right, n_left, 0)
+    c_open = c_count > leaf_items
+    open_u = ns.UInt32(c_open)
+    next_index = dr.prefix_sum(open_u)
+    next_act = dr.prefix_sum(dr.select(c_open, c_count, 0))
+    dr.eval(c_count, c_slot, c_open, next_index, next_act)
+    last_open = bool(c_open[2 * K - 1])
+    K_next = next_index[2 * K - 1] + last_open
+    m_next = next_act[2 * K - 1] + (c_count[2 * K - 1] if last_open else 0)
+
+    # ---- Partition: move each item to its child, reduce the children's bounds ----
+    left = goes_left == 1
+    left_rank = left_before - dr.gather(ns.UInt32, left_before, act_first)
+    rank = dr.select(left, left_rank, (position - act_first) - left_rank)
+    c = level.node * 2 + dr.select(left, 0, 1)
+    to_open = dr.gather(ns.Bool, c_open, c)
+    dr.scatter(item_order, level.item, dr.gather(ns.UInt32, c_slot, c) + rank, ~to_open)
+    c_lo = dr.full(ns.Float, dr.inf, 2 * K * 3)
+    c_hi = dr.full(ns.Float, -dr.inf, 2 * K * 3)
+    c_cmin = dr.full(ns.Float, dr.inf, 2 * K * 3)
+    c_cmax = dr.full(ns.Float, -dr.inf, 2 * K * 3)
+    dr.scatter_reduce(dr.ReduceOp.Min, c_lo, item_lo, c)
+    dr.scatter_reduce(dr.ReduceOp.Max, c_hi, item_hi, c)
+    dr.scatter_reduce(dr.ReduceOp.Min, c_cmin, centroid, c, to_open)
+    dr.scatter_reduce(dr.ReduceOp.Max, c_cmax, centroid, c, to_open)
+    if K_next:
+        next_item = dr.empty(ns.UInt32, m_next)
+        next_node = dr.empty(ns.UInt32, m_next)
+        dest = dr.gather(ns.UInt32, next_act, c) + rank
+        dr.scatter(next_item, level.item, dest, to_open)
+        dr.scatter(next_node, dr.gather(ns.UInt32, next_index, c), dest, to_open)
+    dr.eval()
+
+    # ---- Emit: node records of the children, the next level's open nodes ----
+    box_lo = dr.gather(ns.Array3f, c_lo, child)
+    box_hi = dr.gather(ns.Array3f, c_hi, child)
+    first = dr.select(c_open, grandchild_start + 2 * next_index, c_slot)
+    _write_records(ns, records, child_start + child, box_lo, box_hi, first,
+                   dr.select(c_open, 0, c_count))
+    if not K_next:
+        dr.eval()
+        return _Level(*([None] * 8), size=0)
+    next_child = dr.empty(ns.UInt32, K_next)
+    dr.scatter(next_child, child, next_index, c_open)
+    dr.eval()
+    nxt = _Level(
+        node_id=child_start + next_child,
+        slot_first=dr.gather(ns.UInt32, c_slot, next_child),
+        act_first=dr.gather(ns.UInt32, next_act, next_child),
+        count=dr.gather(ns.UInt32, c_count, next_child),
+        cmin=dr.gather(ns.Array3f, c_cmin, next_child),
+        cmax=dr.gather(ns.Array3f, c_cmax, next_child),
+        item=next_item,
+        node=next_node,
+        size=K_next,
+    )
+    dr.eval(nxt.node_id, nxt.slot_first, nxt.act_first, nxt.count, nxt.cmin, nxt.cmax)
+    return nxt
+
+
+def _sweep(ns, bin_lo, bin_hi, bin_weight, K: int, bins: int):
+    """Per node (UInt32[K]): the split code ``axis·bins + last_left_bin`` of the
+    cheapest plane with both sides non-empty (first in axis, then plane order on
+    ties), or ``_MIDDLE`` when no plane qualifies."""
+    node = dr.arange(ns.UInt32, K)
+    best_cost = dr.full(ns.Float, dr.inf, K)
+    best_code = dr.full(ns.UInt32, _MIDDLE, K)
+    for axis in range(3):
+        cells = [(node * 3 + axis) * bins + b for b in range(bins)]
+        box = [(dr.gather(ns.Array3f, bin_lo, i), dr.gather(ns.Array3f, bin_hi, i)) for i in cells]
+        w = [dr.gather(ns.UInt32, bin_weight, i) for i in cells]
+        # Left sides: bins 0..p for plane p
+        left_cost, left_w = [], []
+        acc_lo, acc_hi, acc_w = box[0][0], box[0][1], w[0]
+        for b in range(bins - 1):
+            if b:
+                acc_lo, acc_hi, acc_w = dr.minimum(acc_lo, box[b][0]), dr.maximum(acc_hi, box[b][1]), acc_w + w[b]
+            left_cost.append(_half_area(acc_lo, acc_hi) * ns.Float(acc_w))
+            left_w.append(acc_w)
+        # Right sides, swept from the last bin down; ties keep the lower plane
+        axis_cost = dr.full(ns.Float, dr.inf, K)
+        axis_plane = dr.zeros(ns.UInt32, K)
+        acc_lo, acc_hi, acc_w = box[bins - 1][0], box[bins - 1][1], w[bins - 1]
+        for b in range(bins - 1, 0, -1):
+            if b < bins - 1:
+                acc_lo, acc_hi, acc_w = dr.minimum(acc_lo, box[b][0]), dr.maximum(acc_hi, box[b][1]), acc_w + w[b]
+            plane = b - 1
+            cost = dr.fma(_half_area(acc_lo, acc_hi), ns.Float(acc_w), left_cost[plane])
+            better = (left_w[plane] > 0) & (acc_w > 0) & (cost <= axis_cost)
+            axis_cost = dr.select(better, cost, axis_cost)
+            axis_plane = dr.select(better, plane, axis_plane)
+        better = axis_cost < best_cost
+        best_cost = dr.select(better, axis_cost, best_cost)
+        best_code = dr.select(better, axis * bins + axis_plane, best_code)
+    return best_code
+
+
+def _write_records(ns, records, index, box_lo, box_hi, first, count):
+    """One wide scatter of node records (lo, hi, first, count) at node ``index``."""
+    as_float = lambda u: dr.reinterpret_array(ns.Float, ns.UInt32(u))
+    value = ns.ArrayXf([box_lo.x, box_lo.y, box_lo.z, box_hi.x, box_hi.y, box_hi.z,
+                        as_float(first), as_float(count)])
+    dr.scatter(records, value, index)
+
+
+def _centroid(lo, hi):
+    """Centre of a box (the point that is binned)."""
+    return (lo + hi) * 0.5
+
+
+def _bin_index(ns, c, cmin, cmax, bins: int):
+    """Bin of centroid coordinate ``c`` among ``bins`` equal slices of [cmin, cmax]."""
+    extent = cmax - cmin
+    f = (c - cmin) / extent * bins
+    f = dr.select((extent > 0) & (f < bins), f, dr.select(extent > 0, bins - 1, 0))
+    return ns.UInt32(f)
+
+
+def _half_area(lo, hi):
+    """Half the surface area of the box [lo, hi] (the SAH needs only ratios)."""
+    d = hi - lo
+    return dr.fma(d.x, d.y + d.z, d.y * d.z)
+
+
+def _check_inputs(item_min, item_max, item_weight, leaf_items, bins) -> int:
+    """Item count after checking types, sizes and options (ValueError/TypeError)."""
+    for name, x in (("item_min", item_min), ("item_max", item_max), ("item_weight", item_weight)):
+        if not dr.is_jit_v(x):
+            raise TypeError(f"binned_sah: {name} must be a Dr.Jit JIT array, got {type(x).__name__}")
+    n = dr.width(item_min)
+    if n == 0:
+        raise ValueError("binned_sah: no items (item_min is empty); pass at least one box")
+    if dr.width(item_max) != n or dr.width(item_weight) != n:
+        raise ValueError(
+            f"binned_sah: item_min, item_max and item_weight must have one entry per item "
+            f"(got {n}, {dr.width(item_max)}, {dr.width(item_weight)})"
+        )
+    if not isinstance(leaf_items, int) or isinstance(leaf_items, bool) or leaf_items < 1:
+        raise ValueError(f"binned_sah: leaf_items={leaf_items!r}: expected an int >= 1")
+    if not isinstance(bins, int) or isinstance(bins, bool) or not 2 <= bins <= MAX_BINS:
+        raise ValueError(f"binned_sah: bins={bins!r}: expected an int in 2..{MAX_BINS}")
+    return n
