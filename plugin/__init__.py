@@ -21,6 +21,11 @@ if _mi.variant() is None:
 
 from hlbvh.kernels.build import build  # noqa: E402
 from hlbvh.kernels.bvh import BVH, BuildConfig, BuildStats  # noqa: E402
+from hlbvh.accel import NativeAccel, SceneAccel, make_accel  # noqa: E402
+from hlbvh.integrators import register  # noqa: E402
 
-__all__ = ["build", "BVH", "BuildConfig", "BuildStats"]
+register()
+
+__all__ = ["build", "BVH", "BuildConfig", "BuildStats", "SceneAccel", "NativeAccel",
+           "make_accel", "register"]
 __version__ = "0.1.0"

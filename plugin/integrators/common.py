@@ -1,0 +1,109 @@
+"""What every hlbvh integrator shares: the ``accel`` parameter and the builder's
+options read from the scene description, the intersector built lazily on the first
+render of a scene and cached, and the path-tracing helpers (MIS weight, skipping of
+directly visible area emitters) written against an intersector instead of the scene.
+
+The module is reloaded by :func:`hlbvh.register` after a variant change, so that
+:class:`AccelIntegrator` derives from the current variant's ``mi.SamplingIntegrator``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import drjit as dr
+import mitsuba as mi
+
+from hlbvh.accel import ACCELS, make_accel
+from hlbvh.kernels.bvh import BuildConfig
+
+#: The builder options an integrator accepts as properties (``hlbvh.build``'s).
+BUILD_OPTIONS = tuple(f.name for f in dataclasses.fields(BuildConfig))
+
+
+class AccelIntegrator(mi.SamplingIntegrator):
+    """A sampling integrator whose ray queries go through an hlbvh intersector.
+
+    Properties (besides ``mi.SamplingIntegrator``'s):
+        accel: ``"hlbvh"`` (default) or ``"native"``.
+        builder, leaf_size, morton_bits, quantization, coarse_bits, p, sah_bins:
+            options of :func:`hlbvh.build` (see :class:`hlbvh.BuildConfig`).
+
+    The intersector is built on the first render of a scene and kept for the next
+    renders of that scene; it is rebuilt when another scene is rendered, and updated
+    when a mesh of the scene got new buffers (``params.update()``). While cached it
+    keeps its scene alive; :meth:`release_accel` drops it.
+    """
+
+    def __init__(self, props):
+        super().__init__(props)
+        self.accel_name = props.get("accel", "hlbvh")
+        if self.accel_name not in ACCELS:
+            raise ValueError(
+                f"integrator property accel={self.accel_name!r}: expected one of {ACCELS}"
+            )
+        self.build_options = {name: props[name] for name in BUILD_OPTIONS if name in props}
+        BuildConfig.from_options(**self.build_options)
+        self._accel = None
+
+    def accel(self, scene):
+        """The intersector of ``scene``: built on first use, rebuilt for another scene,
+        updated when the scene's meshes changed."""
+        if self._accel is None or self._accel.scene is not scene:
+            self._accel = make_accel(scene, self.accel_name, **self.build_options)
+        elif self._accel.changed():
+            self._accel.update()
+        return self._accel
+
+    def release_accel(self):
+        """Drop the cached intersector (and with it the reference to its scene)."""
+        self._accel = None
+
+    def _options_string(self) -> str:
+        options = "".join(f", {k}={v!r}" for k, v in self.build_options.items())
+        return f"accel={self.accel_name!r}{options}"
+
+
+def mis_weight(pdf_a, pdf_b):
+    """Power heuristic (exponent 2) of sampling technique a against b; 0 where it is
+    not finite. Detached: MIS weights carry no derivative."""
+    a2, b2 = pdf_a * pdf_a, pdf_b * pdf_b
+    w = a2 / (a2 + b2)
+    return dr.detach(dr.select(dr.isfinite(w), w, 0.0))
+
+
+def skip_area_emitters(accel, ray, coherent, active):
+    """The first hit along ``ray`` that is not on an area emitter.
+
+    Repeatedly intersects ``ray`` and continues past every emitting surface it meets
+    (how ``hide_emitters`` hides area lights seen directly), as Mitsuba's
+    ``Integrator::skip_area_emitters`` does with the scene.
+
+    Args:
+        accel: the intersector.
+        ray: Ray3f.
+        coherent: forwarded to every query.
+        active: Bool, the lanes to process.
+    Returns:
+        PreliminaryIntersection3f of the first non-emitting surface (or a miss).
+    """
+
+    def cond(pi, ray, active):
+        return active
+
+    def body(pi, ray, active):
+        pi = accel.ray_intersect_preliminary(ray, coherent)
+        active &= pi.is_valid() & (pi.shape.emitter() != None)  # noqa: E711 (JIT compare)
+        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
+        ray = si.spawn_ray(ray.d)
+        return pi, ray, active
+
+    pi, _, _ = dr.while_loop(
+        state=(dr.zeros(mi.PreliminaryIntersection3f, dr.width(ray)), mi.Ray3f(ray),
+               mi.Bool(active)),
+        cond=cond,
+        body=body,
+        labels=("pi", "ray", "active"),
+        label="hlbvh_skip_area_emitters",
+    )
+    return pi

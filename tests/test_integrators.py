@@ -1,0 +1,176 @@
+"""The registered integrators: ``hlbvh_path`` against Mitsuba's C++ ``path``, pixel for
+pixel, and ``hlbvh_aov``; from dict and XML scenes; bad properties."""
+
+import drjit as dr
+import hlbvh
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from test_accel import analytic_scene, cornell_box, needs_build
+
+
+def render(scene, integrator: dict, seed=0) -> np.ndarray:
+    return np.array(mi.render(scene, integrator=mi.load_dict(integrator), seed=seed))
+
+
+SCENES = {"cornell_box": cornell_box, "analytic": analytic_scene}
+
+
+@pytest.mark.parametrize("scene_name", SCENES)
+@pytest.mark.parametrize("options", [
+    dict(max_depth=6),
+    dict(max_depth=3, hide_emitters=True),
+    dict(max_depth=8, rr_depth=2),
+])
+def test01_path_native_bit_identical_to_cpp_path(scene_name, options):
+    scene = mi.load_dict(SCENES[scene_name]())
+    reference = render(scene, dict(type="path", **options), seed=7)
+    ours = render(scene, dict(type="hlbvh_path", accel="native", **options), seed=7)
+    assert reference.mean() > 0.01  # the scene is lit: the comparison means something
+    np.testing.assert_array_equal(ours, reference)
+
+
+XML_SCENE = """
+<scene version="3.0.0">
+    <integrator type="hlbvh_path">
+        <string name="accel" value="native"/>
+        <string name="builder" value="lbvh"/>
+        <integer name="leaf_size" value="2"/>
+        <integer name="max_depth" value="5"/>
+    </integrator>
+    <sensor type="perspective">
+        <float name="fov" value="40"/>
+        <transform name="to_world">
+            <lookat origin="0, 1, 6" target="0, 0.5, 0" up="0, 1, 0"/>
+        </transform>
+        <sampler type="independent"><integer name="sample_count" value="4"/></sampler>
+        <film type="hdrfilm">
+            <integer name="width" value="32"/>
+            <integer name="height" value="32"/>
+            <rfilter type="box"/>
+        </film>
+    </sensor>
+    <shape type="rectangle">
+        <transform name="to_world"><rotate x="1" angle="-90"/><scale value="5"/></transform>
+    </shape>
+    <shape type="cube">
+        <transform name="to_world"><scale value="0.5"/><translate x="-1" y="0.5"/></transform>
+    </shape>
+    <shape type="sphere">
+        <point name="center" x="1" y="0.6" z="0"/>
+        <float name="radius" value="0.6"/>
+    </shape>
+    <shape type="sphere">
+        <point name="center" x="0" y="4" z="2"/>
+        <float name="radius" value="0.5"/>
+        <emitter type="area"><rgb name="radiance" value="20"/></emitter>
+    </shape>
+</scene>
+"""
+
+
+def test02_path_from_xml_scene_bit_identical():
+    scene = mi.load_string(XML_SCENE)
+    assert "accel='native'" in str(scene.integrator())
+    ours = np.array(mi.render(scene, seed=1))
+    reference = render(scene, dict(type="path", max_depth=5), seed=1)
+    assert reference.mean() > 0.01
+    np.testing.assert_array_equal(ours, reference)
+
+
+def test03_path_from_dict_scene_bit_identical():
+    desc = analytic_scene()
+    desc["integrator"] = dict(type="hlbvh_path", accel="native", max_depth=4,
+                              builder="sah", morton_bits="auto")
+    scene = mi.load_dict(desc)
+    ours = np.array(mi.render(scene, seed=2))
+    reference = render(scene, dict(type="path", max_depth=4), seed=2)
+    np.testing.assert_array_equal(ours, reference)
+
+
+@pytest.mark.parametrize("props, message", [
+    (dict(accel="embree"), "accel='embree'"),
+    (dict(builder="bvh2"), "builder='bvh2'"),
+    (dict(leaf_size=99), "leaf_size=99"),
+    (dict(leaf_sise=4), "leaf_sise"),
+    (dict(max_depth=-3), "max_depth=-3"),
+])
+@pytest.mark.parametrize("kind", ["hlbvh_path", "hlbvh_aov"])
+def test04_bad_properties_raise_naming_them(kind, props, message):
+    if kind == "hlbvh_aov" and "max_depth" in props:
+        message = "max_depth"  # not a property of hlbvh_aov: Mitsuba names it unreferenced
+    with pytest.raises(Exception, match=message):
+        mi.load_dict(dict(type=kind, **props))
+
+
+def test05_register_again_is_harmless():
+    hlbvh.register()
+    scene = mi.load_dict(cornell_box())
+    a = render(scene, dict(type="hlbvh_path", accel="native", max_depth=3))
+    hlbvh.register()
+    b = render(scene, dict(type="hlbvh_path", accel="native", max_depth=3))
+    np.testing.assert_array_equal(a, b)
+
+
+def test06_aov_channels_are_consistent():
+    """Misses carry depth 0 and index -1; hits a depth > 0, a valid shape index and a
+    unit normal; and the shape indices seen are those of the scene's visible shapes."""
+    desc = analytic_scene(spp=1)
+    scene = mi.load_dict(desc)
+    img = render(scene, dict(type="hlbvh_aov", accel="native"))
+    channels = img.shape[-1]
+    assert channels == 3 + len(hlbvh.integrators.aov.CHANNELS)
+    depth, shape, prim = img[..., 3], img[..., 4], img[..., 5]
+    hit = depth > 0
+    assert hit.any() and (~hit).any()
+    assert np.all(shape[~hit] == -1) and np.all(prim[~hit] == -1)
+    assert np.all((shape[hit] >= 0) & (shape[hit] < len(scene.shapes())))
+    normal = img[..., 6:9]
+    np.testing.assert_allclose(np.linalg.norm(normal[hit], axis=-1), 1, atol=1e-4)
+
+
+def test07_path_on_a_scene_without_geometry_equals_native():
+    """An environment and nothing else: every ray misses, in both accelerators."""
+    desc = dict(cornell_box())
+    desc = {k: v for k, v in desc.items() if k in ("type", "sensor")}
+    desc["sky"] = dict(type="constant", radiance=dict(type="rgb", value=0.5))
+    scene = mi.load_dict(desc)
+    reference = render(scene, dict(type="path", max_depth=4), seed=3)
+    for accel in ("native", "hlbvh"):
+        ours = render(scene, dict(type="hlbvh_path", accel=accel, max_depth=4), seed=3)
+        np.testing.assert_array_equal(ours, reference)
+
+
+# ---------------------------------------------------------------------------------------
+# hlbvh against native (need the builder)
+# ---------------------------------------------------------------------------------------
+
+
+@needs_build
+@pytest.mark.parametrize("scene_name", SCENES)
+def test10_aov_primary_hits_hlbvh_equal_native(scene_name):
+    scene = mi.load_dict(SCENES[scene_name](spp=1))
+    native = render(scene, dict(type="hlbvh_aov", accel="native"), seed=4)
+    ours = render(scene, dict(type="hlbvh_aov", accel="hlbvh"), seed=4)
+    shape_n, prim_n = native[..., 4], native[..., 5]
+    shape_o, prim_o = ours[..., 4], ours[..., 5]
+    same = (shape_n == shape_o) & (prim_n == prim_o)
+    # Edge-grazing rays may pick the neighbouring triangle: allow a pixel or two.
+    assert same.mean() >= 1 - 2 / same.size, f"{(~same).sum()} pixels differ"
+    depth_n, depth_o = native[..., 3], ours[..., 3]
+    np.testing.assert_allclose(depth_o[same], depth_n[same], rtol=1e-5)
+
+
+@needs_build
+@pytest.mark.parametrize("scene_name", SCENES)
+def test11_path_hlbvh_close_to_native(scene_name):
+    """Same seed, box filter: the two accelerators trace the same paths except where a
+    hit differs in the last bits of t or barycentrics (and, rarely, the triangle of an
+    edge hit). Tolerances from measurement, see the report of issue 3."""
+    scene = mi.load_dict(SCENES[scene_name]())
+    native = render(scene, dict(type="hlbvh_path", accel="native", max_depth=6), seed=5)
+    ours = render(scene, dict(type="hlbvh_path", accel="hlbvh", max_depth=6), seed=5)
+    diff = np.abs(ours - native)
+    assert diff.mean() < 1e-3 * max(native.mean(), 1e-3)
+    assert np.mean(diff <= 1e-4 * np.maximum(1, np.abs(native))) > 0.95
