@@ -86,7 +86,7 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
     n = dr.width(keys)
     start = dr.arange(UInt32, n) if start_order is None else _checked_order(ns, start_order, n)
     if n == 0:
-        return CsdResult(UInt32(), Key(), runs=0, coarse_clusters=0, resorted=0)
+        return CsdResult(start, keys, runs=0, coarse_clusters=0, resorted=0)
 
     # ---- Compress: run-length encode the coarse keys in start order ----
     key = dr.gather(Key, keys, start)
@@ -96,7 +96,14 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
     else:
         coarse = Coarse(key >> (key_bits - coarse_bits))
     slot = dr.arange(UInt32, n)
-    run_head = (slot == 0) | (coarse != dr.gather(Coarse, coarse, dr.maximum(slot, 1) - 1))
+    before = dr.maximum(slot, 1) - 1
+    run_head = (slot == 0) | (coarse != dr.gather(Coarse, coarse, before))
+    descents = dr.count((slot > 0) & (key < dr.gather(Key, key, before)))
+    dr.eval(key, run_head, descents)
+    if descents[0] == 0:
+        # Already sorted in start order: each run is a whole voxel, nothing moves.
+        runs = int(dr.count(run_head)[0])
+        return CsdResult(start, key, runs=runs, coarse_clusters=runs, resorted=0)
     run_start = dr.compress(run_head)  # UInt32[R]
     runs = dr.width(run_start)
     run = dr.arange(UInt32, runs)
@@ -116,7 +123,6 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
     )
     voxel_of_run = dr.cumsum(UInt32(voxel_head)) - 1
     dr.eval(src_start, dst_start, voxel_of_run)
-    coarse_clusters = int(voxel_of_run[runs - 1]) + 1
 
     # ---- Decompress: run-length decode the sorted runs into slots ----
     is_dst_start = dr.zeros(UInt32, n)
@@ -130,24 +136,50 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
 
     # ---- Fine sort inside each coarse voxel that is not in key order yet ----
     # Voxels come in ascending coarse order, so a key smaller than its predecessor
-    # can only be a descent inside a voxel.
-    descent = (slot > 0) & (sorted_keys < dr.gather(Key, sorted_keys, dr.maximum(slot, 1) - 1))
-    unsorted_voxel = dr.zeros(ns.Bool, coarse_clusters)
+    # can only be a descent inside a voxel. Voxel ids are < runs.
+    descent = (slot > 0) & (sorted_keys < dr.gather(Key, sorted_keys, before))
+    unsorted_voxel = dr.zeros(ns.Bool, runs)
     dr.scatter(unsorted_voxel, True, slot_voxel, descent)
-    resort_slots = dr.compress(dr.gather(ns.Bool, unsorted_voxel, slot_voxel))  # UInt32[M]
-    resorted = dr.width(resort_slots)
+    in_unsorted_voxel = dr.gather(ns.Bool, unsorted_voxel, slot_voxel)
+    resorted = int(dr.count(in_unsorted_voxel)[0])
     if resorted:
-        # Whole voxels are gathered in ascending voxel order, so a stable sort of the
-        # gathered keys keeps them grouped, and writes each voxel back onto its slots.
-        sub_keys = dr.gather(Key, sorted_keys, resort_slots)
-        from_slot = dr.gather(UInt32, resort_slots, _stable_argsort(sub_keys, key_bits))
-        new_order = dr.gather(UInt32, order, from_slot)
-        new_keys = dr.gather(Key, sorted_keys, from_slot)
-        dr.eval(new_order, new_keys)  # read before the scatters write (DRJIT_NOTES 5)
-        dr.scatter(order, new_order, resort_slots)
-        dr.scatter(sorted_keys, new_keys, resort_slots)
+        source = _voxel_sort(sorted_keys, key_bits, in_unsorted_voxel, resorted)
+        order = dr.gather(UInt32, order, source)
+        sorted_keys = dr.gather(Key, sorted_keys, source)
         dr.eval(order, sorted_keys)
-    return CsdResult(order, sorted_keys, runs, coarse_clusters, resorted)
+    return CsdResult(
+        order,
+        sorted_keys,
+        runs=runs,
+        coarse_clusters=int(voxel_of_run[runs - 1]) + 1,
+        resorted=resorted,
+    )
+
+
+def _voxel_sort(keys, key_bits, resort, count):
+    """The stable sort of ``keys`` (grouped by coarse voxel, voxels ascending) that only
+    moves keys inside the voxels flagged in ``resort``.
+
+    Args:
+        keys: UInt32[N] or UInt64[N], grouped by coarse voxel in ascending order.
+        key_bits: significant bits of the keys.
+        resort: Bool[N], true on every slot of a voxel to sort, false on every slot of
+            a voxel already in key order.
+        count: number of true entries in ``resort`` (1..N).
+
+    Returns:
+        UInt32[N] ``source``: slot ``i`` of the sorted sequence takes ``keys[source[i]]``.
+    """
+    ns = namespace_of(keys)
+    if count == dr.width(keys):
+        return _stable_argsort(keys, key_bits)
+    # Whole voxels are gathered in ascending voxel order, so a stable sort of the
+    # gathered keys keeps them grouped and puts each voxel back onto its own slots.
+    slots = dr.compress(resort)
+    by_key = _stable_argsort(dr.gather(type(keys), keys, slots), key_bits)
+    source = dr.arange(ns.UInt32, dr.width(keys))
+    dr.scatter(source, dr.gather(ns.UInt32, slots, by_key), slots)
+    return source
 
 
 def _stable_argsort(values, bits: int):
@@ -207,18 +239,28 @@ def _checked_keys(keys, key_bits):
 
 
 def _checked_order(ns, start_order, n):
-    """``start_order`` as a plain UInt32 array, checked to be a permutation of 0..n-1."""
+    """``start_order`` as a plain UInt32 array of ``n`` entries, checked to look like a
+    permutation of 0..n-1."""
     order = ns.UInt32(start_order)
     if dr.width(order) != n:
         raise ValueError(
             f"csd_sort: start_order has {dr.width(order)} entries for {n} keys; pass the "
             "order of a previous sort of the same primitives (or None)"
         )
-    hits = dr.zeros(ns.UInt32, n)
-    dr.scatter(hits, ns.UInt32(1), order, order < n)
-    if n and dr.count(hits == 1)[0] != n:
+    if n == 0:
+        return order
+    # A range check (gathers stay in bounds) and the sums of the entries and of their
+    # squares (both mod 2^32), which catch a repeated index unless other entries make
+    # up for it in both; an exact check would cost a random scatter over N.
+    largest, total, squares = dr.max(order), dr.sum(order), dr.sum(order * order)
+    dr.eval(largest, total, squares)
+    if (
+        largest[0] >= n
+        or total[0] != n * (n - 1) // 2 % 2**32
+        or squares[0] != (n - 1) * n * (2 * n - 1) // 6 % 2**32
+    ):
         raise ValueError(
-            "csd_sort: start_order is not a permutation of 0..N-1 (an index repeats or "
-            "is out of range); pass the order of a previous sort of the same primitives"
+            "csd_sort: start_order is not a permutation of 0..N-1 (an index is out of "
+            "range or repeats); pass the order of a previous sort of the same primitives"
         )
     return order
