@@ -1,0 +1,227 @@
+"""The build facade: ``hlbvh.build(vertices, faces, **options) -> BVH``.
+
+Three builders behind one word (see :class:`~hlbvh.kernels.bvh.BuildConfig`):
+
+- ``"lbvh"`` (Lauterbach et al. 2009): Morton codes, CSD sort, then the hierarchy
+  emission over every bit plane.
+- ``"hlbvh"`` (Pantaleoni & Luebke 2010): Morton codes, CSD sort; the coarse clusters
+  (primitives sharing the top ``coarse_bits`` key bits) get a binned-SAH top level, and
+  the emission builds each cluster's sub-tree from bit plane ``coarse_bits`` down.
+- ``"sah"`` (Wald 2007): a binned SAH over all primitives, the quality reference.
+
+Every stage is a function of Dr.Jit arrays; the host reads back only sizes (segment,
+split and cluster counts) and the statistics.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+
+import drjit as dr
+
+from .bounds import internal_levels, leaf_histogram, node_bounds, sah_cost, triangle_boxes
+from .bvh import BVH, BuildConfig, BuildStats
+from .csd import csd_sort
+from .emission import NodeRecords, emit_hierarchy, open_segments
+from .geometry import checked_faces, checked_vertices, slot_triangles
+from .morton import choose_morton_bits, morton_codes, point_bounds
+from .arrays import namespace_of
+from .sah import binned_sah
+
+
+class _StageClock:
+    """Wall time of each stage, the device synchronised before the clock stops."""
+
+    def __init__(self):
+        self.ms: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def __call__(self, name: str):
+        t0 = time.perf_counter()
+        yield
+        dr.sync_thread()
+        self.ms[name] = self.ms.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+
+
+def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
+    """Build a BVH over a triangle mesh.
+
+    Args:
+        vertices: flat Float (3·V, xyz interleaved) or Array3f/Point3f (V), of the
+            LLVM or CUDA backend; every coordinate finite.
+        faces: flat UInt32 (3·F) vertex indices, or Array3u (F); F >= 1.
+        previous: a BVH of an earlier frame of the same mesh: its primitive order
+            seeds the CSD sort (temporal coherence). Ignored when the triangle count
+            changed. The result is the same tree as without it.
+        **options: fields of :class:`BuildConfig` (builder, leaf_size, morton_bits,
+            quantization, coarse_bits, p, sah_bins).
+    Returns:
+        A :class:`BVH` whose ``stats`` say what the build measured.
+    Raises:
+        ValueError: unknown or invalid options, empty input, non-finite vertices,
+            faces indexing missing vertices.
+        TypeError: inputs that are not Dr.Jit arrays of the expected kinds.
+    """
+    config = BuildConfig.from_options(**options)
+    if previous is not None and not isinstance(previous, BVH):
+        raise TypeError(f"previous: expected an hlbvh BVH or None, got {type(previous).__name__}")
+    clock = _StageClock()
+    stats = BuildStats(builder=config.builder)
+
+    # ---- Triangles, their boxes and centroids ----
+    with clock("triangles"):
+        faces = checked_faces(faces)
+        points = checked_vertices(vertices, faces)
+        ns = namespace_of(faces)
+        UInt32 = ns.UInt32
+        prim_count = len(faces) // 3
+        p0, p1, p2 = slot_triangles(points, faces, dr.arange(UInt32, prim_count))
+        tri_lo, tri_hi = triangle_boxes(p0, p1, p2)
+        dr.eval(tri_lo, tri_hi)
+    stats.prim_count = prim_count
+
+    if config.builder == "sah":
+        with clock("sah"):
+            tree = binned_sah(
+                tri_lo, tri_hi, dr.full(UInt32, 1, prim_count), config.leaf_size, config.sah_bins
+            )
+        prim_ids, node_first, node_count = tree.item_order, tree.node_first, tree.node_count
+        node_min, node_max, levels = tree.node_min, tree.node_max, tree.levels
+        node_depth = tree.leaf_depth
+        stats.morton_bits = 0
+        with clock("triangles"):
+            tri = slot_triangles(points, faces, prim_ids)
+            dr.eval(tri)
+    else:
+        node_first, node_count, node_depth, prim_ids = _morton_build(
+            config, stats, clock, previous, tri_lo, tri_hi
+        )
+        with clock("bounds"):
+            tri = slot_triangles(points, faces, prim_ids)
+            lo, hi = triangle_boxes(*tri)
+            levels = internal_levels(node_count, node_depth)
+            node_min, node_max = node_bounds(node_first, node_count, lo, hi, levels, config.leaf_size)
+
+    stats.stage_ms = dict(clock.ms)
+    stats.total_ms = sum(clock.ms.values())
+
+    # ---- Statistics (not part of the build time) ----
+    stats.node_count = len(node_count)
+    stats.leaf_histogram = leaf_histogram(node_count, config.leaf_size)
+    stats.leaf_count = sum(stats.leaf_histogram)
+    stats.depth = int(dr.max(node_depth)[0]) + 1
+    stats.sah_cost = sah_cost(node_min, node_max, node_count)
+    return BVH(
+        node_min=node_min,
+        node_max=node_max,
+        node_first=node_first,
+        node_count=node_count,
+        prim_ids=prim_ids,
+        tri_p0=tri[0],
+        tri_p1=tri[1],
+        tri_p2=tri[2],
+        faces=faces,
+        levels=levels,
+        config=config,
+        stats=stats,
+    )
+
+
+def _morton_build(config: BuildConfig, stats: BuildStats, clock, previous, tri_lo, tri_hi):
+    """The "lbvh" and "hlbvh" builders up to the node records (no boxes yet).
+
+    Returns (node_first, node_count, node_depth, prim_ids).
+    """
+    ns = namespace_of(tri_lo.x)
+    UInt32 = ns.UInt32
+    prim_count = len(tri_lo.x)
+
+    # ---- Morton codes of the centroids, quantised in the centroids' bounds ----
+    with clock("morton"):
+        centroid = (tri_lo + tri_hi) * 0.5
+        lo, hi = point_bounds(centroid)
+        bits = config.morton_bits
+        if bits == "auto":
+            bits = choose_morton_bits(tri_lo, tri_hi, lo, hi)
+        keys = morton_codes(centroid, lo, hi, bits, config.quantization)
+    stats.morton_bits = bits
+    coarse_bits = min(config.coarse_bits * bits // 30, bits)
+    coarse_bits -= coarse_bits % 3
+
+    # ---- CSD sort, from last frame's order when there is one ----
+    with clock("csd"):
+        start = None
+        if previous is not None and previous.prim_count == prim_count:
+            start = previous.prim_ids
+        csd = csd_sort(keys, bits, coarse_bits, start)
+        prim_ids, sorted_keys = csd.order, csd.sorted_keys
+    stats.csd_runs = csd.runs
+    stats.coarse_clusters = csd.coarse_clusters
+
+    capacity = 2 * prim_count - 1
+    records = NodeRecords(
+        first=dr.zeros(UInt32, capacity),
+        count=dr.zeros(UInt32, capacity),
+        depth=dr.zeros(UInt32, capacity),
+        total=1,
+    )
+    if config.builder == "lbvh" or coarse_bits == 0 or csd.coarse_clusters == 1:
+        level = 0 if config.builder == "lbvh" else coarse_bits
+        roots = (UInt32(0), UInt32(prim_count), UInt32(0), UInt32(0))
+    else:
+        with clock("sah_top"):
+            roots = _sah_top_level(config, records, sorted_keys, bits, coarse_bits, prim_ids, tri_lo, tri_hi)
+        level = coarse_bits
+
+    # ---- Hierarchy emission below the roots ----
+    with clock("emission"):
+        segments = open_segments(*roots, records, config.leaf_size)
+        emit_hierarchy(sorted_keys, bits, level, segments, records, config.leaf_size, config.p)
+        used = dr.arange(UInt32, records.total)
+        node_first = dr.gather(UInt32, records.first, used)
+        node_count = dr.gather(UInt32, records.count, used)
+        node_depth = dr.gather(UInt32, records.depth, used)
+        dr.eval(node_first, node_count, node_depth)
+    return node_first, node_count, node_depth, prim_ids
+
+
+def _sah_top_level(config, records: NodeRecords, sorted_keys, bits, coarse_bits, prim_ids, tri_lo, tri_hi):
+    """Binned SAH over the coarse clusters; writes the top tree's internal nodes into
+    ``records`` and returns the clusters as emission roots (start, end, node, depth)."""
+    ns = namespace_of(prim_ids)
+    UInt32, Array3f = ns.UInt32, ns.Array3f
+    n = len(prim_ids)
+
+    # ---- Coarse clusters: runs of equal coarse key in sorted order ----
+    slot = dr.arange(UInt32, n)
+    coarse = sorted_keys >> type(sorted_keys)(bits - coarse_bits)
+    head = (slot == 0) | (coarse != dr.gather(type(coarse), coarse, dr.maximum(slot, 1) - 1))
+    start = dr.compress(head)
+    clusters = len(start)
+    end = dr.gather(UInt32, start, dr.arange(UInt32, clusters) + 1, dr.arange(UInt32, clusters) + 1 < clusters)
+    end = dr.select(dr.arange(UInt32, clusters) + 1 < clusters, end, n)
+    cluster_of = dr.cumsum(UInt32(head)) - 1
+
+    # ---- Cluster boxes: union of their triangles' boxes ----
+    lo = dr.full(Array3f, dr.inf, clusters)
+    hi = dr.full(Array3f, -dr.inf, clusters)
+    dr.scatter_reduce(dr.ReduceOp.Min, lo, dr.gather(Array3f, tri_lo, prim_ids), cluster_of)
+    dr.scatter_reduce(dr.ReduceOp.Max, hi, dr.gather(Array3f, tri_hi, prim_ids), cluster_of)
+
+    # ---- SAH top level, one cluster per leaf ----
+    top = binned_sah(lo, hi, end - start, 1, config.sah_bins)
+    t = len(top.node_count)
+    nodes = dr.arange(UInt32, t)
+    internal = top.node_count == 0
+    dr.scatter(records.first, top.node_first, nodes, internal)
+    dr.scatter(records.depth, top.leaf_depth, nodes, internal)
+    records.total = t
+
+    # ---- Each cluster's emission root is its top-level leaf ----
+    cluster_node = dr.zeros(UInt32, clusters)
+    cluster_depth = dr.zeros(UInt32, clusters)
+    leaf_cluster = dr.gather(UInt32, top.item_order, top.node_first, ~internal)
+    dr.scatter(cluster_node, nodes, leaf_cluster, ~internal)
+    dr.scatter(cluster_depth, top.leaf_depth, leaf_cluster, ~internal)
+    return start, end, cluster_node, cluster_depth

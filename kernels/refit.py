@@ -1,0 +1,34 @@
+"""Refit: new vertex positions, same faces, same tree: recompute the boxes only."""
+
+from __future__ import annotations
+
+import time
+
+import drjit as dr
+
+from .bounds import node_bounds, sah_cost, triangle_boxes
+from .geometry import checked_vertices, slot_triangles
+
+
+def refit(bvh, vertices):
+    """Update ``bvh`` in place for new vertex positions.
+
+    Args:
+        bvh: a :class:`hlbvh.kernels.bvh.BVH`.
+        vertices: flat Float (3·V) or Array3f (V), the same V as the build's or more
+            (the faces decide which are read).
+    Returns:
+        ``bvh``, with its triangles, boxes, ``stats.sah_cost`` and
+        ``stats.stage_ms['refit']`` updated.
+    """
+    t0 = time.perf_counter()
+    points = checked_vertices(vertices, bvh.faces)
+    bvh.tri_p0, bvh.tri_p1, bvh.tri_p2 = slot_triangles(points, bvh.faces, bvh.prim_ids)
+    tri_lo, tri_hi = triangle_boxes(bvh.tri_p0, bvh.tri_p1, bvh.tri_p2)
+    bvh.node_min, bvh.node_max = node_bounds(
+        bvh.node_first, bvh.node_count, tri_lo, tri_hi, bvh.levels, bvh.config.leaf_size
+    )
+    dr.sync_thread()
+    bvh.stats.stage_ms["refit"] = (time.perf_counter() - t0) * 1e3
+    bvh.stats.sah_cost = sah_cost(bvh.node_min, bvh.node_max, bvh.node_count)
+    return bvh
