@@ -48,6 +48,10 @@ _MIDDLE = 0xFFFFFFFF
 #: Floats per node record in the staging buffer: lo.xyz, hi.xyz, first, count.
 _RECORD = 8
 
+#: Scatter-reductions use plain atomics: ReduceMode.Expand (what Auto picks for small
+#: targets on LLVM) bakes the target size into the kernel, recompiling it every level.
+_MODE = dr.ReduceMode.Direct
+
 
 @dataclass
 class SahTree:
@@ -121,37 +125,39 @@ def binned_sah(item_min, item_max, item_weight, leaf_items: int, bins: int = 16)
     centroid = _centroid(lo, hi)
     root_open = n > leaf_items
     records = dr.empty(ns.Float, _RECORD * (2 * n - 1))
-    _write_records(
-        ns, records, dr.opaque(ns.UInt32, 0), root_lo, root_hi,
-        ns.UInt32(1 if root_open else 0), ns.UInt32(0 if root_open else n),
-    )
-    item_order = dr.arange(ns.UInt32, n) if not root_open else dr.empty(ns.UInt32, n)
-
+    _write_records(ns, records, dr.opaque(ns.UInt32, 0), root_lo, root_hi,
+                   dr.opaque(ns.UInt32, 1 if root_open else 0),
+                   dr.opaque(ns.UInt32, 0 if root_open else n))
+    item_order = dr.empty(ns.UInt32, n) if root_open else dr.arange(ns.UInt32, n)
     level = _Level(
-        node_id=ns.UInt32(0),
-        slot_first=ns.UInt32(0),
-        act_first=ns.UInt32(0),
-        count=ns.UInt32(n),
+        size=1 if root_open else 0,
+        node_id=dr.opaque(ns.UInt32, 0),
+        slot_first=dr.opaque(ns.UInt32, 0),
+        act_first=dr.opaque(ns.UInt32, 0),
+        count=dr.opaque(ns.UInt32, n),
+        box_lo=root_lo,
+        box_hi=root_hi,
         cmin=dr.min(centroid, axis=1),
         cmax=dr.max(centroid, axis=1),
         item=dr.arange(ns.UInt32, n),
         node=dr.zeros(ns.UInt32, n),
-        size=1 if root_open else 0,
     )
+
+    # ---- Split all open nodes of a level at once, until none is left ----
     levels = []
-    block_start = [0, 1]  # first node index of each depth's block (and one past the end)
+    block_start = [0, 1]  # first node index of each depth's block, and one past the end
     while level.size:
         levels.append(level.node_id)
         level = _split_level(ns, lo, hi, weight, level, records, item_order, block_start,
                              leaf_items, bins)
 
-    # ---- Final arrays: unpack the node records, depth from the block starts ----
+    # ---- Final arrays: unpack the node records, depths from the block starts ----
     node_total = block_start[-1]
-    rec = dr.gather(ns.ArrayXf, records, dr.arange(ns.UInt32, node_total), shape=(_RECORD, node_total))
+    rec = dr.gather(ns.ArrayXf, records, dr.arange(ns.UInt32, node_total),
+                    shape=(_RECORD, node_total))
     marks = dr.zeros(ns.UInt32, node_total)
     if len(block_start) > 2:
         dr.scatter(marks, ns.UInt32(1), ns.UInt32(block_start[1:-1]))
-    leaf_depth = dr.cumsum(marks)
     tree = SahTree(
         node_first=dr.reinterpret_array(ns.UInt32, rec[6]),
         node_count=dr.reinterpret_array(ns.UInt32, rec[7]),
@@ -159,7 +165,7 @@ def binned_sah(item_min, item_max, item_weight, leaf_items: int, bins: int = 16)
         node_max=ns.Array3f(rec[3], rec[4], rec[5]),
         item_order=item_order,
         levels=levels,
-        leaf_depth=leaf_depth,
+        leaf_depth=dr.cumsum(marks),
         depth=len(block_start) - 1,
     )
     dr.eval(tree.node_first, tree.node_count, tree.node_min, tree.node_max,
@@ -169,32 +175,37 @@ def binned_sah(item_min, item_max, item_weight, leaf_items: int, bins: int = 16)
 
 @dataclass
 class _Level:
-    """The open nodes of one depth (``size`` of them) and the items they hold.
+    """The ``size`` open nodes of one depth and the items they hold.
 
     Per open node (UInt32[size] / Array3f[size]): ``node_id`` its index in the tree,
     ``slot_first`` its first slot in ``item_order``, ``act_first`` its first position in
-    the active item arrays, ``count`` its item count, ``cmin``/``cmax`` the bounds of
-    its items' centroids. Per active item (UInt32[m], grouped by node, in slot order):
-    ``item`` the item index and ``node`` the position of its node in this level.
+    the active item arrays, ``count`` its item count, ``box_lo``/``box_hi`` its box,
+    ``cmin``/``cmax`` the bounds of its items' centroids. Per active item (UInt32[m],
+    grouped by node, in slot order): ``item`` the item index, ``node`` the position of
+    its node in this level.
     """
 
-    node_id: Any
-    slot_first: Any
-    act_first: Any
-    count: Any
-    cmin: Any
-    cmax: Any
-    item: Any
-    node: Any
     size: int
+    node_id: Any = None
+    slot_first: Any = None
+    act_first: Any = None
+    count: Any = None
+    box_lo: Any = None
+    box_hi: Any = None
+    cmin: Any = None
+    cmax: Any = None
+    item: Any = None
+    node: Any = None
 
 
 def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_start,
                  leaf_items: int, bins: int) -> _Level:
-    """Split every open node of ``level``; write the children's node records and the
-    slots of items that reached a leaf; return the next level's open nodes."""
+    """Split every open node of ``level``: write the children's node records and the
+    slots of the items that reached a leaf; return the next level's open nodes."""
     K = level.size
     m = dr.width(level.item)
+    cells = dr.opaque(ns.UInt32, 3 * K * bins)  # (node, axis, bin) cells of this level
+    n_child = dr.opaque(ns.UInt32, 2 * K)
     child_start = dr.opaque(ns.UInt32, block_start[-1])
     grandchild_start = dr.opaque(ns.UInt32, block_start[-1] + 2 * K)
     block_start.append(block_start[-1] + 2 * K)
@@ -205,36 +216,34 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     centroid = _centroid(item_lo, item_hi)
     cmin = dr.gather(ns.Array3f, level.cmin, level.node)
     cmax = dr.gather(ns.Array3f, level.cmax, level.node)
-    bin_lo = dr.full(ns.Float, dr.inf, 3 * K * bins * 3)
-    bin_hi = dr.full(ns.Float, -dr.inf, 3 * K * bins * 3)
-    bin_weight = dr.zeros(ns.UInt32, 3 * K * bins)
     item_w = dr.gather(ns.UInt32, weight, level.item)
+    bin_box = dr.full(ns.Float, dr.inf, 6 * 3 * K * bins)
+    bin_weight = dr.zeros(ns.UInt32, 3 * K * bins)
     packed_bins = ns.UInt32(0)
     for axis in range(3):
         b = _bin_index(ns, centroid[axis], cmin[axis], cmax[axis], bins)
         packed_bins |= b << (8 * axis)
         cell = (level.node * 3 + axis) * bins + b
-        dr.scatter_reduce(dr.ReduceOp.Min, bin_lo, item_lo, cell)
-        dr.scatter_reduce(dr.ReduceOp.Max, bin_hi, item_hi, cell)
-        dr.scatter_reduce(dr.ReduceOp.Add, bin_weight, item_w, cell)
+        _reduce_rows(bin_box, _box_rows(item_lo, item_hi), cell, cells)
+        dr.scatter_reduce(dr.ReduceOp.Add, bin_weight, item_w, cell, mode=_MODE)
     dr.eval(packed_bins)
 
-    # ---- Sweep the split planes of every node: cheapest valid plane or middle ----
-    split = _sweep(ns, bin_lo, bin_hi, bin_weight, K, bins)
-    dr.eval(split)
+    # ---- Sweep the split planes of every node: cheapest valid plane, or middle ----
+    extent = level.box_hi - level.box_lo
+    largest = dr.maximum(extent.x, dr.maximum(extent.y, extent.z))
+    split = _sweep(ns, bin_box, bin_weight, dr.select(largest > 0, 1 / largest, 1),
+                   cells, K, bins)
 
-    # ---- Left/right decision per item, ranks by a prefix sum ----
+    # ---- Left/right decision of every item; ranks by a prefix sum ----
     position = dr.arange(ns.UInt32, m)
     node_split = dr.gather(ns.UInt32, split, level.node)
     act_first = dr.gather(ns.UInt32, level.act_first, level.node)
     count = dr.gather(ns.UInt32, level.count, level.node)
-    axis = node_split // bins
-    item_bin = (packed_bins >> (8 * dr.minimum(axis, 2))) & 0xFF
-    goes_left = ns.UInt32(dr.select(
-        node_split == _MIDDLE,
-        (position - act_first) < count // 2,
-        item_bin <= node_split % bins,
-    ))
+    item_bin = (packed_bins >> (8 * dr.minimum(node_split // bins, 2))) & 0xFF
+    left = dr.select(node_split == _MIDDLE,
+                     (position - act_first) < count // 2,
+                     item_bin <= node_split % bins)
+    goes_left = ns.UInt32(left)
     left_before = dr.prefix_sum(goes_left)
     dr.eval(goes_left, left_before)
 
@@ -250,29 +259,22 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     c_count = dr.select(is_right, p_count - n_left, n_left)
     c_slot = dr.gather(ns.UInt32, level.slot_first, parent) + dr.select(is_right, n_left, 0)
     c_open = c_count > leaf_items
-    open_u = ns.UInt32(c_open)
-    next_index = dr.prefix_sum(open_u)
+    next_index = dr.prefix_sum(ns.UInt32(c_open))
     next_act = dr.prefix_sum(dr.select(c_open, c_count, 0))
     dr.eval(c_count, c_slot, c_open, next_index, next_act)
     last_open = bool(c_open[2 * K - 1])
     K_next = next_index[2 * K - 1] + last_open
     m_next = next_act[2 * K - 1] + (c_count[2 * K - 1] if last_open else 0)
 
-    # ---- Partition: move each item to its child, reduce the children's bounds ----
-    left = goes_left == 1
+    # ---- Partition: move every item to its child, reduce the children's bounds ----
     left_rank = left_before - dr.gather(ns.UInt32, left_before, act_first)
     rank = dr.select(left, left_rank, (position - act_first) - left_rank)
     c = level.node * 2 + dr.select(left, 0, 1)
     to_open = dr.gather(ns.Bool, c_open, c)
     dr.scatter(item_order, level.item, dr.gather(ns.UInt32, c_slot, c) + rank, ~to_open)
-    c_lo = dr.full(ns.Float, dr.inf, 2 * K * 3)
-    c_hi = dr.full(ns.Float, -dr.inf, 2 * K * 3)
-    c_cmin = dr.full(ns.Float, dr.inf, 2 * K * 3)
-    c_cmax = dr.full(ns.Float, -dr.inf, 2 * K * 3)
-    dr.scatter_reduce(dr.ReduceOp.Min, c_lo, item_lo, c)
-    dr.scatter_reduce(dr.ReduceOp.Max, c_hi, item_hi, c)
-    dr.scatter_reduce(dr.ReduceOp.Min, c_cmin, centroid, c, to_open)
-    dr.scatter_reduce(dr.ReduceOp.Max, c_cmax, centroid, c, to_open)
+    child_box = dr.full(ns.Float, dr.inf, 12 * 2 * K)
+    _reduce_rows(child_box, _box_rows(item_lo, item_hi), c, n_child)
+    _reduce_rows(child_box, _box_rows(centroid, centroid), c + 6 * n_child, n_child, to_open)
     if K_next:
         next_item = dr.empty(ns.UInt32, m_next)
         next_node = dr.empty(ns.UInt32, m_next)
@@ -281,68 +283,89 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
         dr.scatter(next_node, dr.gather(ns.UInt32, next_index, c), dest, to_open)
     dr.eval()
 
-    # ---- Emit: node records of the children, the next level's open nodes ----
-    box_lo = dr.gather(ns.Array3f, c_lo, child)
-    box_hi = dr.gather(ns.Array3f, c_hi, child)
-    first = dr.select(c_open, grandchild_start + 2 * next_index, c_slot)
-    _write_records(ns, records, child_start + child, box_lo, box_hi, first,
+    # ---- Emit the children's node records and the next level's open nodes ----
+    box_lo, box_hi = _read_box(ns, child_box, child, n_child)
+    _write_records(ns, records, child_start + child, box_lo, box_hi,
+                   dr.select(c_open, grandchild_start + 2 * next_index, c_slot),
                    dr.select(c_open, 0, c_count))
     if not K_next:
         dr.eval()
-        return _Level(*([None] * 8), size=0)
+        return _Level(size=0)
     next_child = dr.empty(ns.UInt32, K_next)
     dr.scatter(next_child, child, next_index, c_open)
     dr.eval()
+    box_lo, box_hi = _read_box(ns, child_box, next_child, n_child)
+    cmin, cmax = _read_box(ns, child_box, next_child + 6 * n_child, n_child)
     nxt = _Level(
+        size=K_next,
         node_id=child_start + next_child,
         slot_first=dr.gather(ns.UInt32, c_slot, next_child),
         act_first=dr.gather(ns.UInt32, next_act, next_child),
         count=dr.gather(ns.UInt32, c_count, next_child),
-        cmin=dr.gather(ns.Array3f, c_cmin, next_child),
-        cmax=dr.gather(ns.Array3f, c_cmax, next_child),
+        box_lo=box_lo, box_hi=box_hi, cmin=cmin, cmax=cmax,
         item=next_item,
         node=next_node,
-        size=K_next,
     )
-    dr.eval(nxt.node_id, nxt.slot_first, nxt.act_first, nxt.count, nxt.cmin, nxt.cmax)
+    dr.eval(nxt.node_id, nxt.slot_first, nxt.act_first, nxt.count, nxt.box_lo, nxt.box_hi,
+            nxt.cmin, nxt.cmax)
     return nxt
 
 
-def _sweep(ns, bin_lo, bin_hi, bin_weight, K: int, bins: int):
-    """Per node (UInt32[K]): the split code ``axis·bins + last_left_bin`` of the
-    cheapest plane with both sides non-empty (first in axis, then plane order on
-    ties), or ``_MIDDLE`` when no plane qualifies."""
-    node = dr.arange(ns.UInt32, K)
-    best_cost = dr.full(ns.Float, dr.inf, K)
-    best_code = dr.full(ns.UInt32, _MIDDLE, K)
-    for axis in range(3):
-        cells = [(node * 3 + axis) * bins + b for b in range(bins)]
-        box = [(dr.gather(ns.Array3f, bin_lo, i), dr.gather(ns.Array3f, bin_hi, i)) for i in cells]
-        w = [dr.gather(ns.UInt32, bin_weight, i) for i in cells]
-        # Left sides: bins 0..p for plane p
-        left_cost, left_w = [], []
-        acc_lo, acc_hi, acc_w = box[0][0], box[0][1], w[0]
-        for b in range(bins - 1):
-            if b:
-                acc_lo, acc_hi, acc_w = dr.minimum(acc_lo, box[b][0]), dr.maximum(acc_hi, box[b][1]), acc_w + w[b]
-            left_cost.append(_half_area(acc_lo, acc_hi) * ns.Float(acc_w))
-            left_w.append(acc_w)
-        # Right sides, swept from the last bin down; ties keep the lower plane
-        axis_cost = dr.full(ns.Float, dr.inf, K)
-        axis_plane = dr.zeros(ns.UInt32, K)
-        acc_lo, acc_hi, acc_w = box[bins - 1][0], box[bins - 1][1], w[bins - 1]
-        for b in range(bins - 1, 0, -1):
-            if b < bins - 1:
-                acc_lo, acc_hi, acc_w = dr.minimum(acc_lo, box[b][0]), dr.maximum(acc_hi, box[b][1]), acc_w + w[b]
-            plane = b - 1
-            cost = dr.fma(_half_area(acc_lo, acc_hi), ns.Float(acc_w), left_cost[plane])
-            better = (left_w[plane] > 0) & (acc_w > 0) & (cost <= axis_cost)
-            axis_cost = dr.select(better, cost, axis_cost)
-            axis_plane = dr.select(better, plane, axis_plane)
-        better = axis_cost < best_cost
-        best_cost = dr.select(better, axis_cost, best_cost)
-        best_code = dr.select(better, axis * bins + axis_plane, best_code)
-    return best_code
+def _sweep(ns, bin_box, bin_weight, scale, cells, K: int, bins: int):
+    """Per node (UInt32[K]): the split code ``axis·bins + p`` of the cheapest plane
+    ``p`` (bins 0..p on the left) that leaves both sides non-empty, the first in
+    (axis, plane) order on ties; ``_MIDDLE`` when no plane qualifies.
+
+    The bins of one (node, axis) are a contiguous block of cells, so the left and right
+    sides of all planes are blocked prefix reductions over the cells. Extents are
+    multiplied by ``scale`` (Float[K], 1 / the node's largest extent) so that areas
+    neither overflow nor underflow at extreme coordinates.
+    """
+    left_box = dr.block_prefix_reduce(dr.ReduceOp.Min, bin_box, bins, exclusive=False)
+    right_box = dr.block_prefix_reduce(dr.ReduceOp.Min, bin_box, bins, exclusive=False,
+                                       reverse=True)
+    left_w = dr.block_prefix_reduce(dr.ReduceOp.Add, bin_weight, bins, exclusive=False)
+    right_w = dr.block_prefix_reduce(dr.ReduceOp.Add, bin_weight, bins, exclusive=False,
+                                     reverse=True)
+    # ---- Cost of the plane after every cell (the last cell of a block has none) ----
+    cell = dr.arange(ns.UInt32, 3 * K * bins)
+    has_plane = (cell % bins) != bins - 1
+    s = dr.gather(ns.Float, scale, cell // (3 * bins))
+    w_right = dr.gather(ns.UInt32, right_w, cell + 1, has_plane)
+    cost = dr.fma(
+        _half_area(_read_extent(ns, right_box, cell + 1, cells, has_plane) * s),
+        ns.Float(w_right),
+        _half_area(_read_extent(ns, left_box, cell, cells) * s) * ns.Float(left_w),
+    )
+    # ---- Per node the least (cost, axis, plane): one min over packed keys ----
+    key = (ns.UInt64(dr.reinterpret_array(ns.UInt32, cost)) << 32) | ns.UInt64(cell % (3 * bins))
+    valid = has_plane & (left_w > 0) & (w_right > 0)
+    key = dr.select(valid, key, 0xFFFFFFFFFFFFFFFF)
+    return ns.UInt32(dr.block_reduce(dr.ReduceOp.Min, key, 3 * bins) & 0xFFFFFFFF)
+
+
+def _box_rows(box_lo, box_hi):
+    """A box as six values to be min-reduced: lo.xyz and -hi.xyz."""
+    return [box_lo.x, box_lo.y, box_lo.z, -box_hi.x, -box_hi.y, -box_hi.z]
+
+
+def _reduce_rows(target, rows, index, stride, active=True):
+    """Min-reduce ``rows[j]`` into ``target[j·stride + index]`` (row-major records, so a
+    blocked reduction over one row never mixes rows)."""
+    for j, value in enumerate(rows):
+        dr.scatter_reduce(dr.ReduceOp.Min, target, value, index + j * stride, active, mode=_MODE)
+
+
+def _read_box(ns, target, index, stride):
+    """The box (lo, hi) stored by :func:`_reduce_rows` at ``index``."""
+    r = [dr.gather(ns.Float, target, index + j * stride) for j in range(6)]
+    return ns.Array3f(r[0], r[1], r[2]), -ns.Array3f(r[3], r[4], r[5])
+
+
+def _read_extent(ns, target, index, stride, active=True):
+    """Extent (hi - lo) of the box stored at ``index`` (-inf for an empty box)."""
+    r = [dr.gather(ns.Float, target, index + j * stride, active) for j in range(6)]
+    return -ns.Array3f(r[3] + r[0], r[4] + r[1], r[5] + r[2])
 
 
 def _write_records(ns, records, index, box_lo, box_hi, first, count):
@@ -366,9 +389,8 @@ def _bin_index(ns, c, cmin, cmax, bins: int):
     return ns.UInt32(f)
 
 
-def _half_area(lo, hi):
-    """Half the surface area of the box [lo, hi] (the SAH needs only ratios)."""
-    d = hi - lo
+def _half_area(d):
+    """Half the surface area of a box of extent ``d`` (the SAH needs only ratios)."""
     return dr.fma(d.x, d.y + d.z, d.y * d.z)
 
 

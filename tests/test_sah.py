@@ -19,9 +19,10 @@ F32 = np.float32
 # Reference: binned SAH written node by node in numpy
 # ---------------------------------------------------------------------------------------
 
-def _half_area32(lo, hi):
-    """float32 half area, rounded like the kernel's fma(dx, dy + dz, dy * dz)."""
-    d = (hi - lo).astype(F32)
+def _half_area32(lo, hi, scale):
+    """float32 half area of the box with extents multiplied by ``scale`` (1 / the node's
+    largest extent), rounded like the kernel's fma(dx, dy + dz, dy * dz)."""
+    d = ((hi - lo).astype(F32) * scale).astype(F32)
     return (d[..., 0].astype(np.float64) * (d[..., 1] + d[..., 2])
             + (d[..., 1] * d[..., 2])).astype(F32)
 
@@ -43,6 +44,8 @@ def reference_costs(lo, hi, w, bins):
     plane p putting bins 0..p on the left; and the items' bins [n, 3]."""
     c = ((lo + hi) * F32(0.5)).astype(F32)
     b = _bins_of(c, bins)
+    largest = (hi.max(0) - lo.min(0)).astype(F32).max()
+    scale = F32(1) / largest if largest > 0 else F32(1)
     costs = np.full((3, bins - 1), np.inf, F32)
     for a in range(3):
         for p in range(bins - 1):
@@ -50,8 +53,8 @@ def reference_costs(lo, hi, w, bins):
             wl, wr = w[left].sum(), w[~left].sum()
             if wl == 0 or wr == 0:
                 continue
-            al = _half_area32(lo[left].min(0), hi[left].max(0))
-            ar = _half_area32(lo[~left].min(0), hi[~left].max(0))
+            al = _half_area32(lo[left].min(0), hi[left].max(0), scale)
+            ar = _half_area32(lo[~left].min(0), hi[~left].max(0), scale)
             cl = (al * F32(wl)).astype(F32)
             costs[a, p] = F32(np.float64(ar) * np.float64(F32(wr)) + np.float64(cl))
     return costs, b
