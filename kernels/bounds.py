@@ -13,9 +13,10 @@ import drjit as dr
 from .arrays import namespace_of
 
 
-def triangle_boxes(p0, p1, p2):
-    """Array3f[F] lower and upper corners of each triangle's box."""
-    return dr.minimum(dr.minimum(p0, p1), p2), dr.maximum(dr.maximum(p0, p1), p2)
+def triangle_boxes(tri):
+    """Array3f[F] lower and upper corners of each triangle's box; ``tri`` a Matrix3f
+    whose rows are the vertices (see kernels/geometry.py)."""
+    return dr.minimum(dr.minimum(tri[0], tri[1]), tri[2]), dr.maximum(dr.maximum(tri[0], tri[1]), tri[2])
 
 
 def internal_levels(node_count, node_depth) -> list:

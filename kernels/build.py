@@ -24,7 +24,7 @@ from .bounds import internal_levels, leaf_histogram, node_bounds, sah_cost, tria
 from .bvh import BVH, BuildConfig, BuildStats
 from .csd import csd_sort
 from .emission import NodeRecords, emit_hierarchy, open_segments
-from .geometry import checked_faces, checked_vertices, slot_triangles
+from .geometry import checked_faces, checked_vertices, gather_triangles, pack_triangles, unpack_triangles
 from .morton import choose_morton_bits, morton_codes, point_bounds
 from .arrays import namespace_of
 from .sah import binned_sah
@@ -76,9 +76,10 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
         ns = namespace_of(faces)
         UInt32 = ns.UInt32
         prim_count = len(faces) // 3
-        p0, p1, p2 = slot_triangles(points, faces, dr.arange(UInt32, prim_count))
-        tri_lo, tri_hi = triangle_boxes(p0, p1, p2)
-        dr.eval(tri_lo, tri_hi)
+        tri = gather_triangles(points, faces, dr.arange(UInt32, prim_count))
+        tri_lo, tri_hi = triangle_boxes(tri)
+        packed = pack_triangles(tri)
+        dr.eval(tri_lo, tri_hi, packed)
     stats.prim_count = prim_count
 
     if config.builder == "sah":
@@ -86,22 +87,22 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
             tree = binned_sah(
                 tri_lo, tri_hi, dr.full(UInt32, 1, prim_count), config.leaf_size, config.sah_bins
             )
-        prim_ids, node_first, node_count = tree.item_order, tree.node_first, tree.node_count
+            prim_ids = tree.item_order
+            tri = unpack_triangles(packed, prim_ids)
+            dr.eval(tri)
+        node_first, node_count = tree.node_first, tree.node_count
         node_min, node_max, levels = tree.node_min, tree.node_max, tree.levels
         node_depth = tree.leaf_depth
         stats.morton_bits = 0
-        with clock("triangles"):
-            tri = slot_triangles(points, faces, prim_ids)
-            dr.eval(tri)
     else:
-        node_first, node_count, node_depth, prim_ids = _morton_build(
-            config, stats, clock, previous, tri_lo, tri_hi
+        node_first, node_count, node_depth, prim_ids, tri, slot_lo, slot_hi = _morton_build(
+            config, stats, clock, previous, tri_lo, tri_hi, packed
         )
         with clock("bounds"):
-            tri = slot_triangles(points, faces, prim_ids)
-            lo, hi = triangle_boxes(*tri)
             levels = internal_levels(node_count, node_depth)
-            node_min, node_max = node_bounds(node_first, node_count, lo, hi, levels, config.leaf_size)
+            node_min, node_max = node_bounds(
+                node_first, node_count, slot_lo, slot_hi, levels, config.leaf_size
+            )
 
     stats.stage_ms = dict(clock.ms)
     stats.total_ms = sum(clock.ms.values())
@@ -128,10 +129,11 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
     )
 
 
-def _morton_build(config: BuildConfig, stats: BuildStats, clock, previous, tri_lo, tri_hi):
+def _morton_build(config: BuildConfig, stats: BuildStats, clock, previous, tri_lo, tri_hi, packed):
     """The "lbvh" and "hlbvh" builders up to the node records (no boxes yet).
 
-    Returns (node_first, node_count, node_depth, prim_ids).
+    Returns (node_first, node_count, node_depth, prim_ids, slot triangles (Matrix3f),
+    slot triangle boxes lo, hi).
     """
     ns = namespace_of(tri_lo.x)
     UInt32 = ns.UInt32
@@ -159,6 +161,12 @@ def _morton_build(config: BuildConfig, stats: BuildStats, clock, previous, tri_l
     stats.csd_runs = csd.runs
     stats.coarse_clusters = csd.coarse_clusters
 
+    # ---- Triangles in slot order (one contiguous gather each) ----
+    with clock("triangles"):
+        tri = unpack_triangles(packed, prim_ids)
+        slot_lo, slot_hi = triangle_boxes(tri)
+        dr.eval(tri, slot_lo, slot_hi)
+
     capacity = 2 * prim_count - 1
     records = NodeRecords(
         first=dr.zeros(UInt32, capacity),
@@ -171,7 +179,7 @@ def _morton_build(config: BuildConfig, stats: BuildStats, clock, previous, tri_l
         roots = (UInt32(0), UInt32(prim_count), UInt32(0), UInt32(0))
     else:
         with clock("sah_top"):
-            roots = _sah_top_level(config, records, sorted_keys, bits, coarse_bits, prim_ids, tri_lo, tri_hi)
+            roots = _sah_top_level(config, records, sorted_keys, bits, coarse_bits, slot_lo, slot_hi)
         level = coarse_bits
 
     # ---- Hierarchy emission below the roots ----
@@ -183,15 +191,15 @@ def _morton_build(config: BuildConfig, stats: BuildStats, clock, previous, tri_l
         node_count = dr.gather(UInt32, records.count, used)
         node_depth = dr.gather(UInt32, records.depth, used)
         dr.eval(node_first, node_count, node_depth)
-    return node_first, node_count, node_depth, prim_ids
+    return node_first, node_count, node_depth, prim_ids, tri, slot_lo, slot_hi
 
 
-def _sah_top_level(config, records: NodeRecords, sorted_keys, bits, coarse_bits, prim_ids, tri_lo, tri_hi):
+def _sah_top_level(config, records: NodeRecords, sorted_keys, bits, coarse_bits, slot_lo, slot_hi):
     """Binned SAH over the coarse clusters; writes the top tree's internal nodes into
     ``records`` and returns the clusters as emission roots (start, end, node, depth)."""
-    ns = namespace_of(prim_ids)
+    ns = namespace_of(sorted_keys)
     UInt32, Array3f = ns.UInt32, ns.Array3f
-    n = len(prim_ids)
+    n = len(sorted_keys)
 
     # ---- Coarse clusters: runs of equal coarse key in sorted order ----
     slot = dr.arange(UInt32, n)
@@ -206,8 +214,8 @@ def _sah_top_level(config, records: NodeRecords, sorted_keys, bits, coarse_bits,
     # ---- Cluster boxes: union of their triangles' boxes ----
     lo = dr.full(Array3f, dr.inf, clusters)
     hi = dr.full(Array3f, -dr.inf, clusters)
-    dr.scatter_reduce(dr.ReduceOp.Min, lo, dr.gather(Array3f, tri_lo, prim_ids), cluster_of)
-    dr.scatter_reduce(dr.ReduceOp.Max, hi, dr.gather(Array3f, tri_hi, prim_ids), cluster_of)
+    dr.scatter_reduce(dr.ReduceOp.Min, lo, slot_lo, cluster_of)
+    dr.scatter_reduce(dr.ReduceOp.Max, hi, slot_hi, cluster_of)
 
     # ---- SAH top level, one cluster per leaf ----
     top = binned_sah(lo, hi, end - start, 1, config.sah_bins)

@@ -8,7 +8,7 @@ from .arrays import namespace_of, plain
 
 
 def as_points(vertices):
-    """Plain Array3f[V] from a flat Float (3·V, xyz interleaved) or any Array3f/Point3f."""
+    """Plain flat Float[3·V] (xyz interleaved) from a flat Float or any Array3f/Point3f."""
     if not dr.is_jit_v(vertices):
         raise TypeError(
             f"vertices: expected a Dr.Jit Float (3·V) or Array3f/Point3f, got {type(vertices).__name__}"
@@ -20,13 +20,14 @@ def as_points(vertices):
             raise ValueError(
                 f"vertices: a flat array needs 3 values per vertex, got {len(vertices)} values"
             )
-        flat = plain(vertices, "Float")
-        ns = namespace_of(flat)
-        idx = dr.arange(ns.UInt32, len(flat) // 3) * 3
-        return ns.Array3f(*(dr.gather(ns.Float, flat, idx + k) for k in range(3)))
+        return plain(vertices, "Float")
     if dr.size_v(vertices) != 3:
         raise TypeError(f"vertices: expected 3 components per vertex, got {dr.size_v(vertices)}")
-    return plain(vertices, "Array3f")
+    points = plain(vertices, "Array3f")
+    ns = namespace_of(points)
+    flat = dr.zeros(ns.Float, 3 * dr.width(points))
+    dr.scatter(flat, points, dr.arange(ns.UInt32, dr.width(points)))
+    return flat
 
 
 def as_faces(faces):
@@ -47,17 +48,17 @@ def as_faces(faces):
 
 
 def checked_vertices(vertices, faces):
-    """Array3f[V] of ``vertices`` after checking that every value is finite and that
-    ``faces`` (flat UInt32) only index existing vertices; ValueError otherwise."""
+    """Flat Float[3·V] of ``vertices`` after checking that every value is finite and
+    that ``faces`` (flat UInt32) only index existing vertices; ValueError otherwise."""
     points = as_points(vertices)
-    v = len(points.x)
-    bad = dr.count(~(dr.isfinite(points.x) & dr.isfinite(points.y) & dr.isfinite(points.z)))
+    v = len(points) // 3
+    bad = dr.count(~dr.isfinite(points))
     top = dr.max(faces) if len(faces) else 0
     dr.eval(bad, top)
     if int(bad[0]):
         raise ValueError(
-            f"vertices: {int(bad[0])} of {v} vertices have non-finite (NaN or infinite) "
-            "coordinates; fix or drop them before building"
+            f"vertices: {int(bad[0])} of {3 * v} coordinates are non-finite (NaN or infinite); "
+            "fix or drop those vertices before building"
         )
     if len(faces) and int(top[0]) >= v:
         raise ValueError(
@@ -76,10 +77,28 @@ def checked_faces(faces):
     return flat
 
 
-def slot_triangles(points, faces, prim_ids):
-    """Array3f[F] × 3: the vertices of face ``prim_ids[s]`` for every slot ``s``."""
+def gather_triangles(points, faces, prims):
+    """Matrix3f[len(prims)]: row k holds vertex k of face ``prims[i]``.
+
+    Args:
+        points: flat Float[3·V] vertex positions.
+        faces: flat UInt32[3·F] vertex indices.
+        prims: UInt32 face indices.
+    """
     ns = namespace_of(faces)
-    f3 = prim_ids * 3
-    return tuple(
-        dr.gather(ns.Array3f, points, dr.gather(ns.UInt32, faces, f3 + k)) for k in range(3)
-    )
+    face = dr.gather(ns.Array3u, faces, prims)
+    return ns.Matrix3f(*(dr.gather(ns.Array3f, points, face[k]) for k in range(3)))
+
+
+def pack_triangles(tri):
+    """Flat Float[9·F] holding the rows of Matrix3f ``tri`` triangle after triangle, so
+    that :func:`unpack_triangles` reads one triangle with one contiguous gather."""
+    ns = namespace_of(tri[0].x)
+    packed = dr.zeros(ns.Float, 9 * dr.width(tri))
+    dr.scatter(packed, tri, dr.arange(ns.UInt32, dr.width(tri)))
+    return packed
+
+
+def unpack_triangles(packed, prims):
+    """Matrix3f[len(prims)]: the triangles ``prims`` of a :func:`pack_triangles` array."""
+    return dr.gather(namespace_of(packed).Matrix3f, packed, prims)
