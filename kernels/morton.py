@@ -35,7 +35,7 @@ MORTON_BITS = (30, 60)
 # cell (see choose_morton_bits for the argument and the measurements).
 _SMALL_PRIM_CELL_FRACTION = 0.25
 # 60-bit keys are chosen when at least this share of the primitives is small.
-_SMALL_PRIM_SHARE = 0.05
+_SMALL_PRIM_SHARE = 0.01
 
 
 def point_bounds(points):
@@ -125,15 +125,29 @@ def choose_morton_bits(prim_lo, prim_hi, lo, hi) -> int:
     ``cell = max extent / 1024`` (the ``"cube"`` quantisation). A surface tessellated
     into primitives of size ``s`` puts about ``(cell / s)^2`` of them into one cell,
     all with the same key; the emission can then only split them by index, so their
-    leaves overlap arbitrarily. A primitive counts as *small* when its largest extent
-    is below ``cell / 4`` (about 16 or more per cell on a surface, four leaves' worth
-    at the default ``leaf_size = 4``). 60-bit keys (cells 1024 times finer) are chosen
-    when at least 5% of the primitives are small. A share, not the median or the mean:
-    a small detailed object on a huge finely tessellated ground holds few of the
-    primitives but all of the collisions, and the mean extent is dominated by the few
-    large primitives. A regular mesh at up to a few million triangles has primitives
-    of about one cell and stays at 30 bits. All centroids equal (zero extent) gives 30:
-    finer cells would not separate them either.
+    leaves overlap. A primitive counts as *small* when its largest extent is below
+    ``cell / 4`` (about 16 or more per cell on a surface: four leaves' worth at the
+    default ``leaf_size = 4``), and 60-bit keys (cells 1024 times finer) are chosen
+    when at least 1% of the primitives are small. A share, not the median or the mean:
+    a small detailed object on a huge, finely tessellated ground holds few of the
+    primitives but all of the collisions, and the median and mean extent are those of
+    the ground. Measured (``/tmp/auto_bits.py`` in the issue's report; "shared" is the
+    share of primitives whose 30-bit key is shared by more than 4 primitives):
+
+    ==========================================  =====  ===========  ======  ====
+    scene (triangles)                           small  shared, 30b  most/key  auto
+    ==========================================  =====  ===========  ======  ====
+    regular grid, 1M                            0      0            2       30
+    regular grid, 4M                            0      24%          8       30
+    sphere 200k on a 1M ground, 500x larger     17%    17%          23970   60
+    sphere 20k on a 1M ground, 500x larger      2%     2%           2448    60
+    sphere 200k on a 2-triangle ground          0      3.7%         57      30
+    ==========================================  =====  ===========  ======  ====
+
+    (A 2-triangle ground adds nothing to the centroid bounds, so the object keeps the
+    whole grid.) Thin slivers fanning around one point (a UV sphere's poles) collide
+    without being small; a criterion on extents cannot see them. All centroids equal
+    (zero extent) gives 30: finer cells would not separate them either.
 
     Args:
         prim_lo, prim_hi: Array3f[N], each primitive's bounding box.
