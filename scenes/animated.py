@@ -1,0 +1,237 @@
+"""The contract every animated scene keeps, and how a frame reaches a loaded Mitsuba scene.
+
+An animated scene is a Mitsuba scene description (``scene_dict``) plus, for each frame,
+the new geometry of the shapes that move (``frame``). A render loop looks like::
+
+    scene_desc = hlbvh.scenes.get("cloth", triangles=500_000)
+    scene = mi.load_dict(scene_desc.scene_dict(resolution=(640, 360), spp=16))
+    params = mi.traverse(scene)
+    for i in range(scene_desc.frame_count):
+        apply_frame(scene, params, scene_desc.frame(i))
+        image = mi.render(scene, params, spp=16, seed=i)
+"""
+
+from __future__ import annotations
+
+import abc
+import numbers
+from dataclasses import dataclass
+from typing import Any
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+
+@dataclass(frozen=True)
+class FrameGeometry:
+    """The geometry of one shape in one frame.
+
+    Attributes:
+        positions: the new vertex positions, flat ``x0, y0, z0, x1, ...`` in world space:
+            a numpy ``float32`` array of shape ``(3V,)`` or an ``mi.Float`` of width ``3V``.
+        faces: ``None`` when the shape keeps its triangles (then ``V`` equals the shape's
+            current vertex count); otherwise the new triangles, flat vertex indices
+            ``(3F,)``: a numpy ``uint32`` array or an ``mi.UInt32``. Given whenever the
+            topology may have changed (a sequence shape declared ``topology="changing"``
+            gives it every frame).
+    """
+
+    positions: Any
+    faces: Any = None
+
+    @property
+    def vertex_count(self) -> int:
+        """``V``, the number of vertices ``positions`` holds."""
+        return _width(self.positions) // 3
+
+    @property
+    def face_count(self) -> int | None:
+        """``F``, the number of triangles ``faces`` holds, or ``None`` without faces."""
+        return None if self.faces is None else _width(self.faces) // 3
+
+
+class AnimatedScene(abc.ABC):
+    """A Mitsuba scene whose meshes move from frame to frame.
+
+    Subclasses: the procedural scenes (``hlbvh.scenes.get(name)``) and
+    :class:`hlbvh.scenes.SequenceScene` (a user's scene plus per-frame mesh files).
+
+    Attributes:
+        name: what the scene is called (``"cloth"``, ``"twist"``, ..., ``"sequence"``).
+        frame_count: the number of frames; ``frame(i)`` accepts ``0 <= i < frame_count``.
+    """
+
+    name: str = ""
+    frame_count: int = 0
+
+    @abc.abstractmethod
+    def scene_dict(
+        self,
+        resolution: tuple[int, int] | None = None,
+        spp: int | None = None,
+        integrator: dict | None = None,
+    ) -> dict:
+        """A description for ``mi.load_dict``: sensor, integrator, emitters, shapes.
+
+        The film uses a ``box`` reconstruction filter, so two renders with the same
+        seed are bit-comparable. Every shape keeps its id through ``mi.load_dict`` with
+        the default ``optimize=True`` (no shape is merged into another), so
+        ``mi.traverse`` names its buffers ``"<id>.vertex_positions"`` and
+        ``"<id>.faces"``. Shapes are handed over as already-built Mitsuba objects: each
+        call builds new ones, so load each returned dict once.
+
+        Args:
+            resolution: film ``(width, height)`` in pixels; ``None`` keeps the scene's.
+            spp: samples per pixel of the sampler; ``None`` keeps the scene's.
+            integrator: a Mitsuba integrator dict (``{"type": "path", ...}``); ``None``
+                keeps the scene's.
+        """
+
+    @abc.abstractmethod
+    def animated_ids(self) -> list[str]:
+        """Ids of the shapes whose geometry ``frame`` gives, in a fixed order."""
+
+    @abc.abstractmethod
+    def static_ids(self) -> list[str]:
+        """Ids of the shapes that never change (their buffers stay as loaded)."""
+
+    @abc.abstractmethod
+    def frame(self, i: int) -> dict[str, FrameGeometry]:
+        """The geometry of frame ``i`` for every id of :meth:`animated_ids`.
+
+        A pure function of the scene's parameters and ``i`` (random access, no state
+        carried between calls). Apply it with :func:`apply_frame` before rendering
+        frame ``i``, frame 0 included.
+
+        Raises:
+            ValueError: ``i`` outside ``0 .. frame_count - 1``.
+        """
+
+    @abc.abstractmethod
+    def triangle_counts(self) -> dict[str, int]:
+        """Triangles per shape id (animated and static) as loaded, computed without
+        building the geometry where the scene allows it."""
+
+    def triangle_count(self) -> int:
+        """Total triangles of the scene as loaded (the sum of :meth:`triangle_counts`)."""
+        return sum(self.triangle_counts().values())
+
+    def _check_frame_index(self, i) -> int:
+        """``i`` as an int, after checking it names a frame of this scene."""
+        if isinstance(i, bool) or not isinstance(i, numbers.Integral):
+            raise TypeError(f"frame index {i!r}: expected an int")
+        if not 0 <= int(i) < self.frame_count:
+            raise ValueError(
+                f"frame {i} of scene {self.name!r}: expected 0 <= frame < {self.frame_count}"
+            )
+        return int(i)
+
+
+def apply_frame(
+    scene: mi.Scene,
+    params: mi.SceneParameters | None,
+    frame_geometry: dict[str, FrameGeometry],
+) -> list[str]:
+    """Write one frame's geometry into a loaded scene and let Mitsuba refresh it.
+
+    Sets ``params[f"{id}.vertex_positions"]`` (and ``params[f"{id}.faces"]`` when the
+    frame gives faces) for every shape of ``frame_geometry``, then calls
+    ``params.update()`` once, which recomputes vertex normals and bounds and marks the
+    native acceleration structure for rebuild. (Writing back the very array a shape
+    already holds is a no-op for Mitsuba: it sees the same variable.)
+
+    Args:
+        scene: the scene loaded from the animated scene's ``scene_dict``.
+        params: ``mi.traverse(scene)``; ``None`` traverses the scene here.
+        frame_geometry: the result of ``AnimatedScene.frame(i)``.
+
+    Returns:
+        The ids written, in the order of ``frame_geometry``.
+
+    Raises:
+        ValueError: an id that names no mesh of the scene, positions that are empty,
+            not a multiple of 3 long or not finite, a vertex count that differs from the
+            mesh's without new faces, faces indexing past the last vertex.
+    """
+    if params is None:
+        params = mi.traverse(scene)
+    mesh_ids = {shape.id() for shape in scene.shapes() if isinstance(shape, mi.Mesh)}
+    staged = []
+    for shape_id, geometry in frame_geometry.items():
+        key = f"{shape_id}.vertex_positions"
+        if shape_id not in mesh_ids or key not in params:
+            raise ValueError(
+                f"frame geometry for shape {shape_id!r}: the scene has no mesh with that id "
+                f"(its meshes: {sorted(mesh_ids)}); load the scene from the same "
+                f"animated scene's scene_dict()"
+            )
+        positions = _checked_positions(shape_id, geometry.positions)
+        vertex_count = dr.width(positions) // 3
+        faces = None
+        if geometry.faces is None:
+            current = dr.width(params[key]) // 3
+            if vertex_count != current:
+                raise ValueError(
+                    f"frame geometry for shape {shape_id!r}: {vertex_count} vertices given "
+                    f"but the mesh has {current} and no faces were given; pass faces when "
+                    f"the topology changes"
+                )
+        else:
+            faces = _checked_faces(shape_id, geometry.faces, vertex_count)
+        staged.append((shape_id, positions, faces))
+    for shape_id, positions, faces in staged:
+        params[f"{shape_id}.vertex_positions"] = positions
+        if faces is not None:
+            params[f"{shape_id}.faces"] = faces
+    params.update()
+    return [shape_id for shape_id, _, _ in staged]
+
+
+def _width(array) -> int:
+    """Number of scalar entries of a flat numpy or Dr.Jit array."""
+    return int(array.size) if isinstance(array, np.ndarray) else dr.width(array)
+
+
+def _checked_positions(shape_id: str, positions) -> mi.Float:
+    """``positions`` as an ``mi.Float`` after checking size and finiteness."""
+    if isinstance(positions, np.ndarray):
+        flat = np.ascontiguousarray(positions, dtype=np.float32).reshape(-1)
+        finite = bool(np.isfinite(flat).all())
+        result = mi.Float(flat)
+    else:
+        result = mi.Float(dr.detach(positions))
+        finite = bool(dr.all(dr.isfinite(result), axis=None))
+    size = dr.width(result)
+    if size == 0 or size % 3 != 0:
+        raise ValueError(
+            f"frame geometry for shape {shape_id!r}: {size} position values; expected a "
+            f"non-empty flat array of 3 per vertex"
+        )
+    if not finite:
+        raise ValueError(f"frame geometry for shape {shape_id!r}: non-finite vertex positions")
+    return result
+
+
+def _checked_faces(shape_id: str, faces, vertex_count: int) -> mi.UInt32:
+    """``faces`` as an ``mi.UInt32`` after checking size and index range."""
+    if isinstance(faces, np.ndarray):
+        flat = np.ascontiguousarray(faces).reshape(-1).astype(np.int64)
+        bad = flat[(flat < 0) | (flat >= vertex_count)]
+        result = mi.UInt32(flat.astype(np.uint32))
+    else:
+        result = mi.UInt32(faces)
+        bad = [int(dr.max(result, axis=None))] if dr.width(result) else []
+        bad = [b for b in bad if b >= vertex_count]
+    if len(bad):
+        raise ValueError(
+            f"frame geometry for shape {shape_id!r}: face index {int(bad[0])} outside "
+            f"0 .. {vertex_count - 1}"
+        )
+    size = dr.width(result)
+    if size == 0 or size % 3 != 0:
+        raise ValueError(
+            f"frame geometry for shape {shape_id!r}: {size} face indices; expected a "
+            f"non-empty flat array of 3 per triangle"
+        )
+    return result

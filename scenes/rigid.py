@@ -1,0 +1,240 @@
+"""``rigid``: many rigid bodies bouncing around a courtyard whose floor, walls and
+columns never move."""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+
+from . import meshes
+from .procedural import (
+    DEFAULT_FRAMES,
+    DEFAULT_TRIANGLES,
+    Part,
+    ProceduralScene,
+    View,
+    diffuse,
+    ground,
+    plastic,
+    split_budget,
+)
+from .rigid_motion import random_unit_vectors, rotation_matrices
+
+HALF_SIZE = 6.0  # the courtyard spans [-HALF_SIZE, HALF_SIZE] in x and z
+WALL_HEIGHT = 2.5
+WALL_THICKNESS = 0.3
+COLUMN_RADIUS = 0.28
+COLUMNS_PER_WALL = 5
+PROTOTYPES = ("sphere", "box", "torus")
+PALETTE = (
+    (0.80, 0.20, 0.15), (0.15, 0.45, 0.80), (0.90, 0.70, 0.15), (0.20, 0.65, 0.30),
+    (0.60, 0.25, 0.70), (0.95, 0.45, 0.10), (0.15, 0.70, 0.70), (0.85, 0.85, 0.80),
+)
+
+
+class Rigid(ProceduralScene):
+    """Bodies (spheres, rounded boxes, tori) bouncing along circular paths while they
+    spin, in a courtyard of static floor, walls and columns.
+
+    Parts: ``bodies_0`` .. ``bodies_{groups-1}`` (animated; group ``g`` holds every
+    body ``k`` with ``k % groups == g``, all copies of one prototype in one colour, each
+    moving on its own), ``walls`` and ``columns`` (static: three walls and
+    ``3 COLUMNS_PER_WALL`` columns along them), ``ground`` (static). A body keeps its
+    shape and only moves and turns, so its triangles move together while the bodies
+    move apart: a two-level (per body) structure would refit nothing and rebuild only
+    the top.
+
+    Triangles: ``static_fraction`` of the budget goes to the columns (finely
+    tessellated), the rest to the bodies, ``12 n^2`` triangles each.
+
+    Args:
+        objects: the number of bodies.
+        groups: the number of body meshes (Mitsuba shapes) they are spread over;
+            ``groups = objects`` gives one shape per body.
+        static_fraction: share of the triangles in the static environment (0..0.9).
+        others: see :class:`ProceduralScene`.
+    """
+
+    name = "rigid"
+
+    def __init__(
+        self,
+        triangles: int = DEFAULT_TRIANGLES,
+        frames: int = DEFAULT_FRAMES,
+        seed: int = 0,
+        objects: int = 240,
+        groups: int = 8,
+        static_fraction: float = 0.2,
+    ):
+        super().__init__(triangles, frames, seed)
+        if isinstance(objects, bool) or not isinstance(objects, int) or objects < 1:
+            raise ValueError(f"objects={objects!r}: expected a positive int")
+        if isinstance(groups, bool) or not isinstance(groups, int) or not 1 <= groups <= objects:
+            raise ValueError(f"groups={groups!r}: expected an int in 1..objects ({objects})")
+        if not 0.0 <= static_fraction <= 0.9:
+            raise ValueError(f"static_fraction={static_fraction!r}: expected a number in 0..0.9")
+        self.objects, self.groups, self.static_fraction = objects, groups, float(static_fraction)
+
+    def __repr__(self) -> str:
+        return super().__repr__()[:-1] + (
+            f", objects={self.objects}, groups={self.groups}, "
+            f"static_fraction={self.static_fraction})"
+        )
+
+    # ---- Sizes -----------------------------------------------------------------------
+
+    def _column_tessellation(self) -> tuple[int, int]:
+        """Segments and rings of each column, quads about square."""
+        columns = 3 * COLUMNS_PER_WALL
+        per_column = max(split_budget(self.triangles, self.static_fraction) // columns, 32)
+        ratio = 2 * np.pi * COLUMN_RADIUS / WALL_HEIGHT
+        segments = max(8, math.ceil(math.sqrt(per_column / 2 * ratio)))
+        rings = max(1, math.ceil((per_column - 2 * segments) / (2 * segments)))
+        return segments, rings
+
+    def _body_resolution(self) -> int:
+        """``n``: every body has ``12 n^2`` triangles."""
+        segments, rings = self._column_tessellation()
+        static = 2 + 3 * 12 + 3 * COLUMNS_PER_WALL * (2 * segments * rings + 2 * segments)
+        budget = max(self.triangles - static, 12 * self.objects)
+        return max(1, math.ceil(math.sqrt(budget / (12 * self.objects))))
+
+    def _group_sizes(self) -> np.ndarray:
+        return np.bincount(np.arange(self.objects) % self.groups, minlength=self.groups)
+
+    def triangle_counts(self) -> dict[str, int]:
+        n = self._body_resolution()
+        segments, rings = self._column_tessellation()
+        counts = {f"bodies_{g}": 12 * n * n * int(k) for g, k in enumerate(self._group_sizes())}
+        counts["walls"] = 3 * 12
+        counts["columns"] = 3 * COLUMNS_PER_WALL * (2 * segments * rings + 2 * segments)
+        counts["ground"] = 2
+        return counts
+
+    # ---- Geometry --------------------------------------------------------------------
+
+    @functools.cached_property
+    def _prototypes(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Each body shape at unit reach (largest vertex distance 1), ``12 n^2``
+        triangles."""
+        n = self._body_resolution()
+        shapes = {
+            "sphere": meshes.rounded_box(n, 2.0),
+            "box": meshes.rounded_box(n, 6.0),
+            "torus": meshes.torus(0.7, 0.3, 3 * n, 2 * n),
+        }
+        return {
+            name: (p / np.linalg.norm(p, axis=1).max(), f) for name, (p, f) in shapes.items()
+        }
+
+    @functools.cached_property
+    def _paths(self) -> dict[str, np.ndarray]:
+        """Per body (arrays of length ``objects``): size, orbit radius, angular speed
+        and phase, bounce height, frequency and phase, spin axis ``(K, 3)`` and rate."""
+        rng = np.random.default_rng(self.seed)
+        k = self.objects
+        size = rng.uniform(0.2, 0.45, k)
+        return {
+            "size": size,
+            "orbit": rng.uniform(0.8, HALF_SIZE - WALL_THICKNESS - 2 * COLUMN_RADIUS - size - 0.3),
+            "speed": rng.choice([-1.0, 1.0], k) * rng.uniform(0.25, 0.8, k),
+            "phase": rng.uniform(0.0, 2 * np.pi, k),
+            "bounce": rng.uniform(0.3, 2.0, k),
+            "frequency": rng.uniform(0.6, 1.6, k),
+            "bounce_phase": rng.uniform(0.0, np.pi, k),
+            "axis": random_unit_vectors(rng, k),
+            "spin": rng.uniform(0.5, 4.0, k),
+        }
+
+    def _build_parts(self) -> dict[str, Part]:
+        parts = {}
+        for g, count in enumerate(self._group_sizes()):
+            rest, faces = self._prototypes[PROTOTYPES[g % len(PROTOTYPES)]]
+            vertex_count = len(rest)
+            copies = faces[None].astype(np.int64) + vertex_count * np.arange(count)[:, None, None]
+            parts[f"bodies_{g}"] = Part(
+                copies.reshape(-1, 3).astype(np.uint32), plastic(PALETTE[g % len(PALETTE)])
+            )
+        walls, wall_faces = _walls()
+        parts["walls"] = Part(wall_faces, diffuse((0.72, 0.66, 0.58)), walls, smooth=False)
+        columns, column_faces = _columns(*self._column_tessellation())
+        parts["columns"] = Part(column_faces, diffuse((0.85, 0.84, 0.80)), columns)
+        parts["ground"] = ground((0.50, 0.47, 0.42))
+        return parts
+
+    def _animated_positions(self, t: float, i: int) -> dict[str, np.ndarray]:
+        paths = self._paths
+        angle = paths["phase"] + paths["speed"] * t
+        radius = paths["size"]
+        height = radius + paths["bounce"] * np.abs(
+            np.sin(np.pi * paths["frequency"] * t + paths["bounce_phase"])
+        )
+        centres = np.stack(
+            [paths["orbit"] * np.cos(angle), height, paths["orbit"] * np.sin(angle)], axis=1
+        )
+        turns = rotation_matrices(paths["axis"], paths["spin"] * t) * radius[:, None, None]
+        positions = {}
+        for g in range(self.groups):
+            rest = self._prototypes[PROTOTYPES[g % len(PROTOTYPES)]][0]
+            bodies = np.arange(g, self.objects, self.groups)
+            moved = np.einsum("kij,vj->kvi", turns[bodies], rest) + centres[bodies][:, None, :]
+            positions[f"bodies_{g}"] = moved.reshape(-1, 3)
+        return positions
+
+    def _view(self) -> View:
+        return View(origin=(0.0, 6.0, 14.5), target=(0.0, 0.6, -0.5), fov=52.0)
+
+
+def _box(lower, upper) -> tuple[np.ndarray, np.ndarray]:
+    """An axis-aligned box, 8 vertices and 12 outward triangles."""
+    corners = np.array(
+        [[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=np.float64
+    )
+    positions = np.asarray(lower) + corners * (np.asarray(upper) - np.asarray(lower))
+    faces = np.array(
+        [
+            [0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5],  # x = 0, x = 1
+            [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6],  # y = 0, y = 1
+            [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3],  # z = 0, z = 1
+        ],
+        dtype=np.uint32,
+    )
+    return positions, faces
+
+
+def _merge(pieces) -> tuple[np.ndarray, np.ndarray]:
+    """One mesh of several ``(positions, faces)``."""
+    offsets = np.cumsum([0] + [len(p) for p, _ in pieces[:-1]])
+    positions = np.concatenate([p for p, _ in pieces])
+    faces = np.concatenate([f.astype(np.int64) + o for (_, f), o in zip(pieces, offsets)])
+    return positions, faces.astype(np.uint32)
+
+
+def _walls() -> tuple[np.ndarray, np.ndarray]:
+    """The back, left and right walls of the courtyard (the front stays open)."""
+    h, t, top = HALF_SIZE, WALL_THICKNESS, WALL_HEIGHT
+    return _merge(
+        [
+            _box((-h - t, 0.0, -h - t), (h + t, top, -h)),
+            _box((-h - t, 0.0, -h), (-h, top, h)),
+            _box((h, 0.0, -h), (h + t, top, h)),
+        ]
+    )
+
+
+def _columns(segments: int, rings: int) -> tuple[np.ndarray, np.ndarray]:
+    """Columns standing along the inner side of the three walls."""
+    unit, faces = meshes.capped_tube(segments, rings)
+    unit = unit * np.array([COLUMN_RADIUS, WALL_HEIGHT, COLUMN_RADIUS])
+    inset = HALF_SIZE - COLUMN_RADIUS - 0.05
+    along = np.linspace(-HALF_SIZE + 1.0, HALF_SIZE - 1.0, COLUMNS_PER_WALL)
+    feet = np.concatenate(
+        [
+            np.stack([along, np.full_like(along, -inset)], axis=1),
+            np.stack([np.full_like(along, -inset), along], axis=1),
+            np.stack([np.full_like(along, inset), along], axis=1),
+        ]
+    )
+    return _merge([(unit + [x, 0.0, z], faces) for x, z in feet])

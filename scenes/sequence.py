@@ -1,0 +1,385 @@
+"""What users bring: a Mitsuba scene (XML file or dict) plus per-frame mesh files.
+
+Layout of the frames directory (one subdirectory per animated shape, named by the
+shape's id in the scene, one file per frame)::
+
+    <frames_dir>/<shape_id>/frame_0001.ply
+    <frames_dir>/<shape_id>/frame_0002.ply
+    ...
+
+Files are named ``frame_<number>.<ply|obj>``, the number with any zero padding. The
+smallest number found in any subdirectory is frame 0, and every animated shape must
+have a file for every number up to the largest: a gap is reported when the sequence is
+opened. Other files are ignored. Each file is read by Mitsuba's own ``ply`` or ``obj``
+plugin, with the ``to_world`` of the scene's shape when it has one (as if the scene
+pointed at that file), so files hold what the scene's shape would.
+
+Topology per shape: ``"fixed"`` (the default) means every frame has the vertex and
+face counts and the faces of the shape in the scene, and only positions are handed
+on; ``"changing"`` means every frame brings its own faces (any counts).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+
+from .animated import AnimatedScene, FrameGeometry
+
+TOPOLOGIES = ("fixed", "changing")
+FRAME_FILE = re.compile(r"^frame_(\d+)\.(ply|obj)$", re.IGNORECASE)
+
+
+class SequenceScene(AnimatedScene):
+    """A scene whose animated meshes are read from a directory of per-frame files.
+
+    Args:
+        scene: a Mitsuba XML file, or a scene dict for ``mi.load_dict``.
+        frames_dir: the directory of per-frame meshes (layout in the module docstring).
+        topology: ``"fixed"`` or ``"changing"`` for every animated shape, or a dict from
+            shape id to either (shapes it leaves out are ``"fixed"``).
+        box_filter: give every film a ``box`` reconstruction filter (renders with the
+            same seed are then bit-comparable); ``False`` keeps the scene's filters.
+
+    Raises:
+        ValueError: the scene cannot be loaded or has no sensor; the directory does not
+            exist or holds no frame files; a subdirectory names no mesh of the scene; a
+            frame file is missing (naming the file and the frame) or given twice.
+    """
+
+    name = "sequence"
+
+    def __init__(
+        self,
+        scene: str | os.PathLike | dict,
+        frames_dir: str | os.PathLike,
+        topology: str | dict[str, str] = "fixed",
+        box_filter: bool = True,
+    ):
+        if isinstance(scene, dict):
+            self._source = dict(scene)
+        else:
+            path = Path(scene)
+            if not path.is_file():
+                raise ValueError(f"scene {str(scene)!r}: no such file (expected a Mitsuba XML file or a dict)")
+            self._source = path.resolve()
+        self._box_filter = bool(box_filter)
+        self._frames_dir = Path(frames_dir).resolve()
+        if not self._frames_dir.is_dir():
+            raise ValueError(f"frames directory {str(frames_dir)!r}: no such directory")
+
+        # ---- The scene's shapes, as loaded ----
+        state = self._parse()
+        reference = self._instantiate(state)
+        self._to_world = {}
+        for node in state.nodes:
+            if node.type == mi.ObjectType.Shape and "to_world" in node.props.keys():
+                self._to_world[node.props.id()] = node.props["to_world"]
+        self._meshes = {}  # id -> (vertex count, face count, faces as mi.UInt32)
+        self._shape_ids = []
+        for shape in reference.shapes():
+            self._shape_ids.append(shape.id())
+            if isinstance(shape, mi.Mesh):
+                self._meshes[shape.id()] = (
+                    shape.vertex_count(), shape.face_count(), mi.UInt32(shape.faces_buffer())
+                )
+        del reference
+
+        # ---- The frame files ----
+        self._files, self.frame_count = self._scan_frames()
+        self._topology = self._topologies(topology)
+
+    def __repr__(self) -> str:
+        return (
+            f"SequenceScene({str(self._source) if isinstance(self._source, Path) else 'dict'}, "
+            f"{str(self._frames_dir)!r}, frames={self.frame_count}, "
+            f"animated={self.animated_ids()})"
+        )
+
+    # ---- The AnimatedScene contract ----------------------------------------------
+
+    def animated_ids(self) -> list[str]:
+        return list(self._files)
+
+    def static_ids(self) -> list[str]:
+        return [sid for sid in self._shape_ids if sid not in self._files]
+
+    def triangle_counts(self) -> dict[str, int]:
+        """Triangles of every mesh as the scene loads them (frame files not read)."""
+        return {sid: counts[1] for sid, counts in self._meshes.items()}
+
+    def frame(self, i: int) -> dict[str, FrameGeometry]:
+        """Reads frame ``i`` of every animated shape.
+
+        Raises:
+            ValueError: naming the file and the frame, when a file is gone, cannot be
+                read by Mitsuba (corrupt), or, for a ``"fixed"`` shape, has another
+                vertex count, face count or faces than the scene's shape.
+        """
+        i = self._check_frame_index(i)
+        return {sid: self._read_frame(sid, i) for sid in self._files}
+
+    def scene_dict(
+        self,
+        resolution: tuple[int, int] | None = None,
+        spp: int | None = None,
+        integrator: dict | None = None,
+    ) -> dict:
+        """See :meth:`AnimatedScene.scene_dict`. The scene as the file or dict describes
+        it (its own geometry, not frame 0), with its films resized to ``resolution``, its
+        samplers set to ``spp``, a box filter unless ``box_filter=False``, and
+        ``integrator`` in place of its own. Every shape is handed over already built
+        (Mitsuba is told not to merge meshes), keyed by its id; shapes without an id get
+        ``shape_<k>``."""
+        state = self._parse()
+        _configure_films(state, resolution, spp, self._box_filter)
+        scene = self._instantiate(state)
+        description = {"type": "scene"}
+        description["integrator"] = dict(integrator) if integrator is not None else scene.integrator()
+        for shape in scene.shapes():
+            description[shape.id()] = shape
+        for k, sensor in enumerate(scene.sensors()):
+            description[_free_key(description, sensor.id() or f"sensor_{k}")] = sensor
+        for k, emitter in enumerate(scene.emitters()):
+            if emitter.get_shape() is None:  # area lights come with their shape
+                description[_free_key(description, emitter.id() or f"emitter_{k}")] = emitter
+        return description
+
+    # ---- Loading the scene ---------------------------------------------------------
+
+    def _parse(self) -> mi.parser.ParserState:
+        """The scene's parse tree, references resolved, every top-level shape named."""
+        config = self._config()
+        try:
+            with _resolving_next_to(self._source):
+                if isinstance(self._source, Path):
+                    state = mi.parser.parse_file(config, str(self._source))
+                else:
+                    state = mi.parser.parse_dict(config, self._source)
+            mi.parser.transform_upgrade(config, state)
+            mi.parser.transform_resolve(config, state)
+        except RuntimeError as error:
+            raise ValueError(f"scene {self._describe()}: Mitsuba cannot parse it: {error}") from None
+        if state.root.type != mi.ObjectType.Scene:
+            raise ValueError(f"scene {self._describe()}: expected a scene, got {state.root.type}")
+        if not any(node.type == mi.ObjectType.Sensor for node in state.nodes):
+            raise ValueError(f"scene {self._describe()}: it has no sensor; add a camera")
+        taken = {node.props.id() for node in state.nodes}
+        count = 0
+        for node in state.nodes:
+            if node.type == mi.ObjectType.Shape and not node.props.id():
+                while f"shape_{count}" in taken:
+                    count += 1
+                node.props.set_id(f"shape_{count}")
+                taken.add(f"shape_{count}")
+        return state
+
+    def _instantiate(self, state: mi.parser.ParserState) -> mi.Scene:
+        """The Mitsuba scene of a parse tree, meshes never merged."""
+        config = self._config()
+        try:
+            with _resolving_next_to(self._source):
+                mi.parser.transform_merge_equivalent(config, state)
+                return mi.parser.instantiate(config, state)
+        except RuntimeError as error:
+            raise ValueError(f"scene {self._describe()}: Mitsuba cannot load it: {error}") from None
+
+    @staticmethod
+    def _config() -> mi.parser.ParserConfig:
+        config = mi.parser.ParserConfig(mi.variant())
+        config.merge_meshes = False
+        return config
+
+    def _describe(self) -> str:
+        return repr(str(self._source)) if isinstance(self._source, Path) else "(dict)"
+
+    # ---- The frame files -----------------------------------------------------------
+
+    def _scan_frames(self) -> tuple[dict[str, list[Path]], int]:
+        """Every animated shape's files in frame order, and the frame count."""
+        found: dict[str, dict[int, Path]] = {}
+        for entry in sorted(self._frames_dir.iterdir()):
+            if not entry.is_dir():
+                continue
+            if entry.name not in self._meshes:
+                raise ValueError(
+                    f"frames directory {str(entry)!r}: the scene has no mesh with id "
+                    f"{entry.name!r} (its meshes: {sorted(self._meshes)})"
+                )
+            numbered: dict[int, Path] = {}
+            for file in sorted(entry.iterdir()):
+                match = FRAME_FILE.match(file.name)
+                if not match or not file.is_file():
+                    continue
+                number = int(match.group(1))
+                if number in numbered:
+                    raise ValueError(
+                        f"frame file number {number} of shape {entry.name!r} is given twice: "
+                        f"{str(numbered[number])!r} and {str(file)!r}; keep one"
+                    )
+                numbered[number] = file
+            if not numbered:
+                raise ValueError(
+                    f"frames directory {str(entry)!r}: no frame files (expected "
+                    f"frame_0001.ply, frame_0002.ply, ... or .obj)"
+                )
+            found[entry.name] = numbered
+        if not found:
+            raise ValueError(
+                f"frames directory {str(self._frames_dir)!r}: no per-shape subdirectories "
+                f"(expected <frames_dir>/<shape_id>/frame_0001.ply, ...)"
+            )
+        first = min(min(numbered) for numbered in found.values())
+        last = max(max(numbered) for numbered in found.values())
+        files = {}
+        for shape_id, numbered in found.items():
+            for number in range(first, last + 1):
+                if number not in numbered:
+                    example = next(iter(numbered.values()))
+                    digits = len(FRAME_FILE.match(example.name).group(1))
+                    missing = example.with_name(f"frame_{number:0{digits}d}{example.suffix}")
+                    raise ValueError(
+                        f"frame {number - first} of shape {shape_id!r}: missing file "
+                        f"{str(missing)!r} (the sequence runs from frame_{first:0{digits}d} "
+                        f"to frame_{last:0{digits}d})"
+                    )
+            files[shape_id] = [numbered[n] for n in range(first, last + 1)]
+        return files, last - first + 1
+
+    def _topologies(self, topology) -> dict[str, str]:
+        if isinstance(topology, str):
+            topology = {sid: topology for sid in self._files}
+        if not isinstance(topology, dict):
+            raise TypeError(f"topology={topology!r}: expected 'fixed', 'changing' or a dict")
+        for sid, kind in topology.items():
+            if kind not in TOPOLOGIES:
+                raise ValueError(f"topology of shape {sid!r}: {kind!r}; expected one of {TOPOLOGIES}")
+            if sid not in self._files:
+                raise ValueError(
+                    f"topology given for shape {sid!r}, which has no frame files "
+                    f"(animated shapes: {self.animated_ids()})"
+                )
+        return {sid: topology.get(sid, "fixed") for sid in self._files}
+
+    def _read_frame(self, shape_id: str, i: int) -> FrameGeometry:
+        path = self._files[shape_id][i]
+        where = f"frame {i} of shape {shape_id!r} ({str(path)!r})"
+        plugin = {"type": path.suffix.lower()[1:], "filename": str(path)}
+        if shape_id in self._to_world:
+            plugin["to_world"] = self._to_world[shape_id]
+        if not path.is_file():
+            raise ValueError(f"{where}: the file is missing")
+        try:
+            mesh = mi.load_dict(plugin)
+        except RuntimeError as error:
+            raise ValueError(f"{where}: Mitsuba cannot read it: {_first_line(error)}") from None
+        positions = mesh.vertex_positions_buffer()
+        faces = mesh.faces_buffer()
+        if self._topology[shape_id] == "changing":
+            return FrameGeometry(positions, faces)
+        vertex_count, face_count, scene_faces = self._meshes[shape_id]
+        if mesh.vertex_count() != vertex_count or mesh.face_count() != face_count:
+            raise ValueError(
+                f"{where}: {mesh.vertex_count()} vertices and {mesh.face_count()} faces, but "
+                f"the scene's shape has {vertex_count} and {face_count} (topology 'fixed'); "
+                f"pass topology={{{shape_id!r}: 'changing'}} if its topology changes"
+            )
+        if not dr.all(mi.UInt32(faces) == scene_faces, axis=None):
+            raise ValueError(
+                f"{where}: its faces differ from the scene's shape (topology 'fixed'); pass "
+                f"topology={{{shape_id!r}: 'changing'}} if its topology changes"
+            )
+        return FrameGeometry(positions)
+
+
+class _resolving_next_to:
+    """Context in which Mitsuba's file resolver also looks next to an XML file (as
+    ``mi.load_file`` does), so the scene's relative paths work."""
+
+    def __init__(self, source):
+        self._directory = source.parent if isinstance(source, Path) else None
+
+    def __enter__(self):
+        self._saved = mi.file_resolver()
+        if self._directory is not None:
+            resolver = mi.FileResolver(self._saved)
+            resolver.prepend(str(self._directory))
+            mi.set_file_resolver(resolver)
+
+    def __exit__(self, *exc):
+        mi.set_file_resolver(self._saved)
+
+
+def _configure_films(state, resolution, spp, box_filter: bool) -> None:
+    """Sets size, samples per pixel and box filter on every sensor of a parse tree,
+    adding the film, sampler or filter node a sensor leaves to its defaults.
+
+    Nodes are addressed by index: appending to ``state.nodes`` may move them."""
+    if resolution is not None:
+        try:
+            width, height = (int(v) for v in resolution)
+        except (TypeError, ValueError):
+            raise ValueError(f"resolution={resolution!r}: expected (width, height)") from None
+        if width < 1 or height < 1:
+            raise ValueError(f"resolution={resolution!r}: expected positive sizes")
+    if spp is not None and (not isinstance(spp, int) or isinstance(spp, bool) or spp < 1):
+        raise ValueError(f"spp={spp!r}: expected a positive int")
+    sensors = [k for k, node in enumerate(state.nodes) if node.type == mi.ObjectType.Sensor]
+    for sensor in sensors:
+        film = _child(state, sensor, mi.ObjectType.Film, "film", "hdrfilm")
+        sampler = _child(state, sensor, mi.ObjectType.Sampler, "sampler", "independent")
+        if resolution is not None:
+            state.nodes[film].props["width"] = width
+            state.nodes[film].props["height"] = height
+        if spp is not None:
+            state.nodes[sampler].props["sample_count"] = spp
+        if box_filter:
+            box = _add_node(state, mi.ObjectType.ReconstructionFilter, "box")
+            props = state.nodes[film].props
+            for name, value in list(props.items()):
+                if (
+                    isinstance(value, mi.Properties.ResolvedReference)
+                    and state.nodes[value.index()].type == mi.ObjectType.ReconstructionFilter
+                ):
+                    props.remove_property(name)
+            props["rfilter"] = box
+
+
+def _child(state, parent: int, kind, name: str, plugin: str) -> int:
+    """Index of node ``parent``'s child of type ``kind``, added as ``plugin`` (under
+    the property ``name``) when missing."""
+    for _, value in state.nodes[parent].props.items():
+        if (
+            isinstance(value, mi.Properties.ResolvedReference)
+            and state.nodes[value.index()].type == kind
+        ):
+            return value.index()
+    reference = _add_node(state, kind, plugin)
+    state.nodes[parent].props[name] = reference
+    return reference.index()
+
+
+def _add_node(state, kind, plugin: str) -> mi.Properties.ResolvedReference:
+    """Appends a node of plugin ``plugin`` with default properties; its reference."""
+    node = mi.parser.SceneNode()
+    node.type = kind
+    node.props = mi.Properties(plugin)
+    state.nodes.append(node)
+    return mi.Properties.ResolvedReference(len(state.nodes) - 1)
+
+
+def _free_key(description: dict, key: str) -> str:
+    """``key``, or ``key_1``, ``key_2``, ... if the description already has it."""
+    candidate, k = key, 0
+    while candidate in description:
+        k += 1
+        candidate = f"{key}_{k}"
+    return candidate
+
+
+def _first_line(error: Exception) -> str:
+    return str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
