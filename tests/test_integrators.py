@@ -158,19 +158,32 @@ def test10_aov_primary_hits_hlbvh_equal_native(scene_name):
     same = (shape_n == shape_o) & (prim_n == prim_o)
     # Edge-grazing rays may pick the neighbouring triangle: allow a pixel or two.
     assert same.mean() >= 1 - 2 / same.size, f"{(~same).sum()} pixels differ"
+    # Triangles: t within 4e-7 relative (measured); cylinders up to 7.7e-5 (Embree
+    # evaluates them in double precision, the direct call in float32).
     depth_n, depth_o = native[..., 3], ours[..., 3]
-    np.testing.assert_allclose(depth_o[same], depth_n[same], rtol=1e-5)
+    np.testing.assert_allclose(depth_o[same], depth_n[same], rtol=2e-4)
 
 
 @needs_build
 @pytest.mark.parametrize("scene_name", SCENES)
 def test11_path_hlbvh_close_to_native(scene_name):
-    """Same seed, box filter: the two accelerators trace the same paths except where a
-    hit differs in the last bits of t or barycentrics (and, rarely, the triangle of an
-    edge hit). Tolerances from measurement, see the report of issue 3."""
+    """Same seed, box filter: both accelerators trace the same paths; hits differ only in
+    the last bits of t and the barycentrics (the triangle tests round differently, and
+    Embree evaluates cylinders in double precision), which shifts later vertices a
+    little.
+
+    Measured over 40 seeds at this size (32x32, 4 spp, max_depth 6): largest pixel
+    difference 4.9e-6 (Cornell box) and 7.7e-5 (analytic scene, next to the cylinder,
+    on a pixel of value 0.048); mean difference <= 3.4e-8; bit-identical pixels 13-16%
+    (Cornell box: nearly every path meets a triangle) and 75-78% (analytic scene).
+    Tolerances: 5e-4 absolute + 1e-4 relative per pixel (6x the worst measured), mean
+    below 1e-6. One pixel may exceed it: a ray grazing a seam can take another path
+    (seen once in 1.4M paths, on a 128x128x16 render)."""
     scene = mi.load_dict(SCENES[scene_name]())
     native = render(scene, dict(type="hlbvh_path", accel="native", max_depth=6), seed=5)
     ours = render(scene, dict(type="hlbvh_path", accel="hlbvh", max_depth=6), seed=5)
     diff = np.abs(ours - native)
-    assert diff.mean() < 1e-3 * max(native.mean(), 1e-3)
-    assert np.mean(diff <= 1e-4 * np.maximum(1, np.abs(native))) > 0.95
+    outside = (diff > 5e-4 + 1e-4 * np.abs(native)).any(axis=-1)
+    assert outside.sum() <= 1, f"{outside.sum()} pixels beyond tolerance, max {diff.max()}"
+    assert diff.mean() < 1e-6
+    assert (diff == 0).all(axis=-1).mean() > 0.05  # same rays, mostly same bits
