@@ -156,3 +156,29 @@ def test08_bad_arguments_raise_errors_naming_them():
         csd_sort(dr.llvm.Float([1.0, 2.0]), 30, 3)
     with pytest.raises(TypeError, match="UInt32 or UInt64"):
         csd_sort(np.array([1, 2], dtype=np.uint32), 30, 3)
+
+
+def test09_a_new_size_or_run_count_compiles_no_new_kernel():
+    # Sizes must enter kernels as opaque values (DRJIT_NOTES pitfall 6): every frame of
+    # an animation has a new run count, and a recompile costs more than the sort.
+    rng = np.random.default_rng(9)
+
+    def sort_some(n):
+        keys = UInt32(np.sort(rng.integers(0, 2**30, n, dtype=np.uint32)))
+        # First half in order, second half shuffled: some voxels stay sorted.
+        swap = np.concatenate([np.arange(n // 2), n // 2 + rng.permutation(n - n // 2)])
+        swap = swap.astype(np.uint32)
+        csd_sort(keys, 30, 12, swap)
+        csd_sort(keys, 30, 12)
+        csd_sort(dr.llvm.UInt64(keys), 60, 24, swap)
+
+    sort_some(3000)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        sort_some(2000)
+        sort_some(2500)
+        compiled = [e for e in dr.kernel_history() if e.get("cache_hit") == 0]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert compiled == []
