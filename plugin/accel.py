@@ -74,18 +74,21 @@ def _describe(shape) -> str:
     return f"shape {shape.id()!r} ({shape.class_name()})"
 
 
-def geometry_signature(scene) -> tuple:
-    """The JIT variable indices of every mesh's vertex and face buffers, in
-    ``scene.shapes()`` order: equal signatures mean the triangles did not change."""
+def geometry_signature(shapes) -> tuple:
+    """The JIT variable indices of every mesh's vertex and face buffers, in the order
+    of ``shapes``: equal signatures mean the triangles did not change."""
     return tuple(
         (s.vertex_positions_buffer().index, s.faces_buffer().index) if s.is_mesh() else None
-        for s in scene.shapes()
+        for s in shapes
     )
 
 
-def collect_geometry(scene) -> SceneGeometry:
-    """World-space triangles of every mesh of ``scene`` in one vertex/face buffer, and
-    the list of its analytic shapes.
+def collect_geometry(shapes) -> SceneGeometry:
+    """World-space triangles of every mesh among ``shapes`` in one vertex/face buffer,
+    and the list of the analytic shapes.
+
+    Args:
+        shapes: ``scene.shapes()``; the indices stored refer to this list.
 
     A Python loop over the scene's shapes (a few), none over triangles.
 
@@ -97,7 +100,7 @@ def collect_geometry(scene) -> SceneGeometry:
     """
     vertices, faces, prim_shape, prim_local, analytic = [], [], [], [], []
     vertex_base = 0
-    for index, shape in enumerate(scene.shapes()):
+    for index, shape in enumerate(shapes):
         if shape.is_mesh():
             face_count = shape.face_count()
             if face_count == 0:
@@ -119,23 +122,23 @@ def collect_geometry(scene) -> SceneGeometry:
     if vertices:
         geometry = SceneGeometry(
             dr.concat(vertices), dr.concat(faces), dr.concat(prim_shape),
-            dr.concat(prim_local), analytic, geometry_signature(scene),
+            dr.concat(prim_local), analytic, geometry_signature(shapes),
         )
-        _check_finite(scene, geometry)
+        _check_finite(shapes, geometry)
     else:
         geometry = SceneGeometry(
             mi.Float(), mi.UInt32(), mi.UInt32(), mi.UInt32(), analytic,
-            geometry_signature(scene),
+            geometry_signature(shapes),
         )
     dr.eval(geometry.vertices, geometry.faces, geometry.prim_shape, geometry.prim_local)
     return geometry
 
 
-def _check_finite(scene, geometry: SceneGeometry):
+def _check_finite(shapes, geometry: SceneGeometry):
     """One reduction over all vertices; on failure, find and name the culprit mesh."""
     if dr.all(dr.isfinite(geometry.vertices)):
         return
-    for shape in scene.shapes():
+    for shape in shapes:
         if shape.is_mesh() and not dr.all(dr.isfinite(shape.vertex_positions_buffer())):
             raise ValueError(
                 f"{_describe(shape)} has non-finite (NaN or infinite) vertex positions: "
@@ -174,38 +177,60 @@ def _bind_overloads(args: tuple, long_names: tuple, given: dict) -> dict:
 
 
 class _Accel:
-    """The three query methods of ``mi.Scene``, with its signatures, keyword names and
-    defaults (the overloads of ``ray_intersect`` and ``ray_test`` included), over the
-    two primitives a subclass provides: ``ray_intersect_preliminary`` and
-    ``_ray_test(ray, coherent, active)``."""
+    """The three query methods of ``mi.Scene`` with its signatures, keyword names and
+    defaults (every overload: ``ray_intersect(ray, active)`` and ``ray_test(ray,
+    active)`` included, and the keyword-only ``reorder``, ``reorder_hint``,
+    ``reorder_hint_bits``, which are thread-reordering hints for CUDA), bound here once
+    and handed to a subclass's ``_preliminary``, ``_intersect`` and ``_test``."""
 
-    def ray_intersect(self, ray, *args, ray_flags=mi.RayFlags.All, coherent=False, active=None):
+    def ray_intersect_preliminary(self, ray, coherent=False, active=True, *, reorder=False,
+                                  reorder_hint=0, reorder_hint_bits=0):
+        """``mi.Scene.ray_intersect_preliminary``: the closest hit's parameters.
+
+        Args:
+            ray: ``mi.Ray3f`` (``maxt`` honoured; hits at t <= 0 are never reported).
+            coherent: hint that the rays are coherent (camera rays). It changes
+                Embree's answer on a few edge rays, so pass what Mitsuba would.
+            active: Bool mask.
+        Returns:
+            ``mi.PreliminaryIntersection3f`` with ``t``, ``prim_uv``, ``prim_index``
+            (local to the shape), ``shape_index`` (into ``scene.shapes()``), ``shape``,
+            ``instance`` null; on a miss ``valid`` False and ``t`` infinite.
+        """
+        return self._preliminary(ray, coherent, active, (reorder, reorder_hint, reorder_hint_bits))
+
+    def ray_intersect(self, ray, *args, ray_flags=mi.RayFlags.All, coherent=False, active=None,
+                      reorder=False, reorder_hint=0, reorder_hint_bits=0):
         """``mi.Scene.ray_intersect``: ``(ray, active=True)`` or
         ``(ray, ray_flags, coherent, active=True)``.
 
         Returns:
-            ``mi.SurfaceInteraction3f`` computed by Mitsuba from
-            :meth:`ray_intersect_preliminary`'s hit, as ``mi.Scene`` does itself.
+            ``mi.SurfaceInteraction3f`` computed by Mitsuba from the closest hit.
         """
         a = _bind_overloads(args, ("ray_flags", "coherent"),
                             dict(ray_flags=ray_flags, coherent=coherent, active=active))
-        pi = self.ray_intersect_preliminary(ray, a["coherent"], a["active"])
-        return pi.compute_surface_interaction(ray, a["ray_flags"], a["active"])
+        return self._intersect(ray, a["ray_flags"], a["coherent"], a["active"],
+                               (reorder, reorder_hint, reorder_hint_bits))
 
     def ray_test(self, ray, *args, coherent=False, active=None):
-        """``mi.Scene.ray_test``: ``(ray, active=True)`` or
-        ``(ray, coherent, active=True)``.
+        """``mi.Scene.ray_test``: ``(ray, active=True)`` or ``(ray, coherent, active=True)``.
 
         Returns:
-            Bool per ray: whether anything lies on it in (0, ``ray.maxt``).
+            Bool per ray: whether anything lies on it at 0 < t <= ``ray.maxt``.
         """
         a = _bind_overloads(args, ("coherent",), dict(coherent=coherent, active=active))
-        return self._ray_test(ray, a["coherent"], a["active"])
+        return self._test(ray, a["coherent"], a["active"])
+
+    def _intersect(self, ray, ray_flags, coherent, active, reorder):
+        """The closest hit, expanded by Mitsuba, as ``mi.Scene.ray_intersect`` does."""
+        pi = self._preliminary(ray, coherent, active, reorder)
+        return pi.compute_surface_interaction(ray, ray_flags, active)
 
 
 class NativeAccel(_Accel):
     """The scene's own accelerator (Embree or OptiX) behind the same interface as
-    :class:`SceneAccel`: the reference our images are compared against.
+    :class:`SceneAccel`: the reference our images are compared against. Every query is
+    the scene's, with the same arguments.
 
     Args:
         scene: the ``mi.Scene``. Mitsuba rebuilds its accelerator itself in
@@ -217,27 +242,22 @@ class NativeAccel(_Accel):
     def __init__(self, scene):
         self.scene = scene
 
-    def ray_intersect_preliminary(self, ray, coherent=False, active=True):
-        """``mi.Scene.ray_intersect_preliminary`` (its second positional argument is
-        ``coherent``, which changes Embree's result on a few edge rays)."""
-        return self.scene.ray_intersect_preliminary(ray, coherent, active)
-
-    def ray_intersect(self, ray, *args, ray_flags=mi.RayFlags.All, coherent=False, active=None):
-        a = _bind_overloads(args, ("ray_flags", "coherent"),
-                            dict(ray_flags=ray_flags, coherent=coherent, active=active))
-        return self.scene.ray_intersect(ray, a["ray_flags"], a["coherent"], a["active"])
-
-    ray_intersect.__doc__ = _Accel.ray_intersect.__doc__
-
-    def _ray_test(self, ray, coherent, active):
-        return self.scene.ray_test(ray, coherent, active)
-
-    def changed(self) -> bool:
-        """Always False: Mitsuba keeps its own accelerator current."""
-        return False
-
     def update(self):
-        """Nothing to do: ``params.update()`` already rebuilt Mitsuba's accelerator."""
+        """Nothing to do: ``params.update()`` already rebuilt Mitsuba's accelerator.
+
+        Returns:
+            self.
+        """
+        return self
+
+    def _preliminary(self, ray, coherent, active, reorder):
+        return self.scene.ray_intersect_preliminary(ray, coherent, *reorder, active)
+
+    def _intersect(self, ray, ray_flags, coherent, active, reorder):
+        return self.scene.ray_intersect(ray, ray_flags, coherent, *reorder, active)
+
+    def _test(self, ray, coherent, active):
+        return self.scene.ray_test(ray, coherent, active)
 
 
 class SceneAccel(_Accel):
@@ -253,7 +273,10 @@ class SceneAccel(_Accel):
             accelerator cannot intersect (see the module docstring), naming the shape.
 
     Attributes:
-        scene: the scene.
+        shapes: ``scene.shapes()`` when built. The accelerator keeps the shapes, not
+            the scene: an integrator that the scene owns can cache it without a
+            reference cycle keeping the scene alive.
+        shapes_dr: ``scene.shapes_dr()``, where hits find their shape pointer.
         config: the validated :class:`hlbvh.BuildConfig`.
         geometry: the :class:`SceneGeometry` the BVH was built over.
         bvh: the :class:`hlbvh.BVH`, or None when the scene has no triangles.
@@ -264,24 +287,30 @@ class SceneAccel(_Accel):
     def __init__(self, scene, **options):
         self.config = BuildConfig.from_options(**options)
         self.options = options
-        self.scene = scene
+        self.shapes = list(scene.shapes())
+        self.shapes_dr = scene.shapes_dr()
         self.geometry = None
         self.bvh = None
         self.update()
 
+    def is_for(self, scene) -> bool:
+        """Whether this accelerator was built over ``scene``'s shapes."""
+        shapes = scene.shapes()
+        return len(shapes) == len(self.shapes) and all(a is b for a, b in zip(shapes, self.shapes))
+
     def changed(self) -> bool:
-        """Whether a mesh of the scene got new vertex or face buffers (a
-        ``params.update()`` with new values) since the last build."""
-        return geometry_signature(self.scene) != self.geometry.signature
+        """Whether a mesh got new vertex or face buffers (a ``params.update()`` with
+        new values) since the last build."""
+        return geometry_signature(self.shapes) != self.geometry.signature
 
     def update(self):
-        """Re-collect the scene's geometry and rebuild the BVH; call it after
+        """Re-collect the meshes' triangles and rebuild the BVH; call it after
         ``params.update()`` changed the scene.
 
         Returns:
             self.
         """
-        self.geometry = collect_geometry(self.scene)
+        self.geometry = collect_geometry(self.shapes)
         if self.geometry.prim_count == 0:
             self.bvh = None
         else:
@@ -291,19 +320,9 @@ class SceneAccel(_Accel):
                 raise ValueError(f"building the HLBVH of the scene's meshes failed: {e}") from e
         return self
 
-    def ray_intersect_preliminary(self, ray, coherent=False, active=True):
-        """``mi.Scene.ray_intersect_preliminary`` through the HLBVH.
-
-        Args:
-            ray: ``mi.Ray3f`` (``maxt`` honoured; hits at t <= 0 are never reported).
-            coherent: accepted for compatibility; no effect here.
-            active: Bool mask.
-        Returns:
-            ``mi.PreliminaryIntersection3f`` with ``t``, ``prim_uv``, ``prim_index``
-            (local to the shape), ``shape_index`` (into ``scene.shapes()``), ``shape``
-            (from ``scene.shapes_dr()``), ``instance`` null; on a miss ``valid`` False,
-            ``t`` infinite and ``shape_index`` 2^32-1, as Mitsuba's own.
-        """
+    def _preliminary(self, ray, coherent, active, reorder):
+        """The BVH's closest triangle hit, then each analytic shape's own routine,
+        merged by nearest ``t``; ``coherent`` and ``reorder`` change nothing here."""
         n = dr.width(ray)
         active = mi.Bool(active) & dr.full(mi.Bool, True, n)
         t, prim_uv, prim_index, shape_index = self._closest_mesh_hit(ray, active)
@@ -320,9 +339,8 @@ class SceneAccel(_Accel):
         pi.prim_uv = mi.Point2f(prim_uv)
         pi.prim_index = dr.select(pi.valid, prim_index, 0)
         pi.shape_index = dr.select(pi.valid, shape_index, 0xFFFFFFFF)
-        shapes = self.scene.shapes_dr()
-        if dr.width(shapes) > 0:  # a scene may have no shape at all
-            pi.shape = dr.gather(mi.ShapePtr, shapes, pi.shape_index, pi.valid)
+        if dr.width(self.shapes_dr) > 0:  # a scene may have no shape at all
+            pi.shape = dr.gather(mi.ShapePtr, self.shapes_dr, pi.shape_index, pi.valid)
         return pi
 
     def _closest_mesh_hit(self, ray, active):
@@ -344,8 +362,8 @@ class SceneAccel(_Accel):
             dr.gather(mi.UInt32, self.geometry.prim_shape, prim, valid),
         )
 
-    def _ray_test(self, ray, coherent, active):
-        active = mi.Bool(active)
+    def _test(self, ray, coherent, active):
+        active = mi.Bool(active) & dr.full(mi.Bool, True, dr.width(ray))
         if self.bvh is None:
             hit = dr.zeros(mi.Bool, dr.width(ray))
         else:

@@ -1,7 +1,12 @@
 """The registered integrators: ``hlbvh_path`` against Mitsuba's C++ ``path``, pixel for
 pixel, and ``hlbvh_aov``; from dict and XML scenes; bad properties."""
 
-import drjit as dr
+import gc
+import pathlib
+import subprocess
+import sys
+import weakref
+
 import hlbvh
 import mitsuba as mi
 import numpy as np
@@ -187,3 +192,69 @@ def test11_path_hlbvh_close_to_native(scene_name):
     assert outside.sum() <= 1, f"{outside.sum()} pixels beyond tolerance, max {diff.max()}"
     assert diff.mean() < 1e-6
     assert (diff == 0).all(axis=-1).mean() > 0.05  # same rays, mostly same bits
+
+
+VARIANT_SCRIPT = """
+import sys
+sys.path.insert(0, {tests!r})
+import hlbvh, mitsuba as mi, numpy as np
+from test_accel import cornell_box
+mi.set_variant("scalar_rgb")
+hlbvh.register()
+try:
+    mi.load_dict(dict(type="hlbvh_path"))
+except Exception as e:
+    assert "need a JIT variant" in str(e), e
+else:
+    raise AssertionError("hlbvh_path accepted a scalar variant")
+mi.set_variant("llvm_ad_spectral")
+hlbvh.register()
+scene = mi.load_dict(cornell_box(res=8, spp=2))
+ref = mi.render(scene, integrator=mi.load_dict(dict(type="path", max_depth=3)), seed=1)
+ours = mi.render(scene, integrator=mi.load_dict(dict(type="hlbvh_path", accel="native",
+                                                     max_depth=3)), seed=1)
+assert np.array_equal(np.array(ref), np.array(ours))
+print("ok")
+"""
+
+
+def test08_register_after_a_variant_change(tmp_path):
+    """In a fresh process (the variant is global): a scalar variant is refused with a
+    clear error; after switching to a spectral JIT variant and register(), hlbvh_path
+    renders bit-identically to path there too."""
+    tests = str(pathlib.Path(__file__).parent)
+    done = subprocess.run([sys.executable, "-c", VARIANT_SCRIPT.format(tests=tests)],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-3000:]
+
+
+@needs_build
+def test09_accel_is_cached_per_scene_and_follows_updates():
+    """The HLBVH is built on the first render, reused by the next, rebuilt for another
+    scene, rebuilt after params.update() gave a mesh new vertices, and does not keep
+    the scene alive once the user lets go of it."""
+    desc = cornell_box(res=8, spp=1)
+    desc["integrator"] = dict(type="hlbvh_path", max_depth=2)
+    scene = mi.load_dict(desc)
+    integrator = scene.integrator()
+    mi.render(scene)
+    first = integrator.accel(scene)
+    bvh = first.bvh
+    mi.render(scene)
+    assert integrator.accel(scene) is first and first.bvh is bvh
+
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("vertex_positions"))
+    params[key] = params[key] * 0.9
+    params.update()
+    mi.render(scene)
+    assert integrator.accel(scene) is first and first.bvh is not bvh
+
+    other = mi.load_dict(cornell_box(res=8, spp=1))
+    mi.render(other, integrator=integrator)
+    assert integrator.accel(other) is not first
+
+    alive = weakref.ref(integrator.accel(other))
+    del scene, integrator, first, other, params
+    gc.collect()
+    assert alive() is None

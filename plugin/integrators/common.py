@@ -14,7 +14,7 @@ import dataclasses
 import drjit as dr
 import mitsuba as mi
 
-from hlbvh.accel import ACCELS, make_accel
+from hlbvh.accel import ACCELS, NativeAccel, SceneAccel
 from hlbvh.kernels.bvh import BuildConfig
 
 #: The builder options an integrator accepts as properties (``hlbvh.build``'s).
@@ -29,14 +29,18 @@ class AccelIntegrator(mi.SamplingIntegrator):
         builder, leaf_size, morton_bits, quantization, coarse_bits, p, sah_bins:
             options of :func:`hlbvh.build` (see :class:`hlbvh.BuildConfig`).
 
-    The intersector is built on the first render of a scene and kept for the next
-    renders of that scene; it is rebuilt when another scene is rendered, and updated
-    when a mesh of the scene got new buffers (``params.update()``). While cached it
-    keeps its scene alive; :meth:`release_accel` drops it.
+    The HLBVH is built on the first render of a scene and kept for the next renders
+    of that scene; it is rebuilt when another scene is rendered, and updated when a
+    mesh of the scene got new buffers (``params.update()``).
     """
 
     def __init__(self, props):
         super().__init__(props)
+        if not dr.is_jit_v(mi.Float):
+            raise ValueError(
+                f"hlbvh integrators need a JIT variant (llvm_* or cuda_*), not "
+                f"{mi.variant()!r}: call mi.set_variant(...) and hlbvh.register()"
+            )
         self.accel_name = props.get("accel", "hlbvh")
         if self.accel_name not in ACCELS:
             raise ValueError(
@@ -47,17 +51,21 @@ class AccelIntegrator(mi.SamplingIntegrator):
         self._accel = None
 
     def accel(self, scene):
-        """The intersector of ``scene``: built on first use, rebuilt for another scene,
-        updated when the scene's meshes changed."""
-        if self._accel is None or self._accel.scene is not scene:
-            self._accel = make_accel(scene, self.accel_name, **self.build_options)
+        """The intersector of ``scene``.
+
+        ``"native"``: a :class:`~hlbvh.NativeAccel`, made per call (it costs nothing,
+        and a cached one would keep the scene alive through the scene's reference to
+        this integrator). ``"hlbvh"``: a :class:`~hlbvh.SceneAccel`, built on first
+        use, kept while the same scene is rendered, rebuilt for another scene, updated
+        when the scene's meshes got new buffers.
+        """
+        if self.accel_name == "native":
+            return NativeAccel(scene)
+        if self._accel is None or not self._accel.is_for(scene):
+            self._accel = SceneAccel(scene, **self.build_options)
         elif self._accel.changed():
             self._accel.update()
         return self._accel
-
-    def release_accel(self):
-        """Drop the cached intersector (and with it the reference to its scene)."""
-        self._accel = None
 
     def _options_string(self) -> str:
         options = "".join(f", {k}={v!r}" for k, v in self.build_options.items())
@@ -70,6 +78,12 @@ def mis_weight(pdf_a, pdf_b):
     a2, b2 = pdf_a * pdf_a, pdf_b * pdf_b
     w = a2 / (a2 + b2)
     return dr.detach(dr.select(dr.isfinite(w), w, 0.0))
+
+
+def spec_fma(a, b, c):
+    """``a·b + c`` for spectra: a fused multiply-add, or a Mueller-matrix product and
+    a sum in polarized variants."""
+    return a * b + c if mi.is_polarized else dr.fma(a, b, c)
 
 
 def skip_area_emitters(accel, ray, coherent, active):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .common import AccelIntegrator, mis_weight, skip_area_emitters
+from .common import AccelIntegrator, mis_weight, skip_area_emitters, spec_fma
 
 
 class PathIntegrator(AccelIntegrator):
@@ -124,8 +124,8 @@ class PathIntegrator(AccelIntegrator):
             ds = mi.DirectionSample3f(scene, si, prev_si)
             em_pdf = scene.pdf_emitter_direction(prev_si, ds, ~prev_bsdf_delta)
             mis_bsdf = mis_weight(prev_bsdf_pdf, em_pdf)
-            result = dr.fma(throughput, ds.emitter.eval(si, prev_bsdf_pdf > 0.0) * mis_bsdf,
-                            result)
+            result = spec_fma(throughput, ds.emitter.eval(si, prev_bsdf_pdf > 0.0) * mis_bsdf,
+                              result)
 
             # Continue tracing the path at this point?
             active_next = (depth + 1 < self.max_depth) & si.is_valid()
@@ -158,7 +158,7 @@ class PathIntegrator(AccelIntegrator):
 
             bsdf_val = si.to_world_mueller(bsdf_val, -wo, si.wi)
             mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
-            result[active_em] = dr.fma(throughput, bsdf_val * em_weight * mis_em, result)
+            result[active_em] = spec_fma(throughput, bsdf_val * em_weight * mis_em, result)
 
             # ---------------------- BSDF sampling ----------------------
 
