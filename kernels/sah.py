@@ -48,9 +48,11 @@ _MIDDLE = 0xFFFFFFFF
 #: Floats per node record in the staging buffer: lo.xyz, hi.xyz, first, count.
 _RECORD = 8
 
-#: Scatter-reductions use plain atomics: ReduceMode.Expand (what Auto picks for small
-#: targets on LLVM) bakes the target size into the kernel, recompiling it every level.
+#: Scatter-reductions use plain atomics. ReduceMode.Expand (what Auto picks for small
+#: targets on LLVM) bakes the target's size into the kernel, so every level and every
+#: new input size would compile new kernels; it also measured no faster here.
 _MODE = dr.ReduceMode.Direct
+
 
 
 @dataclass
@@ -204,8 +206,6 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     slots of the items that reached a leaf; return the next level's open nodes."""
     K = level.size
     m = dr.width(level.item)
-    cells = dr.opaque(ns.UInt32, 3 * K * bins)  # (node, axis, bin) cells of this level
-    n_child = dr.opaque(ns.UInt32, 2 * K)
     child_start = dr.opaque(ns.UInt32, block_start[-1])
     grandchild_start = dr.opaque(ns.UInt32, block_start[-1] + 2 * K)
     block_start.append(block_start[-1] + 2 * K)
@@ -216,33 +216,50 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     centroid = _centroid(item_lo, item_hi)
     cmin = dr.gather(ns.Array3f, level.cmin, level.node)
     cmax = dr.gather(ns.Array3f, level.cmax, level.node)
-    item_w = dr.gather(ns.UInt32, weight, level.item)
-    bin_box = dr.full(ns.Float, dr.inf, 6 * 3 * K * bins)
-    bin_weight = dr.zeros(ns.UInt32, 3 * K * bins)
-    packed_bins = ns.UInt32(0)
-    for axis in range(3):
-        b = _bin_index(ns, centroid[axis], cmin[axis], cmax[axis], bins)
-        packed_bins |= b << (8 * axis)
-        cell = (level.node * 3 + axis) * bins + b
-        _reduce_rows(bin_box, _box_rows(item_lo, item_hi), cell, cells)
-        dr.scatter_reduce(dr.ReduceOp.Add, bin_weight, item_w, cell, mode=_MODE)
+    item_bin = [_bin_index(ns, centroid[a], cmin[a], cmax[a], bins) for a in range(3)]
+    packed_bins = item_bin[0] | (item_bin[1] << 8) | (item_bin[2] << 16)
     dr.eval(packed_bins)
+    item_bin = [(packed_bins >> (8 * a)) & 0xFF for a in range(3)]
+
+    # ---- Cells: the occupied bins of each (node, axis); all bins of a node with at
+    # least `bins` items, so a level stores at most 3·min(bins, count) cells per node ----
+    big = level.count >= bins
+    occupied = dr.select(dr.repeat(big, 3), ns.UInt64((1 << bins) - 1), 0)
+    small_item = ~dr.gather(ns.Bool, big, level.node)
+    for a in range(3):
+        dr.scatter_reduce(dr.ReduceOp.Or, occupied, ns.UInt64(1) << ns.UInt64(item_bin[a]),
+                          level.node * 3 + a, small_item, mode=_MODE)
+    n_cells = ns.UInt32(dr.popcnt(occupied))
+    cell_first = dr.prefix_sum(n_cells)
+    dr.eval(occupied, n_cells, cell_first)
+    total_cells = cell_first[3 * K - 1] + n_cells[3 * K - 1]
+
+    cell_box = dr.full(ns.Float, dr.inf, 6 * total_cells)
+    cell_weight = dr.zeros(ns.UInt32, total_cells)
+    item_w = dr.gather(ns.UInt32, weight, level.item)
+    for a in range(3):
+        lane = level.node * 3 + a
+        below = dr.gather(ns.UInt64, occupied, lane) & ((ns.UInt64(1) << ns.UInt64(item_bin[a])) - 1)
+        cell = dr.gather(ns.UInt32, cell_first, lane) + ns.UInt32(dr.popcnt(below))
+        _reduce_box(cell_box, item_lo, item_hi, cell, 6)
+        dr.scatter_reduce(dr.ReduceOp.Add, cell_weight, item_w, cell, mode=_MODE)
+    dr.eval()
 
     # ---- Sweep the split planes of every node: cheapest valid plane, or middle ----
     extent = level.box_hi - level.box_lo
     largest = dr.maximum(extent.x, dr.maximum(extent.y, extent.z))
-    split = _sweep(ns, bin_box, bin_weight, dr.select(largest > 0, 1 / largest, 1),
-                   cells, K, bins)
+    split = _sweep(ns, cell_box, cell_weight, occupied, cell_first, n_cells,
+                   dr.select(largest > 0, 1 / largest, 1), K, bins)
 
     # ---- Left/right decision of every item; ranks by a prefix sum ----
     position = dr.arange(ns.UInt32, m)
     node_split = dr.gather(ns.UInt32, split, level.node)
     act_first = dr.gather(ns.UInt32, level.act_first, level.node)
     count = dr.gather(ns.UInt32, level.count, level.node)
-    item_bin = (packed_bins >> (8 * dr.minimum(node_split // bins, 2))) & 0xFF
+    split_bin = (packed_bins >> (8 * dr.minimum(node_split // bins, 2))) & 0xFF
     left = dr.select(node_split == _MIDDLE,
                      (position - act_first) < count // 2,
-                     item_bin <= node_split % bins)
+                     split_bin <= node_split % bins)
     goes_left = ns.UInt32(left)
     left_before = dr.prefix_sum(goes_left)
     dr.eval(goes_left, left_before)
@@ -272,9 +289,9 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     c = level.node * 2 + dr.select(left, 0, 1)
     to_open = dr.gather(ns.Bool, c_open, c)
     dr.scatter(item_order, level.item, dr.gather(ns.UInt32, c_slot, c) + rank, ~to_open)
-    child_box = dr.full(ns.Float, dr.inf, 12 * 2 * K)
-    _reduce_rows(child_box, _box_rows(item_lo, item_hi), c, n_child)
-    _reduce_rows(child_box, _box_rows(centroid, centroid), c + 6 * n_child, n_child, to_open)
+    child_box = dr.full(ns.Float, dr.inf, 12 * 2 * K)  # per child: box, centroid bounds
+    _reduce_box(child_box, item_lo, item_hi, c, 12)
+    _reduce_box(child_box, centroid, centroid, c, 12, 6, to_open)
     if K_next:
         next_item = dr.empty(ns.UInt32, m_next)
         next_node = dr.empty(ns.UInt32, m_next)
@@ -284,7 +301,7 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     dr.eval()
 
     # ---- Emit the children's node records and the next level's open nodes ----
-    box_lo, box_hi = _read_box(ns, child_box, child, n_child)
+    box_lo, box_hi = _read_box(ns, child_box, child, 12)
     _write_records(ns, records, child_start + child, box_lo, box_hi,
                    dr.select(c_open, grandchild_start + 2 * next_index, c_slot),
                    dr.select(c_open, 0, c_count))
@@ -294,8 +311,8 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     next_child = dr.empty(ns.UInt32, K_next)
     dr.scatter(next_child, child, next_index, c_open)
     dr.eval()
-    box_lo, box_hi = _read_box(ns, child_box, next_child, n_child)
-    cmin, cmax = _read_box(ns, child_box, next_child + 6 * n_child, n_child)
+    box_lo, box_hi = _read_box(ns, child_box, next_child, 12)
+    cmin, cmax = _read_box(ns, child_box, next_child, 12, 6)
     nxt = _Level(
         size=K_next,
         node_id=child_start + next_child,
@@ -311,61 +328,90 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     return nxt
 
 
-def _sweep(ns, bin_box, bin_weight, scale, cells, K: int, bins: int):
+def _sweep(ns, cell_box, cell_weight, occupied, cell_first, n_cells, scale, K: int, bins: int):
     """Per node (UInt32[K]): the split code ``axis·bins + p`` of the cheapest plane
     ``p`` (bins 0..p on the left) that leaves both sides non-empty, the first in
     (axis, plane) order on ties; ``_MIDDLE`` when no plane qualifies.
 
-    The bins of one (node, axis) are a contiguous block of cells, so the left and right
-    sides of all planes are blocked prefix reductions over the cells. Extents are
-    multiplied by ``scale`` (Float[K], 1 / the node's largest extent) so that areas
-    neither overflow nor underflow at extreme coordinates.
+    One lane per (node, axis) walks its cells (its occupied bins, in bin order) twice:
+    forward to store the cost share of every left side, backward to price each plane
+    with its right side. A plane between two occupied bins is reported as the last
+    occupied bin on its left, the lowest of the planes that make the same partition.
+    Extents are multiplied by ``scale`` (Float[K], 1 / the node's largest extent), so
+    areas neither overflow nor underflow at extreme coordinates.
     """
-    left_box = dr.block_prefix_reduce(dr.ReduceOp.Min, bin_box, bins, exclusive=False)
-    right_box = dr.block_prefix_reduce(dr.ReduceOp.Min, bin_box, bins, exclusive=False,
-                                       reverse=True)
-    left_w = dr.block_prefix_reduce(dr.ReduceOp.Add, bin_weight, bins, exclusive=False)
-    right_w = dr.block_prefix_reduce(dr.ReduceOp.Add, bin_weight, bins, exclusive=False,
-                                     reverse=True)
-    # ---- Cost of the plane after every cell (the last cell of a block has none) ----
-    cell = dr.arange(ns.UInt32, 3 * K * bins)
-    has_plane = (cell % bins) != bins - 1
-    s = dr.gather(ns.Float, scale, cell // (3 * bins))
-    w_right = dr.gather(ns.UInt32, right_w, cell + 1, has_plane)
-    cost = dr.fma(
-        _half_area(_read_extent(ns, right_box, cell + 1, cells, has_plane) * s),
-        ns.Float(w_right),
-        _half_area(_read_extent(ns, left_box, cell, cells) * s) * ns.Float(left_w),
+    lane = dr.arange(ns.UInt32, 3 * K)
+    s = dr.gather(ns.Float, scale, lane // 3)
+    cells = dr.width(cell_weight)
+    left_cost = dr.empty(ns.Float, cells)
+    left_weight = dr.empty(ns.UInt32, cells)
+    empty_box = (dr.full(ns.Array3f, dr.inf, 3 * K), dr.full(ns.Array3f, -dr.inf, 3 * K))
+
+    # ---- Forward: the left side of the plane after cell q is cells 0..q ----
+    def forward(q, lo, hi, w):
+        cell = cell_first + q
+        c_lo, c_hi = _read_box(ns, cell_box, cell, 6)
+        lo, hi = dr.minimum(lo, c_lo), dr.maximum(hi, c_hi)
+        w = w + dr.gather(ns.UInt32, cell_weight, cell)
+        dr.scatter(left_cost, _half_area((hi - lo) * s) * ns.Float(w), cell)
+        dr.scatter(left_weight, w, cell)
+        return q + 1, lo, hi, w
+
+    dr.while_loop(
+        state=(dr.zeros(ns.UInt32, 3 * K), *empty_box, dr.zeros(ns.UInt32, 3 * K)),
+        cond=lambda q, lo, hi, w: q + 1 < n_cells,
+        body=forward,
+        labels=("q", "lo", "hi", "w"),
     )
+
+    # ---- Backward: the right side of the plane before cell q is cells q..end ----
+    def backward(q, bin_of_q, lo, hi, w, best_cost, best_bin):
+        cell = cell_first + q
+        c_lo, c_hi = _read_box(ns, cell_box, cell, 6)
+        lo, hi = dr.minimum(lo, c_lo), dr.maximum(hi, c_hi)
+        w = w + dr.gather(ns.UInt32, cell_weight, cell)
+        last_left_bin = _highest_bit(ns, occupied & ((ns.UInt64(1) << ns.UInt64(bin_of_q)) - 1))
+        cost = dr.fma(_half_area((hi - lo) * s), ns.Float(w),
+                      dr.gather(ns.Float, left_cost, cell - 1))
+        better = (dr.gather(ns.UInt32, left_weight, cell - 1) > 0) & (w > 0) & (cost <= best_cost)
+        best_cost = dr.select(better, cost, best_cost)
+        best_bin = dr.select(better, last_left_bin, best_bin)
+        return q - 1, last_left_bin, lo, hi, w, best_cost, best_bin
+
+    state = dr.while_loop(
+        state=(n_cells - 1, _highest_bit(ns, occupied), *empty_box, dr.zeros(ns.UInt32, 3 * K),
+               dr.full(ns.Float, dr.inf, 3 * K), dr.zeros(ns.UInt32, 3 * K)),
+        cond=lambda q, *_: q > 0,
+        body=backward,
+        labels=("q", "bin_of_q", "lo", "hi", "w", "best_cost", "best_bin"),
+    )
+    best_cost, best_bin = state[-2], state[-1]
+
     # ---- Per node the least (cost, axis, plane): one min over packed keys ----
-    key = (ns.UInt64(dr.reinterpret_array(ns.UInt32, cost)) << 32) | ns.UInt64(cell % (3 * bins))
-    valid = has_plane & (left_w > 0) & (w_right > 0)
-    key = dr.select(valid, key, 0xFFFFFFFFFFFFFFFF)
-    return ns.UInt32(dr.block_reduce(dr.ReduceOp.Min, key, 3 * bins) & 0xFFFFFFFF)
+    key = (ns.UInt64(dr.reinterpret_array(ns.UInt32, best_cost)) << 32) | ns.UInt64(
+        (lane % 3) * bins + best_bin)
+    key = dr.select(best_cost < dr.inf, key, 0xFFFFFFFFFFFFFFFF)
+    return ns.UInt32(dr.block_reduce(dr.ReduceOp.Min, key, 3) & 0xFFFFFFFF)
 
 
-def _box_rows(box_lo, box_hi):
-    """A box as six values to be min-reduced: lo.xyz and -hi.xyz."""
-    return [box_lo.x, box_lo.y, box_lo.z, -box_hi.x, -box_hi.y, -box_hi.z]
+def _highest_bit(ns, mask):
+    """Index of the highest set bit of a non-zero UInt64 mask (UInt32)."""
+    return ns.UInt32(63 - dr.lzcnt(mask))
 
 
-def _reduce_rows(target, rows, index, stride, active=True):
-    """Min-reduce ``rows[j]`` into ``target[j·stride + index]`` (row-major records, so a
-    blocked reduction over one row never mixes rows)."""
-    for j, value in enumerate(rows):
-        dr.scatter_reduce(dr.ReduceOp.Min, target, value, index + j * stride, active, mode=_MODE)
+def _reduce_box(target, box_lo, box_hi, index, stride, offset=0, active=True):
+    """Min-reduce the box (lo.xyz, -hi.xyz) into the record
+    ``target[index·stride + offset ..+5]``."""
+    base = index * stride + offset
+    for j, value in enumerate((box_lo.x, box_lo.y, box_lo.z, -box_hi.x, -box_hi.y, -box_hi.z)):
+        dr.scatter_reduce(dr.ReduceOp.Min, target, value, base + j, active, mode=_MODE)
 
 
-def _read_box(ns, target, index, stride):
-    """The box (lo, hi) stored by :func:`_reduce_rows` at ``index``."""
-    r = [dr.gather(ns.Float, target, index + j * stride) for j in range(6)]
+def _read_box(ns, target, index, stride, offset=0):
+    """The box (lo, hi) that :func:`_reduce_box` stored at ``index``."""
+    base = index * stride + offset
+    r = [dr.gather(ns.Float, target, base + j) for j in range(6)]
     return ns.Array3f(r[0], r[1], r[2]), -ns.Array3f(r[3], r[4], r[5])
-
-
-def _read_extent(ns, target, index, stride, active=True):
-    """Extent (hi - lo) of the box stored at ``index`` (-inf for an empty box)."""
-    r = [dr.gather(ns.Float, target, index + j * stride, active) for j in range(6)]
-    return -ns.Array3f(r[3] + r[0], r[4] + r[1], r[5] + r[2])
 
 
 def _write_records(ns, records, index, box_lo, box_hi, first, count):
