@@ -94,6 +94,10 @@ def sah_cost(node_min, node_max, node_count) -> float:
     sum over internal nodes of A(n)/A(root) plus sum over leaves of count·A(n)/A(root).
     A root of zero area (all primitives on a point or a segment) weighs every node 1."""
     e = dr.maximum(node_max - node_min, 0)
+    # Extents in units of the root's largest one: no overflow at 1e30, no underflow at 1e-30.
+    root_e = dr.gather(type(e), e, 0)
+    unit = dr.max(root_e)
+    e = e / dr.select(unit > 0, unit, 1)
     area = e.x * e.y + e.y * e.z + e.z * e.x
     root = dr.gather(type(area), area, 0)
     rel = dr.select(root > 0, area / dr.select(root > 0, root, 1), 1)

@@ -207,8 +207,9 @@ def _sah_top_level(config, records: NodeRecords, sorted_keys, bits, coarse_bits,
     head = (slot == 0) | (coarse != dr.gather(type(coarse), coarse, dr.maximum(slot, 1) - 1))
     start = dr.compress(head)
     clusters = len(start)
-    end = dr.gather(UInt32, start, dr.arange(UInt32, clusters) + 1, dr.arange(UInt32, clusters) + 1 < clusters)
-    end = dr.select(dr.arange(UInt32, clusters) + 1 < clusters, end, n)
+    after = dr.arange(UInt32, clusters) + 1
+    last = after == dr.opaque(UInt32, clusters)
+    end = dr.select(last, dr.opaque(UInt32, n), dr.gather(UInt32, start, after, ~last))
     cluster_of = dr.cumsum(UInt32(head)) - 1
 
     # ---- Cluster boxes: union of their triangles' boxes ----

@@ -71,6 +71,7 @@ def open_segments(start, end, node, depth, records: NodeRecords, leaf_size: int)
         records: node arrays; the leaves are written into them.
         leaf_size: most primitives in a leaf.
     """
+    dr.make_opaque(start, end, node, depth)  # sizes vary: never bake them into kernels
     size = end - start
     is_leaf = size <= leaf_size
     dr.scatter(records.first, start, node, is_leaf)
