@@ -20,7 +20,7 @@ What :class:`SceneAccel` puts in its BVH, and what it does not:
 * instances, curves, SDF grids and ellipsoids: rejected with a ``ValueError`` naming
   the shape (never rendered wrong);
 * a scene without any geometry (only an environment, say) is valid, as it is for
-  Mitsuba: every ray misses.
+  Mitsuba: every ray misses; so are meshes without triangles: nothing hits them.
 
 ``coherent`` is accepted everywhere for signature compatibility; it is a performance
 hint of Embree's and :class:`SceneAccel` traces coherent and incoherent rays alike.

@@ -193,7 +193,7 @@ class PathIntegrator(AccelIntegrator):
         state = dr.while_loop(
             state=(ray, pi, throughput, result, eta, depth, valid_ray, prev_si,
                    prev_bsdf_pdf, prev_bsdf_delta, active, sampler),
-            cond=lambda *state: state[10],
+            cond=lambda *state: state[-2],  # active
             body=body,
             labels=("ray", "pi", "throughput", "result", "eta", "depth", "valid_ray",
                     "prev_si", "prev_bsdf_pdf", "prev_bsdf_delta", "active", "sampler"),
