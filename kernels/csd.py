@@ -39,9 +39,10 @@ import drjit as dr
 
 from .arrays import namespace_of
 
-# Bits per pass of the LSD radix sort: Dr.Jit's own choice in dr.argsort (11 bits on
-# the CPU, 8 on the GPU where shared memory is smaller).
-_RADIX_BITS = {dr.JitBackend.LLVM: 11, dr.JitBackend.CUDA: 8}
+# Most bits per pass of the LSD radix sort. CPU: passes of 10, 11 and 12 bits cost the
+# same per pass here (1M keys), 12 lets a 12-bit coarse key take one pass and a 24-bit
+# one two; GPU: Dr.Jit's own choice in dr.argsort (8, shared memory is smaller).
+_RADIX_BITS = {dr.JitBackend.LLVM: 12, dr.JitBackend.CUDA: 8}
 
 
 @dataclass
@@ -100,11 +101,8 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
 
     # ---- Compress: run-length encode the coarse keys in start order ----
     key = dr.gather(Key, keys, start)
-    Coarse = UInt32 if coarse_bits <= 32 else Key
-    if coarse_bits == 0:
-        coarse = dr.zeros(Coarse, n)
-    else:
-        coarse = Coarse(key >> (key_bits - coarse_bits))
+    coarse = _coarse_keys(key, key_bits, coarse_bits)
+    Coarse = type(coarse)
     slot = dr.arange(UInt32, n)
     before = dr.maximum(slot, 1) - 1
     run_head = (slot == 0) | (coarse != dr.gather(Coarse, coarse, before))
@@ -116,6 +114,17 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
         return CsdResult(start, key, runs=runs, coarse_clusters=runs, resorted=0)
     run_start = dr.compress(run_head)  # UInt32[R]
     runs = dr.width(run_start)
+    if runs > n // 2:
+        # Incoherent keys (a random soup): the runs are about as many as the keys, and
+        # sorting and decoding them would cost more than sorting the keys themselves.
+        by_key, sorted_keys = _radix_sort(key, key_bits)
+        order = dr.gather(UInt32, start, by_key)
+        sorted_coarse = _coarse_keys(sorted_keys, key_bits, coarse_bits)
+        voxels = dr.count(
+            (slot == 0) | (sorted_coarse != dr.gather(Coarse, sorted_coarse, before))
+        )
+        dr.eval(order, sorted_keys, voxels)
+        return CsdResult(order, sorted_keys, runs=runs, coarse_clusters=int(voxels[0]), resorted=n)
     run = dr.arange(UInt32, runs)
     # Sizes enter kernels as opaque values, so a new run count compiles nothing.
     last_run, end = dr.opaque(UInt32, runs - 1), dr.opaque(UInt32, n)
@@ -123,11 +132,10 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
     run_key = dr.gather(Coarse, coarse, run_start)
 
     # ---- Sort the runs by coarse key (stable: equal voxels keep start order) ----
-    by_key = _stable_argsort(run_key, coarse_bits)
+    by_key, sorted_run_key = _radix_sort(run_key, coarse_bits)
     src_start = dr.gather(UInt32, run_start, by_key)
     src_length = dr.gather(UInt32, run_end - run_start, by_key)
     dst_start = dr.prefix_sum(src_length)
-    sorted_run_key = dr.gather(Coarse, run_key, by_key)
     voxel_head = (run == 0) | (
         sorted_run_key != dr.gather(Coarse, sorted_run_key, dr.maximum(run, 1) - 1)
     )
@@ -138,11 +146,11 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
     is_dst_start = dr.zeros(UInt32, n)
     dr.scatter(is_dst_start, UInt32(1), dst_start)
     slot_run = dr.cumsum(is_dst_start) - 1
-    src = dr.gather(UInt32, src_start, slot_run) + slot - dr.gather(UInt32, dst_start, slot_run)
-    order = dr.gather(UInt32, start, src)
-    sorted_keys = dr.gather(Key, key, src)
+    # source: slot -> position in start order
+    source = dr.gather(UInt32, src_start, slot_run) + slot - dr.gather(UInt32, dst_start, slot_run)
+    sorted_keys = dr.gather(Key, key, source)
     slot_voxel = dr.gather(UInt32, voxel_of_run, slot_run)
-    dr.eval(order, sorted_keys, slot_voxel)
+    dr.eval(source, sorted_keys, slot_voxel)
 
     # ---- Fine sort inside each coarse voxel that is not in key order yet ----
     # Voxels come in ascending coarse order, so a key smaller than its predecessor
@@ -153,10 +161,10 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
     in_unsorted_voxel = dr.gather(ns.Bool, unsorted_voxel, slot_voxel)
     resorted = int(dr.count(in_unsorted_voxel)[0])
     if resorted:
-        source = _voxel_sort(sorted_keys, key_bits, in_unsorted_voxel, resorted)
-        order = dr.gather(UInt32, order, source)
-        sorted_keys = dr.gather(Key, sorted_keys, source)
-        dr.eval(order, sorted_keys)
+        fine, sorted_keys = _voxel_sort(sorted_keys, key_bits, in_unsorted_voxel, resorted)
+        source = dr.gather(UInt32, source, fine)
+    order = dr.gather(UInt32, start, source)
+    dr.eval(order, sorted_keys)
     return CsdResult(
         order,
         sorted_keys,
@@ -164,6 +172,16 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
         coarse_clusters=int(voxel_of_run[runs - 1]) + 1,
         resorted=resorted,
     )
+
+
+def _coarse_keys(keys, key_bits: int, coarse_bits: int):
+    """The top ``coarse_bits`` of each key (its coarse voxel): UInt32 when they fit,
+    else the keys' own type; zeros when ``coarse_bits`` is 0."""
+    ns = namespace_of(keys)
+    Coarse = ns.UInt32 if coarse_bits <= 32 else type(keys)
+    if coarse_bits == 0:
+        return dr.zeros(Coarse, dr.width(keys))
+    return Coarse(keys >> (key_bits - coarse_bits))
 
 
 def _voxel_sort(keys, key_bits, resort, count):
@@ -178,24 +196,25 @@ def _voxel_sort(keys, key_bits, resort, count):
         count: number of true entries in ``resort`` (1..N).
 
     Returns:
-        UInt32[N] ``source``: slot ``i`` of the sorted sequence takes ``keys[source[i]]``.
+        ``(perm, sorted_keys)``: UInt32[N] with slot ``i`` of the sorted sequence
+        taking ``keys[perm[i]]``, and that sequence.
     """
     ns = namespace_of(keys)
     if count == dr.width(keys):
-        return _stable_argsort(keys, key_bits)
+        return _radix_sort(keys, key_bits)
     # Whole voxels are gathered in ascending voxel order, so a stable sort of the
     # gathered keys keeps them grouped and puts each voxel back onto its own slots.
     slots = dr.compress(resort)
-    by_key = _stable_argsort(dr.gather(type(keys), keys, slots), key_bits)
-    source = dr.arange(ns.UInt32, dr.width(keys))
-    dr.scatter(source, dr.gather(ns.UInt32, slots, by_key), slots)
-    return source
+    by_key, _ = _radix_sort(dr.gather(type(keys), keys, slots), key_bits)
+    perm = dr.arange(ns.UInt32, dr.width(keys))
+    dr.scatter(perm, dr.gather(ns.UInt32, slots, by_key), slots)
+    return perm, dr.gather(type(keys), keys, perm)
 
 
-def _stable_argsort(values, bits: int):
-    """Stable ascending argsort of unsigned integers below ``2^bits``: an LSD radix
-    sort with as few passes as the key width needs (``dr.argsort`` always sorts all 32
-    or 64 bits), each pass one ``dr.detail.block_mkperm`` (the primitive under
+def _radix_sort(values, bits: int):
+    """Stable ascending sort of unsigned integers below ``2^bits``: an LSD radix sort
+    with as few passes as the key width needs (``dr.argsort`` always sorts all 32 or 64
+    bits), each pass one ``dr.detail.block_mkperm`` (the primitive under
     ``dr.argsort``).
 
     Args:
@@ -203,24 +222,25 @@ def _stable_argsort(values, bits: int):
         bits: significant low bits of ``values`` (higher bits are ignored).
 
     Returns:
-        UInt32[K] permutation: ``values[perm]`` ascending, ties in index order.
+        ``(perm, sorted_values)``: UInt32[K] permutation with ``values[perm]``
+        ascending, ties in index order; and ``values[perm]`` (the last pass's gather).
     """
     ns = namespace_of(values)
     count = dr.width(values)
-    perm = dr.arange(ns.UInt32, count)
     if bits == 0 or count <= 1:
-        return perm
+        return dr.arange(ns.UInt32, count), values
     radix = _RADIX_BITS[dr.backend_v(values)]
     passes = -(-bits // radix)
     width = -(-bits // passes)  # balanced passes: 30 bits -> 10 + 10 + 10
     Value = type(values)
+    perm = None
     for p in range(passes):
         digit = ns.UInt32((values >> (p * width)) & Value((1 << width) - 1))
         dr.eval(digit, values)
         step = dr.detail.block_mkperm(digit, count, 1 << width)
         values = dr.gather(Value, values, step)
-        perm = dr.gather(ns.UInt32, perm, step)
-    return perm
+        perm = step if perm is None else dr.gather(ns.UInt32, perm, step)
+    return perm, values
 
 
 def _checked_keys(keys, key_bits):

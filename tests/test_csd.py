@@ -107,14 +107,23 @@ def test03_random_keys_and_many_duplicates_equal_numpy_stable_sort(n, coarse_bit
 
 
 def test04_only_unsorted_voxels_are_resorted():
-    # Voxel 0 (coarse key 0) in order, voxel 1 out of order: only voxel 1's keys move.
-    keys = np.array([1 << 27 | 5, 1, 2, 1 << 27 | 4, 3, 1 << 27 | 6], dtype=np.uint32)
+    # Two runs: voxel 1 (out of key order), then voxel 0 (in order). After the runs
+    # are sorted only voxel 1's keys are sorted again.
+    keys = np.array([1 << 27 | 5, 1 << 27 | 4, 1 << 27 | 6, 1, 2, 3], dtype=np.uint32)
     result = check(keys, 30, 3)
-    assert result.runs == 5 and result.coarse_clusters == 2 and result.resorted == 3
+    assert result.runs == 2 and result.coarse_clusters == 2 and result.resorted == 3
+    assert result.order.numpy().tolist() == [3, 4, 5, 1, 0, 2]
+
+
+def test05_incoherent_keys_are_sorted_whole():
+    # More runs than half the keys: no compression, the keys are sorted directly.
+    keys = np.array([1 << 27 | 5, 1, 1 << 27 | 4, 2, 1 << 27 | 6, 3], dtype=np.uint32)
+    result = check(keys, 30, 3)
+    assert result.runs == 6 and result.coarse_clusters == 2 and result.resorted == 6
 
 
 @pytest.mark.parametrize("coarse_bits", [0, 12, 45, 60])
-def test05_sixty_bit_keys_sort_as_uint64(coarse_bits):
+def test06_sixty_bit_keys_sort_as_uint64(coarse_bits):
     rng = np.random.default_rng(60)
     keys = morton(grid_centroids(40), bits=60)
     assert keys.dtype == np.uint64 and keys.max() >> 60 == 0
@@ -125,7 +134,7 @@ def test05_sixty_bit_keys_sort_as_uint64(coarse_bits):
     check(random & np.uint64(0xF000_0000_0000_00FF), 60, coarse_bits)  # duplicates
 
 
-def test06_start_order_accepts_lists_numpy_and_ad_arrays():
+def test07_start_order_accepts_lists_numpy_and_ad_arrays():
     keys = UInt32([5, 3, 3, 1])
     expected = [3, 1, 2, 0]
     for start in ([3, 2, 1, 0], np.array([3, 2, 1, 0], dtype=np.uint32), mi.UInt32([3, 2, 1, 0])):
@@ -133,13 +142,13 @@ def test06_start_order_accepts_lists_numpy_and_ad_arrays():
     assert csd_sort(mi.UInt32([5, 3, 3, 1]), 30, 3).order.numpy().tolist() == expected
 
 
-def test07_empty_keys_give_an_empty_result():
+def test08_empty_keys_give_an_empty_result():
     result = csd_sort(UInt32(), 30, 12)
     assert dr.width(result.order) == 0 and dr.width(result.sorted_keys) == 0
     assert (result.runs, result.coarse_clusters, result.resorted) == (0, 0, 0)
 
 
-def test08_bad_arguments_raise_errors_naming_them():
+def test09_bad_arguments_raise_errors_naming_them():
     keys = UInt32([5, 3, 3, 1])
     with pytest.raises(ValueError, match="4 keys"):
         csd_sort(keys, 30, 3, [0, 1, 2])
@@ -158,20 +167,22 @@ def test08_bad_arguments_raise_errors_naming_them():
         csd_sort(np.array([1, 2], dtype=np.uint32), 30, 3)
 
 
-def test09_a_new_size_or_run_count_compiles_no_new_kernel():
+def test10_a_new_size_or_run_count_compiles_no_new_kernel():
     # Sizes must enter kernels as opaque values (DRJIT_NOTES pitfall 6): every frame of
     # an animation has a new run count, and a recompile costs more than the sort.
     rng = np.random.default_rng(9)
 
     def sort_some(n):
-        keys = UInt32(np.sort(rng.integers(0, 2**30, n, dtype=np.uint32)))
-        # First half in order, second half shuffled: some voxels stay sorted.
-        swap = np.concatenate([np.arange(n // 2), n // 2 + rng.permutation(n - n // 2)])
-        swap = swap.astype(np.uint32)
-        csd_sort(keys, 30, 12, swap)
-        csd_sort(keys, 30, 12)
-        csd_sort(dr.llvm.UInt64(keys), 60, 24, swap)
-
+        # One call down each path: runs with some voxels resorted, already sorted,
+        # incoherent, and 64-bit keys.
+        keys = np.sort(rng.integers(0, 2**30, n, dtype=np.uint32))
+        start = np.concatenate([np.arange(3 * n // 4), 3 * n // 4 + rng.permutation(n - 3 * n // 4)])
+        start = start.astype(np.uint32)
+        partly = csd_sort(UInt32(keys), 30, 3, start)
+        assert 0 < partly.resorted < n and partly.runs <= n // 2
+        assert csd_sort(UInt32(keys), 30, 12).resorted == 0
+        assert csd_sort(UInt32(rng.permutation(keys)), 30, 12).runs > n // 2
+        assert 0 < csd_sort(UInt64(keys.astype(np.uint64) << 30), 60, 6, start).resorted < n
     sort_some(3000)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
