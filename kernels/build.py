@@ -23,7 +23,7 @@ import drjit as dr
 from .bounds import internal_levels, leaf_histogram, node_bounds, sah_cost, triangle_boxes
 from .bvh import BVH, BuildConfig, BuildStats
 from .csd import csd_sort
-from .emission import NodeRecords, emit_hierarchy, open_segments
+from .emission import NodeRecords, emit_hierarchy
 from .geometry import checked_faces, checked_vertices, gather_triangles, pack_triangles, unpack_triangles
 from .morton import choose_morton_bits, morton_codes, point_bounds
 from .arrays import namespace_of
@@ -172,21 +172,21 @@ def _morton_build(config: BuildConfig, stats: BuildStats, clock, previous, tri_l
         first=dr.zeros(UInt32, capacity),
         count=dr.zeros(UInt32, capacity),
         depth=dr.zeros(UInt32, capacity),
-        total=1,
+        total=dr.opaque(UInt32, 1),
     )
     if config.builder == "lbvh" or coarse_bits == 0 or csd.coarse_clusters == 1:
         level = 0 if config.builder == "lbvh" else coarse_bits
         roots = (UInt32(0), UInt32(prim_count), UInt32(0), UInt32(0))
+        prim_root = dr.zeros(UInt32, prim_count)
     else:
         with clock("sah_top"):
-            roots = _sah_top_level(config, records, sorted_keys, bits, coarse_bits, slot_lo, slot_hi)
+            roots, prim_root = _sah_top_level(config, records, sorted_keys, bits, coarse_bits, slot_lo, slot_hi)
         level = coarse_bits
 
     # ---- Hierarchy emission below the roots ----
     with clock("emission"):
-        segments = open_segments(*roots, records, config.leaf_size)
-        emit_hierarchy(sorted_keys, bits, level, segments, records, config.leaf_size, config.p)
-        used = dr.arange(UInt32, records.total)
+        emit_hierarchy(sorted_keys, bits, level, roots, prim_root, records, config.leaf_size, config.p)
+        used = dr.arange(UInt32, int(records.total[0]))
         node_first = dr.gather(UInt32, records.first, used)
         node_count = dr.gather(UInt32, records.count, used)
         node_depth = dr.gather(UInt32, records.depth, used)
@@ -196,7 +196,8 @@ def _morton_build(config: BuildConfig, stats: BuildStats, clock, previous, tri_l
 
 def _sah_top_level(config, records: NodeRecords, sorted_keys, bits, coarse_bits, slot_lo, slot_hi):
     """Binned SAH over the coarse clusters; writes the top tree's internal nodes into
-    ``records`` and returns the clusters as emission roots (start, end, node, depth)."""
+    ``records`` and returns the clusters as emission roots (start, end, node, depth)
+    and each primitive's cluster."""
     ns = namespace_of(sorted_keys)
     UInt32, Array3f = ns.UInt32, ns.Array3f
     n = len(sorted_keys)
@@ -225,7 +226,7 @@ def _sah_top_level(config, records: NodeRecords, sorted_keys, bits, coarse_bits,
     internal = top.node_count == 0
     dr.scatter(records.first, top.node_first, nodes, internal)
     dr.scatter(records.depth, top.leaf_depth, nodes, internal)
-    records.total = t
+    records.total = dr.opaque(UInt32, t)
 
     # ---- Each cluster's emission root is its top-level leaf ----
     cluster_node = dr.zeros(UInt32, clusters)
@@ -233,4 +234,4 @@ def _sah_top_level(config, records: NodeRecords, sorted_keys, bits, coarse_bits,
     leaf_cluster = dr.gather(UInt32, top.item_order, top.node_first, ~internal)
     dr.scatter(cluster_node, nodes, leaf_cluster, ~internal)
     dr.scatter(cluster_depth, top.leaf_depth, leaf_cluster, ~internal)
-    return start, end, cluster_node, cluster_depth
+    return (start, end, cluster_node, cluster_depth), cluster_of

@@ -37,6 +37,9 @@ import drjit as dr
 from .arrays import namespace_of
 
 
+NONE = 0xFFFFFFFF  # "no segment": the primitive lies in a finished leaf
+
+
 @dataclass
 class Segments:
     """Open segments, sorted by ``start``: primitive ranges ``[start, end)`` of more than
@@ -53,24 +56,59 @@ class Segments:
 
 @dataclass
 class NodeRecords:
-    """Preallocated node arrays the emission writes into (see kernels/bvh.py), and the
-    number of nodes allocated so far."""
+    """Node arrays the emission writes into (see kernels/bvh.py), with room for every
+    node, and ``total``: how many nodes are allocated so far, a UInt32[1] that stays on
+    the device (read it with ``int(total[0])`` once the emission is done)."""
 
     first: object  # UInt32[capacity]
     count: object  # UInt32[capacity]
     depth: object  # UInt32[capacity]
-    total: int
+    total: object  # UInt32[1]
 
 
-def open_segments(start, end, node, depth, records: NodeRecords, leaf_size: int) -> Segments:
-    """Finalise the given ranges that are small enough as leaves; return the rest.
+def emit_hierarchy(keys, key_bits: int, level: int, roots, prim_root, records: NodeRecords,
+                   leaf_size: int, p: int) -> int:
+    """Emit the tree below ``roots`` from bit plane ``level`` down, then split
+    identical-key segments at their middle.
 
     Args:
-        start, end, node, depth: UInt32[S] ranges ``[start, end)`` (sorted by start, each
-            non-empty) and the node that owns each.
-        records: node arrays; the leaves are written into them.
+        keys: UInt32[N] or UInt64[N] Morton codes in sorted order, ``key_bits`` wide.
+        key_bits: width of the keys in bits (30 or 60).
+        level: the first bit plane to process (0 = the most significant key bit); the
+            keys of every root must agree on the planes above it.
+        roots: (start, end, node, depth), UInt32[R] each: the ranges ``[start, end)``
+            (sorted, non-empty, covering all primitives) below already allocated nodes.
+        prim_root: UInt32[N], the root each primitive belongs to.
+        records: node arrays, written in place; ``records.total`` grows.
         leaf_size: most primitives in a leaf.
+        p: bit planes per pass.
+    Returns:
+        The number of passes run.
     """
+    ns = namespace_of(prim_root)
+    segments, remap = _open_roots(*roots, records, leaf_size)
+    sid = dr.gather(ns.UInt32, remap, prim_root)
+    passes = 0
+    while len(segments) > 0 and level < key_bits:
+        pe = min(p, key_bits - level)
+        splits, sid = _block_splits(keys, key_bits, level, pe, len(segments), sid)
+        segments, remap = _emit_treelets(keys, key_bits, level, pe, segments, splits, records, leaf_size)
+        sid = _next_segment(keys, key_bits, level, pe, sid, remap)
+        level += pe
+        passes += 1
+    while len(segments) > 0:
+        # All keys of each segment are equal: split at the middle index.
+        mid = (segments.start + segments.end) >> 1
+        segments, _ = _emit_treelets(keys, key_bits, key_bits, 1, segments, mid, records, leaf_size)
+        passes += 1
+    return passes
+
+
+def _open_roots(start, end, node, depth, records: NodeRecords, leaf_size: int):
+    """Finalise the roots small enough as leaves; return the open ones as Segments and
+    UInt32[R] ``remap``: each root's segment index, NONE for the finished."""
+    ns = namespace_of(start)
+    UInt32 = ns.UInt32
     dr.make_opaque(start, end, node, depth)  # sizes vary: never bake them into kernels
     size = end - start
     is_leaf = size <= leaf_size
@@ -79,88 +117,62 @@ def open_segments(start, end, node, depth, records: NodeRecords, leaf_size: int)
     dr.scatter(records.depth, depth, node, is_leaf)
     dr.eval(records.first, records.count, records.depth)
     keep = dr.compress(~is_leaf)
-    return Segments(*(dr.gather(type(start), a, keep) for a in (start, end, node, depth)))
+    remap = dr.full(UInt32, NONE, len(start))
+    dr.scatter(remap, dr.arange(UInt32, len(keep)), keep)
+    segments = Segments(*(dr.gather(UInt32, a, keep) for a in (start, end, node, depth)))
+    return segments, remap
 
 
-def emit_hierarchy(
-    keys,
-    key_bits: int,
-    level: int,
-    segments: Segments,
-    records: NodeRecords,
-    leaf_size: int,
-    p: int,
-) -> int:
-    """Emit the tree below ``segments`` from bit plane ``level`` down, then split
-    identical-key segments at their middle.
+def _plane_bits(keys, key_bits: int, level, pe: int, key):
+    """The ``pe`` bits of ``key`` on bit planes ``level .. level+pe-1``, as UInt32."""
+    Key = type(keys)
+    shift = Key(key_bits - pe) - Key(level)
+    return namespace_of(level).UInt32((key >> shift) & ((1 << pe) - 1))
 
-    Args:
-        keys: UInt32[N] or UInt64[N] Morton codes in sorted order, ``key_bits`` wide.
-        key_bits: width of the keys in bits (30 or 60).
-        level: the first bit plane to process (0 = the most significant key bit); every
-            segment's keys must agree on the planes above it.
-        segments: the open segments (see :func:`open_segments`).
-        records: node arrays with room for every node (``2N - 1`` in all suffices);
-            written in place.
-        leaf_size: most primitives in a leaf.
-        p: bit planes per pass.
-    Returns:
-        The number of passes run.
+
+def _block_splits(keys, key_bits: int, level: int, pe: int, segment_count: int, sid):
+    """emit_block_splits of Figure 4 (one lane per primitive).
+
+    Returns UInt32[S * P], the primitive that starts the split of each treelet slot (0
+    where the slot has none: a split never starts at primitive 0), and ``sid``
+    evaluated.
     """
-    passes = 0
-    while len(segments) > 0 and level < key_bits:
-        pe = min(p, key_bits - level)
-        splits = _block_splits(keys, key_bits, level, pe, segments)
-        segments = _emit_treelets(keys, key_bits, level, pe, segments, splits, records, leaf_size)
-        level += pe
-        passes += 1
-    while len(segments) > 0:
-        # All keys of each segment are equal: split at the middle index.
-        mid = (segments.start + segments.end) >> 1
-        segments = _emit_treelets(keys, key_bits, key_bits, 1, segments, mid, records, leaf_size)
-        passes += 1
-    return passes
-
-
-def _block_splits(keys, key_bits: int, level: int, pe: int, seg: Segments):
-    """emit_block_splits of Figure 4: UInt32[S * P], the primitive index that starts
-    the split of each treelet slot, 0 where the slot has none (a split never starts at
-    primitive 0)."""
-    ns = namespace_of(seg.start)
+    ns = namespace_of(sid)
     UInt32 = ns.UInt32
+    Key = type(keys)
     n = len(keys)
     P = (1 << pe) - 1
     width = 64 if dr.type_v(keys) == dr.VarType.UInt64 else 32
 
-    # ---- Segment of each primitive: count the segment heads at or before it ----
-    heads = dr.zeros(UInt32, n)
-    dr.scatter(heads, 1, seg.start)
-    seen = dr.cumsum(heads)
-    i = dr.arange(UInt32, n)
-    in_some = seen > 0
-    sid = dr.select(in_some, seen - 1, 0)
-    inside = (
-        in_some
-        & (i > dr.gather(UInt32, seg.start, sid, in_some))
-        & (i < dr.gather(UInt32, seg.end, sid, in_some))
-    )
-
     # ---- Highest bit plane where a primitive differs from its predecessor ----
-    key = dr.gather(type(keys), keys, i, inside)
-    prev = dr.gather(type(keys), keys, i - 1, inside)
-    Key = type(keys)
+    # Segment heads differ on a plane above ``level`` (or are primitive 0), so a plane
+    # in [level, level + pe) marks a split inside the primitive's segment.
+    i = dr.arange(UInt32, n)
+    active = (sid != NONE) & (i > 0)
+    key = dr.gather(Key, keys, i, active)
+    prev = dr.gather(Key, keys, i - 1, active)
     plane = UInt32(dr.lzcnt(key ^ prev)) - (width - key_bits)
     lvl = dr.opaque(UInt32, level)
-    is_split = inside & (key != prev) & (plane >= lvl) & (plane < lvl + pe)
+    is_split = active & (key != prev) & (plane >= lvl) & (plane < lvl + pe)
     j = dr.select(is_split, plane - lvl, 0)
 
     # ---- Treelet slot: plane j under the j key bits above it ----
     q = UInt32((key >> Key(key_bits - lvl - j)) & ((Key(1) << Key(j)) - 1))
     slot = (UInt32(1) << j) - 1 + q
-    splits = dr.zeros(UInt32, len(seg) * P)
+    splits = dr.zeros(UInt32, segment_count * P)
     dr.scatter(splits, i, sid * P + slot, is_split)
-    dr.eval(splits)
-    return splits
+    dr.eval(splits, sid)
+    return splits, sid
+
+
+def _next_segment(keys, key_bits: int, level: int, pe: int, sid, remap):
+    """Each primitive's segment after a pass: the treelet bottom position its key's
+    ``pe`` bits select (lazy; evaluated by the next pass's block splits)."""
+    ns = namespace_of(sid)
+    active = sid != NONE
+    key = dr.gather(type(keys), keys, dr.arange(ns.UInt32, len(keys)), active)
+    q = _plane_bits(keys, key_bits, dr.opaque(ns.UInt32, level), pe, key)
+    return dr.select(active, dr.gather(ns.UInt32, remap, sid * (1 << pe) + q, active), ns.UInt32(NONE))
 
 
 def _descend(keys, key_bits, level, pe, seg, splits, child_base, s, depth_target, q_target, leaf_size):
@@ -211,8 +223,10 @@ def _descend(keys, key_bits, level, pe, seg, splits, child_base, s, depth_target
 
 
 def _emit_treelets(keys, key_bits, level, pe, seg, splits, records: NodeRecords, leaf_size):
-    """emit_treelets of Figure 4: write the nodes of every segment's treelet and return
-    the segments of the next pass."""
+    """emit_treelets of Figure 4: write the nodes of every segment's treelet.
+
+    Returns the segments of the next pass and UInt32[S * 2^pe] ``remap``: the index
+    among them of every treelet bottom position, NONE where no segment continues."""
     ns = namespace_of(seg.start)
     UInt32 = ns.UInt32
     S = len(seg)
@@ -234,10 +248,9 @@ def _emit_treelets(keys, key_bits, level, pe, seg, splits, records: NodeRecords,
     sp = dr.gather(UInt32, splits, s * P + pos)
     splits_here = reached & (hi - lo > leaf_size) & (sp != 0)
     flag = UInt32(splits_here)
-    child_base = dr.prefix_sum(flag) * 2 + dr.opaque(UInt32, records.total)
-    split_count = int(dr.sum(flag)[0]) if S * P > 0 else 0
-    child_base = dr.select(splits_here, child_base, 0)
-    dr.eval(child_base)
+    child_base = dr.select(splits_here, dr.prefix_sum(flag) * 2 + records.total, 0)
+    records.total = records.total + 2 * dr.sum(flag)
+    dr.eval(child_base, records.total)
 
     # ---- Node records: internal where a slot splits, leaves where small ranges appear ----
     s, pos, d, q = positions(2 * P + 1, 0)
@@ -256,12 +269,22 @@ def _emit_treelets(keys, key_bits, level, pe, seg, splits, records: NodeRecords,
     dr.scatter(records.count, dr.select(is_internal, 0, size), node, write)
     dr.scatter(records.depth, depth, node, write)
     dr.eval(records.first, records.count, records.depth)
-    records.total += 2 * split_count
 
     # ---- Next pass's segments: ranges still larger than a leaf at the treelet bottom ----
     s, pos, d, q = positions(P + 1, pe)
     lo, hi, node, depth, reached, _ = _descend(
         keys, key_bits, level, pe, seg, splits, child_base, s, d, q, leaf_size
     )
-    keep = dr.compress(reached & (hi - lo > leaf_size))
-    return Segments(*(dr.gather(UInt32, a, keep) for a in (lo, hi, node, depth)))
+    keep = reached & (hi - lo > leaf_size)
+    index = dr.prefix_sum(UInt32(keep))
+    dr.eval(index, keep)
+    count = int(dr.gather(UInt32, index, dr.opaque(UInt32, len(index) - 1))[0]) + int(
+        dr.gather(ns.Bool, keep, dr.opaque(UInt32, len(keep) - 1))[0]
+    )
+    remap = dr.select(keep, index, NONE)
+    out = Segments(*(dr.zeros(UInt32, count) for _ in range(4)))
+    if count:
+        for target, value in zip((out.start, out.end, out.node, out.depth), (lo, hi, node, depth)):
+            dr.scatter(target, value, index, keep)
+    dr.eval(out.start, out.end, out.node, out.depth, remap)
+    return out, remap

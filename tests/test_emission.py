@@ -8,7 +8,7 @@ import pytest
 import hlbvh  # noqa: F401  (sets up Dr.Jit)
 import mitsuba as mi
 from hlbvh.kernels.arrays import namespace_of
-from hlbvh.kernels.emission import NodeRecords, emit_hierarchy, open_segments
+from hlbvh.kernels.emission import NodeRecords, emit_hierarchy
 
 
 def emitted_tree(keys, key_bits, leaf_size, p):
@@ -18,13 +18,14 @@ def emitted_tree(keys, key_bits, leaf_size, p):
     Key = ns.UInt64 if key_bits > 32 else ns.UInt32
     n = len(keys)
     cap = max(2 * n - 1, 1)
-    rec = NodeRecords(*(dr.zeros(ns.UInt32, cap) for _ in range(3)), total=1)
     U = ns.UInt32
-    seg = open_segments(U([0]), U([n]), U([0]), U([0]), rec, leaf_size)
-    emit_hierarchy(Key(np.asarray(keys)), key_bits, 0, seg, rec, leaf_size, p)
-    first = rec.first.numpy()[: rec.total]
-    count = rec.count.numpy()[: rec.total]
-    depth = rec.depth.numpy()[: rec.total]
+    rec = NodeRecords(*(dr.zeros(U, cap) for _ in range(3)), total=U(1))
+    roots = (U([0]), U([n]), U([0]), U([0]))
+    emit_hierarchy(Key(np.asarray(keys)), key_bits, 0, roots, dr.zeros(U, n), rec, leaf_size, p)
+    total = int(rec.total[0])
+    first = rec.first.numpy()[:total]
+    count = rec.count.numpy()[:total]
+    depth = rec.depth.numpy()[:total]
     out = []
 
     def walk(node, d):
@@ -41,7 +42,7 @@ def emitted_tree(keys, key_bits, leaf_size, p):
         return a, b
 
     assert walk(0, 0) == (0, n)
-    assert len(out) == rec.total, "every allocated node is in the tree"
+    assert len(out) == total, "every allocated node is in the tree"
     return sorted(out)
 
 
