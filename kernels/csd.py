@@ -16,15 +16,17 @@ last frame's order, mostly fall into the same coarse voxel. CSD exploits it:
    not yet in key order are touched: their keys are gathered, stably sorted and put
    back on their own slots.
 
-When the keys are already in order in the start order (last frame's order, keys
-unchanged or changed without reordering), steps 1–4 are skipped after one pass that
-counts descents and runs: the start order is the result.
+Two shortcuts give the same result for less: when the keys are already in order in
+the start order (last frame's order, keys unchanged or changed without reordering), one
+pass that finds no descent returns the start order; when the compression does not
+compress (more runs than half the keys: an incoherent soup), the keys are sorted
+directly, as sorting and decoding that many runs costs more.
 
-Cost, measured on the CPU (see the issue's report): the bookkeeping of steps 1–3 and of
-the voxel test is about ten passes over the keys, so CSD is cheaper than a plain
-``dr.argsort`` only when the start order leaves most coarse voxels sorted; for a first
-frame (identity start), or after a motion that perturbs every voxel, it costs the full
-sort plus that bookkeeping.
+Cost, measured on the CPU (issue 2's report): steps 1–3 and the voxel test are about
+ten light passes over the keys, a third to a half of a full radix sort. CSD is cheaper
+than a plain ``dr.argsort`` when the start order leaves most coarse voxels sorted (a
+mostly static scene, last frame's order); for a first frame (identity start) or a
+motion that perturbs every voxel, it costs the full sort plus that bookkeeping.
 
 The result equals a full stable sort of the keys taken in start order:
 ``start[argsort(keys[start], stable)]`` (ties keep their start order).
@@ -53,10 +55,12 @@ class CsdResult:
         order: UInt32[N], slot -> primitive index; a permutation of ``0..N-1``.
         sorted_keys: keys[order], same type as the keys (UInt32 or UInt64), ascending.
         runs: number of runs of equal coarse keys in start order (the compressed
-            length the coarse sort worked on; N when nothing is coherent).
+            length; about N when nothing is coherent, the number of occupied voxels
+            when the start order already groups them).
         coarse_clusters: number of distinct coarse keys (occupied coarse voxels).
-        resorted: number of keys in coarse voxels that the fine sort had to sort
-            (0 when every voxel already was in key order after decompression).
+        resorted: number of keys the fine sort had to sort: those in coarse voxels
+            not in key order after decompression (0 when the start order already
+            sorts the keys; N when the keys were sorted directly).
     """
 
     order: Any
@@ -106,14 +110,16 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
     slot = dr.arange(UInt32, n)
     before = dr.maximum(slot, 1) - 1
     run_head = (slot == 0) | (coarse != dr.gather(Coarse, coarse, before))
-    descents = dr.count((slot > 0) & (key < dr.gather(Key, key, before)))
-    dr.eval(key, run_head, descents)
-    if descents[0] == 0:
+    descent = (slot > 0) & (key < dr.gather(Key, key, before))
+    dr.eval(key, run_head, descent)
+    if not dr.any(descent)[0]:
         # Already sorted in start order: each run is a whole voxel, nothing moves.
         runs = int(dr.count(run_head)[0])
         return CsdResult(start, key, runs=runs, coarse_clusters=runs, resorted=0)
     run_start = dr.compress(run_head)  # UInt32[R]
     runs = dr.width(run_start)
+    # Sizes enter kernels as opaque values, so a new run count compiles nothing.
+    end = dr.opaque(UInt32, n)
     if runs > n // 2:
         # Incoherent keys (a random soup): the runs are about as many as the keys, and
         # sorting and decoding them would cost more than sorting the keys themselves.
@@ -126,21 +132,17 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
         dr.eval(order, sorted_keys, voxels)
         return CsdResult(order, sorted_keys, runs=runs, coarse_clusters=int(voxels[0]), resorted=n)
     run = dr.arange(UInt32, runs)
-    # Sizes enter kernels as opaque values, so a new run count compiles nothing.
-    last_run, end = dr.opaque(UInt32, runs - 1), dr.opaque(UInt32, n)
-    run_end = dr.select(run < last_run, dr.gather(UInt32, run_start, run + 1, run < last_run), end)
+    run_end = _next_or(run_start, end)
     run_key = dr.gather(Coarse, coarse, run_start)
 
     # ---- Sort the runs by coarse key (stable: equal voxels keep start order) ----
     by_key, sorted_run_key = _radix_sort(run_key, coarse_bits)
     src_start = dr.gather(UInt32, run_start, by_key)
-    src_length = dr.gather(UInt32, run_end - run_start, by_key)
-    dst_start = dr.prefix_sum(src_length)
+    dst_start = dr.prefix_sum(dr.gather(UInt32, run_end - run_start, by_key))
     voxel_head = (run == 0) | (
         sorted_run_key != dr.gather(Coarse, sorted_run_key, dr.maximum(run, 1) - 1)
     )
-    voxel_of_run = dr.cumsum(UInt32(voxel_head)) - 1
-    dr.eval(src_start, dst_start, voxel_of_run)
+    dr.eval(src_start, dst_start, voxel_head)
 
     # ---- Decompress: run-length decode the sorted runs into slots ----
     is_dst_start = dr.zeros(UInt32, n)
@@ -149,29 +151,37 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
     # source: slot -> position in start order
     source = dr.gather(UInt32, src_start, slot_run) + slot - dr.gather(UInt32, dst_start, slot_run)
     sorted_keys = dr.gather(Key, key, source)
-    slot_voxel = dr.gather(UInt32, voxel_of_run, slot_run)
-    dr.eval(source, sorted_keys, slot_voxel)
+    dr.eval(source, sorted_keys)
 
-    # ---- Fine sort inside each coarse voxel that is not in key order yet ----
+    # ---- Which coarse voxels are not in key order yet ----
     # Voxels come in ascending coarse order, so a key smaller than its predecessor
-    # can only be a descent inside a voxel. Voxel ids are < runs.
-    descent = (slot > 0) & (sorted_keys < dr.gather(Key, sorted_keys, before))
-    unsorted_voxel = dr.zeros(ns.Bool, runs)
-    dr.scatter(unsorted_voxel, True, slot_voxel, descent)
-    in_unsorted_voxel = dr.gather(ns.Bool, unsorted_voxel, slot_voxel)
-    resorted = int(dr.count(in_unsorted_voxel)[0])
+    # can only be a descent inside a voxel; a prefix count of the descents tells,
+    # from each voxel's first and last slot, whether it holds any.
+    descents = dr.cumsum(UInt32((slot > 0) & (sorted_keys < dr.gather(Key, sorted_keys, before))))
+    voxel_start = dr.gather(UInt32, dst_start, dr.compress(voxel_head))  # UInt32[C]
+    coarse_clusters = dr.width(voxel_start)
+    voxel_end = _next_or(voxel_start, end)
+    unsorted = dr.gather(UInt32, descents, voxel_end - 1) != dr.gather(UInt32, descents, voxel_start)
+    resorted = int(dr.sum(dr.select(unsorted, voxel_end - voxel_start, 0))[0])
+
+    # ---- Fine sort inside each coarse voxel that is not in key order ----
     if resorted:
-        fine, sorted_keys = _voxel_sort(sorted_keys, key_bits, in_unsorted_voxel, resorted)
+        voxel_of_run = dr.cumsum(UInt32(voxel_head)) - 1
+        in_unsorted = dr.gather(ns.Bool, dr.gather(ns.Bool, unsorted, voxel_of_run), slot_run)
+        fine, sorted_keys = _voxel_sort(sorted_keys, key_bits, in_unsorted, resorted)
         source = dr.gather(UInt32, source, fine)
     order = dr.gather(UInt32, start, source)
     dr.eval(order, sorted_keys)
-    return CsdResult(
-        order,
-        sorted_keys,
-        runs=runs,
-        coarse_clusters=int(voxel_of_run[runs - 1]) + 1,
-        resorted=resorted,
-    )
+    return CsdResult(order, sorted_keys, runs, coarse_clusters, resorted)
+
+
+def _next_or(first, end):
+    """For sorted segment starts ``first`` (UInt32[S]), each segment's end: the next
+    start, and ``end`` (an opaque UInt32) for the last."""
+    ns = namespace_of(first)
+    i = dr.arange(ns.UInt32, dr.width(first))
+    last = dr.opaque(ns.UInt32, dr.width(first) - 1)
+    return dr.select(i < last, dr.gather(ns.UInt32, first, i + 1, i < last), end)
 
 
 def _coarse_keys(keys, key_bits: int, coarse_bits: int):
