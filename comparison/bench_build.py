@@ -13,8 +13,6 @@ For each mesh (a displaced grid and a random triangle soup) and size, in one pro
 
 from __future__ import annotations
 
-import argparse
-import json
 import statistics
 import time
 
@@ -130,21 +128,3 @@ def format_table(rows: list[dict]) -> str:
     lines.append("times in ms; warm = min over repeats; native = Mitsuba params.update() "
                  f"(Embree); variant {mi.variant()}")
     return "\n".join(lines)
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="hlbvh bench build", description=__doc__)
-    ap.add_argument("--sizes", default="100000,1000000", help="triangle counts, comma separated")
-    ap.add_argument("--meshes", default="grid,soup")
-    ap.add_argument("--builders", default="hlbvh,lbvh,sah")
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--json", action="store_true", help="print JSON rows instead of a table")
-    args = ap.parse_args(argv)
-    rows = run(
-        sizes=[int(s) for s in args.sizes.split(",")],
-        meshes=args.meshes.split(","),
-        builders=args.builders.split(","),
-        repeats=args.repeats,
-    )
-    print(json.dumps(rows, indent=1) if args.json else format_table(rows))
-    return 0

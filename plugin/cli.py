@@ -37,20 +37,54 @@ def _doctor(args) -> int:
     return 0 if ok else 1
 
 
+# Each verb lives in its own module with ``configure(parser)`` and ``run(args) -> int``;
+# modules are imported only when their verb runs.
+_VERBS = {
+    "render": ("hlbvh.render", "render an animation to EXR/PNG with per-frame statistics"),
+    "compare": ("hlbvh.comparison.compare", "native vs hlbvh, frame by frame, with a report"),
+    "sweep": ("hlbvh.comparison.sweep", "the speed/accuracy trade of builder settings"),
+    "bench": ("hlbvh.comparison.bench", "build, trace and frame benchmarks against native"),
+}
+
+
 def _parser() -> argparse.ArgumentParser:
+    import importlib
+
     ap = argparse.ArgumentParser(prog="hlbvh", description=__doc__)
     sub = ap.add_subparsers(dest="command", required=True)
     sub.add_parser("doctor", help="report Dr.Jit, Mitsuba, the libLLVM in use, variants")
+    for verb, (module, help_text) in _VERBS.items():
+        p = sub.add_parser(verb, help=help_text)
+        try:
+            importlib.import_module(module).configure(p)
+        except ModuleNotFoundError as e:
+            if e.name != module:
+                raise
+            p.set_defaults(_missing=module)
     return ap
 
 
 def main(argv=None) -> int:
+    import importlib
+
     args = _parser().parse_args(argv)
     try:
-        return {"doctor": _doctor}[args.command](args)
+        if args.command == "doctor":
+            return _doctor(args)
+        if getattr(args, "_missing", None):
+            raise UserError(f"'{args.command}' is not available in this build ({args._missing} is missing)")
+        return importlib.import_module(_VERBS[args.command][0]).run(args)
     except UserError as e:
         print(f"hlbvh {args.command}: {e}", file=sys.stderr)
         return 2
+    except (ValueError, FileNotFoundError) as e:
+        # Errors about what the user gave (scene files, options, meshes): one line, no
+        # traceback.
+        print(f"hlbvh {args.command}: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"hlbvh {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":
