@@ -51,7 +51,7 @@ _RECORD = 8
 #: Scatter-reductions use plain atomics. ReduceMode.Expand (what Auto picks for small
 #: targets on LLVM) bakes the target's size into the kernel, so every level and every
 #: new input size would compile new kernels; it also measured no faster here.
-_MODE = dr.ReduceMode.Direct
+_MODE = dr.ReduceMode.Local
 
 
 
@@ -218,24 +218,25 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     cmax = dr.gather(ns.Array3f, level.cmax, level.node)
     item_bin = [_bin_index(ns, centroid[a], cmin[a], cmax[a], bins) for a in range(3)]
     packed_bins = item_bin[0] | (item_bin[1] << 8) | (item_bin[2] << 16)
-    dr.eval(packed_bins)
-    item_bin = [(packed_bins >> (8 * a)) & 0xFF for a in range(3)]
 
     # ---- Cells: the occupied bins of each (node, axis); all bins of a node with at
     # least `bins` items, so a level stores at most 3·min(bins, count) cells per node ----
-    big = level.count >= bins
-    occupied = dr.select(dr.repeat(big, 3), ns.UInt64((1 << bins) - 1), 0)
-    small_item = ~dr.gather(ns.Bool, big, level.node)
+    occupied = dr.zeros(ns.UInt64, 3 * K)
+    small_item = dr.gather(ns.UInt32, level.count, level.node) < bins
     for a in range(3):
         dr.scatter_reduce(dr.ReduceOp.Or, occupied, ns.UInt64(1) << ns.UInt64(item_bin[a]),
                           level.node * 3 + a, small_item, mode=_MODE)
+    dr.eval(packed_bins)
+    item_bin = [(packed_bins >> (8 * a)) & 0xFF for a in range(3)]
+    big = dr.gather(ns.UInt32, level.count, dr.arange(ns.UInt32, 3 * K) // 3) >= bins
+    occupied = dr.select(big, (1 << bins) - 1, occupied)
     n_cells = ns.UInt32(dr.popcnt(occupied))
+    dr.eval(occupied, n_cells)
     cell_first = dr.prefix_sum(n_cells)
-    dr.eval(occupied, n_cells, cell_first)
-    total_cells = cell_first[3 * K - 1] + n_cells[3 * K - 1]
 
-    cell_box = dr.full(ns.Float, dr.inf, 6 * total_cells)
-    cell_weight = dr.zeros(ns.UInt32, total_cells)
+    cells = 3 * min(bins * K, m)  # at least the cells in use: no need to read their count
+    cell_box = dr.full(ns.Float, dr.inf, 6 * cells)
+    cell_weight = dr.zeros(ns.UInt32, cells)
     item_w = dr.gather(ns.UInt32, weight, level.item)
     for a in range(3):
         lane = level.node * 3 + a
@@ -246,14 +247,12 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     dr.eval()
 
     # ---- Sweep the split planes of every node: cheapest valid plane, or middle ----
-    extent = level.box_hi - level.box_lo
-    largest = dr.maximum(extent.x, dr.maximum(extent.y, extent.z))
-    split = _sweep(ns, cell_box, cell_weight, occupied, cell_first, n_cells,
-                   dr.select(largest > 0, 1 / largest, 1), K, bins)
+    split_key = _sweep(ns, cell_box, cell_weight, occupied, cell_first, n_cells,
+                       level.box_lo, level.box_hi, K, bins)
 
     # ---- Left/right decision of every item; ranks by a prefix sum ----
     position = dr.arange(ns.UInt32, m)
-    node_split = dr.gather(ns.UInt32, split, level.node)
+    node_split = ns.UInt32(dr.gather(ns.UInt64, split_key, level.node) & 0xFFFFFFFF)
     act_first = dr.gather(ns.UInt32, level.act_first, level.node)
     count = dr.gather(ns.UInt32, level.count, level.node)
     split_bin = (packed_bins >> (8 * dr.minimum(node_split // bins, 2))) & 0xFF
@@ -276,12 +275,18 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     c_count = dr.select(is_right, p_count - n_left, n_left)
     c_slot = dr.gather(ns.UInt32, level.slot_first, parent) + dr.select(is_right, n_left, 0)
     c_open = c_count > leaf_items
-    next_index = dr.prefix_sum(ns.UInt32(c_open))
-    next_act = dr.prefix_sum(dr.select(c_open, c_count, 0))
-    dr.eval(c_count, c_slot, c_open, next_index, next_act)
-    last_open = bool(c_open[2 * K - 1])
-    K_next = next_index[2 * K - 1] + last_open
-    m_next = next_act[2 * K - 1] + (c_count[2 * K - 1] if last_open else 0)
+    # one prefix sum for both: open children before (high half), their items (low half)
+    open_and_items = (ns.UInt64(c_open) << 32) | ns.UInt64(dr.select(c_open, c_count, 0))
+    dr.eval(c_count, c_slot, c_open, open_and_items)
+    through = dr.cumsum(open_and_items)
+    total = through[2 * K - 1]
+    K_next, m_next = total >> 32, total & 0xFFFFFFFF
+
+    def next_position(c):
+        """(next-level index, first active position) of open child(ren) ``c``."""
+        before = dr.gather(ns.UInt64, through, c) - dr.gather(ns.UInt64, open_and_items, c)
+        return ns.UInt32(before >> 32), ns.UInt32(before & 0xFFFFFFFF)
+
 
     # ---- Partition: move every item to its child, reduce the children's bounds ----
     left_rank = left_before - dr.gather(ns.UInt32, left_before, act_first)
@@ -295,13 +300,14 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     if K_next:
         next_item = dr.empty(ns.UInt32, m_next)
         next_node = dr.empty(ns.UInt32, m_next)
-        dest = dr.gather(ns.UInt32, next_act, c) + rank
-        dr.scatter(next_item, level.item, dest, to_open)
-        dr.scatter(next_node, dr.gather(ns.UInt32, next_index, c), dest, to_open)
+        index, first = next_position(c)
+        dr.scatter(next_item, level.item, first + rank, to_open)
+        dr.scatter(next_node, index, first + rank, to_open)
     dr.eval()
 
     # ---- Emit the children's node records and the next level's open nodes ----
     box_lo, box_hi = _read_box(ns, child_box, child, 12)
+    next_index = next_position(child)[0]
     _write_records(ns, records, child_start + child, box_lo, box_hi,
                    dr.select(c_open, grandchild_start + 2 * next_index, c_slot),
                    dr.select(c_open, 0, c_count))
@@ -317,7 +323,7 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
         size=K_next,
         node_id=child_start + next_child,
         slot_first=dr.gather(ns.UInt32, c_slot, next_child),
-        act_first=dr.gather(ns.UInt32, next_act, next_child),
+        act_first=next_position(next_child)[1],
         count=dr.gather(ns.UInt32, c_count, next_child),
         box_lo=box_lo, box_hi=box_hi, cmin=cmin, cmax=cmax,
         item=next_item,
@@ -328,20 +334,24 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     return nxt
 
 
-def _sweep(ns, cell_box, cell_weight, occupied, cell_first, n_cells, scale, K: int, bins: int):
-    """Per node (UInt32[K]): the split code ``axis·bins + p`` of the cheapest plane
-    ``p`` (bins 0..p on the left) that leaves both sides non-empty, the first in
-    (axis, plane) order on ties; ``_MIDDLE`` when no plane qualifies.
+def _sweep(ns, cell_box, cell_weight, occupied, cell_first, n_cells, box_lo, box_hi,
+           K: int, bins: int):
+    """Per node (UInt64[K]): a key whose low half is the split code ``axis·bins + p``
+    of the cheapest plane ``p`` (bins 0..p on the left) that leaves both sides
+    non-empty, the first in (axis, plane) order on ties; ``_MIDDLE`` when no plane
+    qualifies. The high half is the plane's cost.
 
     One lane per (node, axis) walks its cells (its occupied bins, in bin order) twice:
     forward to store the cost share of every left side, backward to price each plane
     with its right side. A plane between two occupied bins is reported as the last
     occupied bin on its left, the lowest of the planes that make the same partition.
-    Extents are multiplied by ``scale`` (Float[K], 1 / the node's largest extent), so
-    areas neither overflow nor underflow at extreme coordinates.
+    Extents are divided by the node's largest extent (``box_lo``/``box_hi``,
+    Array3f[K]), so areas neither overflow nor underflow at extreme coordinates.
     """
     lane = dr.arange(ns.UInt32, 3 * K)
-    s = dr.gather(ns.Float, scale, lane // 3)
+    extent = dr.gather(ns.Array3f, box_hi, lane // 3) - dr.gather(ns.Array3f, box_lo, lane // 3)
+    largest = dr.maximum(extent.x, dr.maximum(extent.y, extent.z))
+    s = dr.select(largest > 0, 1 / largest, 1)
     cells = dr.width(cell_weight)
     left_cost = dr.empty(ns.Float, cells)
     left_weight = dr.empty(ns.UInt32, cells)
@@ -391,7 +401,7 @@ def _sweep(ns, cell_box, cell_weight, occupied, cell_first, n_cells, scale, K: i
     key = (ns.UInt64(dr.reinterpret_array(ns.UInt32, best_cost)) << 32) | ns.UInt64(
         (lane % 3) * bins + best_bin)
     key = dr.select(best_cost < dr.inf, key, 0xFFFFFFFFFFFFFFFF)
-    return ns.UInt32(dr.block_reduce(dr.ReduceOp.Min, key, 3) & 0xFFFFFFFF)
+    return dr.block_reduce(dr.ReduceOp.Min, key, 3)
 
 
 def _highest_bit(ns, mask):
