@@ -22,6 +22,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .normals import vertex_normals
+
 
 @dataclass(frozen=True)
 class FrameGeometry:
@@ -132,19 +134,26 @@ def apply_frame(
     scene: mi.Scene,
     params: mi.SceneParameters | None,
     frame_geometry: dict[str, FrameGeometry],
+    deterministic_normals: bool = True,
 ) -> list[str]:
     """Write one frame's geometry into a loaded scene and let Mitsuba refresh it.
 
     Sets ``params[f"{id}.vertex_positions"]`` (and ``params[f"{id}.faces"]`` when the
-    frame gives faces) for every shape of ``frame_geometry``, then calls
-    ``params.update()`` once, which recomputes vertex normals and bounds and marks the
-    native acceleration structure for rebuild. (Writing back the very array a shape
-    already holds is a no-op for Mitsuba: it sees the same variable.)
+    frame gives faces) for every shape of ``frame_geometry``, and, for a mesh with
+    vertex normals, ``params[f"{id}.vertex_normals"]``, then calls ``params.update()``
+    once, which recomputes bounds and rebuilds the native acceleration structure.
+    (Writing back the very array a shape already holds is a no-op for Mitsuba: it sees
+    the same variable.)
 
     Args:
         scene: the scene loaded from the animated scene's ``scene_dict``.
         params: ``mi.traverse(scene)``; ``None`` traverses the scene here.
         frame_geometry: the result of ``AnimatedScene.frame(i)``.
+        deterministic_normals: compute vertex normals with
+            :func:`hlbvh.scenes.normals.vertex_normals` (Mitsuba's weighting, the same
+            bits every time; on one thread). ``False`` leaves them to Mitsuba, whose
+            parallel sums may differ in the last bit from one update to the next, so
+            two scenes given the same frame may no longer render bit-identically.
 
     Returns:
         The ids written, in the order of ``frame_geometry``.
@@ -184,6 +193,9 @@ def apply_frame(
         params[f"{shape_id}.vertex_positions"] = positions
         if faces is not None:
             params[f"{shape_id}.faces"] = faces
+        normals_key = f"{shape_id}.vertex_normals"
+        if deterministic_normals and normals_key in params and dr.width(params[normals_key]):
+            params[normals_key] = vertex_normals(positions, params[f"{shape_id}.faces"])
     params.update()
     return [shape_id for shape_id, _, _ in staged]
 
@@ -221,7 +233,7 @@ def _checked_faces(shape_id: str, faces, vertex_count: int) -> mi.UInt32:
         result = mi.UInt32(flat.astype(np.uint32))
     else:
         result = mi.UInt32(faces)
-        bad = [int(dr.max(result, axis=None))] if dr.width(result) else []
+        bad = [int(dr.max(result, axis=None)[0])] if dr.width(result) else []
         bad = [b for b in bad if b >= vertex_count]
     if len(bad):
         raise ValueError(

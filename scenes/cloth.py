@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from . import meshes
-from .procedural import Part, ProceduralScene, View, diffuse, ground, split_budget
+from .procedural import Part, ProceduralScene, View, diffuse, ground
 
 FLAG_LENGTH = 3.0  # along x, away from the pole
 FLAG_HEIGHT = 2.0  # along y

@@ -17,7 +17,7 @@ from .procedural import (
     ProceduralScene,
     View,
     ground,
-    plastic,
+    glossy,
 )
 from .rigid_motion import random_unit_vectors, rotate
 
@@ -32,21 +32,22 @@ GRAVITY = 4.0  # m/s^2
 
 @dataclass(frozen=True)
 class Shards:
-    """The shattered shell: one mesh, pieces that never share a vertex.
+    """The shattered shell: one mesh, pieces that never share a vertex, each piece's
+    vertices contiguous.
 
     Attributes:
         positions: float64 ``(V, 3)`` rest vertices (the whole torus).
         faces: uint32 ``(F, 3)``.
-        piece: int64 ``(V,)`` piece of each vertex.
+        piece: int64 ``(V,)`` piece of each vertex, non-decreasing.
+        starts: int64 ``(P,)`` first vertex of each piece.
         centres: float64 ``(P, 3)`` rest centre of each piece (mean of its outer vertices).
-        radii: float64 ``(P,)`` largest distance of a piece's vertex from its centre.
     """
 
     positions: np.ndarray
     faces: np.ndarray
     piece: np.ndarray
+    starts: np.ndarray
     centres: np.ndarray
-    radii: np.ndarray
 
 
 class Fracture(ProceduralScene):
@@ -201,15 +202,21 @@ class Fracture(ProceduralScene):
         faces = np.concatenate([vertex, (vertex + shell)[:, ::-1], *wall_faces])
         piece = np.concatenate([shell_piece, shell_piece, *wall_piece])
 
-        # ---- Each piece's centre and reach ----
+        # ---- Each piece's centre ----
         weight = np.bincount(shell_piece, minlength=count)
         centres = np.stack(
             [np.bincount(shell_piece, outer[:, k], minlength=count) / weight for k in range(3)],
             axis=1,
         )
-        radii = np.zeros(count)
-        np.maximum.at(radii, piece, np.linalg.norm(positions - centres[piece], axis=1))
-        return Shards(positions, faces.astype(np.uint32), piece, centres, radii)
+
+        # ---- Vertices renumbered piece by piece ----
+        order = np.argsort(piece, kind="stable")
+        renumber = np.empty_like(order)
+        renumber[order] = np.arange(len(order))
+        starts = np.searchsorted(piece[order], np.arange(count))
+        return Shards(
+            positions[order], renumber[faces].astype(np.uint32), piece[order], starts, centres
+        )
 
     @functools.cached_property
     def _flight(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -229,7 +236,7 @@ class Fracture(ProceduralScene):
 
     def _build_parts(self) -> dict[str, Part]:
         return {
-            "shards": Part(self._shards.faces, plastic((0.78, 0.36, 0.20), roughness=0.3)),
+            "shards": Part(self._shards.faces, glossy((0.78, 0.36, 0.20), roughness=0.3)),
             "ground": ground(),
         }
 
@@ -241,11 +248,13 @@ class Fracture(ProceduralScene):
         tau = (1.0 - math.exp(-DRAG * s)) / DRAG
         centres = shards.centres + velocity * tau
         centres[:, 1] -= GRAVITY / DRAG * (s - tau)
-        # A shard that reaches the ground rests on it (its whole reach stays above y = 0).
-        centres[:, 1] = np.maximum(centres[:, 1], np.minimum(shards.radii, shards.centres[:, 1]))
         piece = shards.piece
         offsets = rotate(shards.positions - shards.centres[piece], axis[piece], (spin * tau)[piece])
-        return {"shards": centres[piece] + offsets}
+        positions = centres[piece] + offsets
+        # A shard that reaches the ground rests on it: lifted by its lowest vertex's depth.
+        lowest = np.minimum.reduceat(positions[:, 1], shards.starts)
+        positions[:, 1] -= np.minimum(lowest, 0.0)[piece]
+        return {"shards": positions}
 
     def _view(self) -> View:
         return View(origin=(0.8, 3.2, 11.0), target=(0.0, 1.8, 0.0), fov=45.0)

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import abc
 import functools
-import math
 import numbers
 from dataclasses import dataclass
 
@@ -27,6 +26,7 @@ import mitsuba as mi
 import numpy as np
 
 from .animated import AnimatedScene, FrameGeometry
+from .normals import vertex_normals
 
 FPS = 24
 DEFAULT_RESOLUTION = (640, 360)
@@ -193,7 +193,8 @@ def mesh_object(
         positions: float ``(V, 3)`` world-space vertices.
         faces: integer ``(F, 3)`` vertex indices.
         bsdf: a Mitsuba BSDF dict, instantiated for this mesh alone.
-        smooth: per-vertex normals (recomputed by Mitsuba on every update) or flat faces.
+        smooth: per-vertex normals (computed by :func:`vertex_normals`, the same bits on
+            every load) or flat faces.
     """
     positions = np.ascontiguousarray(positions, dtype=np.float32).reshape(-1, 3)
     faces = np.ascontiguousarray(faces, dtype=np.uint32).reshape(-1, 3)
@@ -203,6 +204,8 @@ def mesh_object(
     params = mi.traverse(mesh)
     params["vertex_positions"] = mi.Float(positions.reshape(-1))
     params["faces"] = mi.UInt32(faces.reshape(-1))
+    if smooth:
+        params["vertex_normals"] = vertex_normals(params["vertex_positions"], params["faces"])
     params.update()
     return mesh
 
@@ -216,12 +219,13 @@ def diffuse(rgb, two_sided: bool = False) -> dict:
     return {"type": "twosided", "material": bsdf} if two_sided else bsdf
 
 
-def plastic(rgb, roughness: float = 0.25) -> dict:
-    """A rough plastic BSDF dict (coloured base under a dielectric coat)."""
+def glossy(rgb, roughness: float = 0.35) -> dict:
+    """A glossy dielectric BSDF dict, plastic-like (``principled``: unlike
+    ``roughplastic`` it needs no precomputed tables, so it loads in no time)."""
     return {
-        "type": "roughplastic",
-        "alpha": roughness,
-        "diffuse_reflectance": {"type": "rgb", "value": list(rgb)},
+        "type": "principled",
+        "base_color": {"type": "rgb", "value": list(rgb)},
+        "roughness": roughness,
     }
 
 
@@ -230,11 +234,6 @@ def ground(rgb=(0.45, 0.45, 0.42), size: float = GROUND_SIZE) -> Part:
     corners = np.array([[-1, 0, -1], [-1, 0, 1], [1, 0, 1], [1, 0, -1]], dtype=np.float64)
     faces = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32)
     return Part(faces, diffuse(rgb), corners * (size / 2), smooth=False)
-
-
-def split_budget(total: int, weight: float) -> int:
-    """Whole triangles for a share ``weight`` (0..1) of ``total``, at least 1."""
-    return max(1, math.ceil(total * weight))
 
 
 def _positive_int(what: str, value) -> int:

@@ -17,8 +17,7 @@ from .procedural import (
     View,
     diffuse,
     ground,
-    plastic,
-    split_budget,
+    glossy,
 )
 from .rigid_motion import random_unit_vectors, rotation_matrices
 
@@ -88,26 +87,42 @@ class Rigid(ProceduralScene):
     def _column_tessellation(self) -> tuple[int, int]:
         """Segments and rings of each column, quads about square."""
         columns = 3 * COLUMNS_PER_WALL
-        per_column = max(split_budget(self.triangles, self.static_fraction) // columns, 32)
+        per_column = max(math.ceil(self.triangles * self.static_fraction) // columns, 32)
         ratio = 2 * np.pi * COLUMN_RADIUS / WALL_HEIGHT
         segments = max(8, math.ceil(math.sqrt(per_column / 2 * ratio)))
         rings = max(1, math.ceil((per_column - 2 * segments) / (2 * segments)))
         return segments, rings
 
-    def _body_resolution(self) -> int:
-        """``n``: every body has ``12 n^2`` triangles."""
+    def _static_triangles(self) -> int:
         segments, rings = self._column_tessellation()
-        static = 2 + 3 * 12 + 3 * COLUMNS_PER_WALL * (2 * segments * rings + 2 * segments)
-        budget = max(self.triangles - static, 12 * self.objects)
-        return max(1, math.ceil(math.sqrt(budget / (12 * self.objects))))
+        return 2 + 3 * 12 + 3 * COLUMNS_PER_WALL * (2 * segments * rings + 2 * segments)
 
     def _group_sizes(self) -> np.ndarray:
+        """Bodies per group: body ``k`` is in group ``k % groups``."""
         return np.bincount(np.arange(self.objects) % self.groups, minlength=self.groups)
 
+    def _group_resolutions(self) -> list[int]:
+        """``n`` of each group (its bodies have ``12 n^2`` triangles each): the largest
+        ``n`` that stays under the bodies' budget everywhere, then one step finer, group
+        after group, until the budget is met."""
+        sizes = self._group_sizes()
+        budget = max(self.triangles - self._static_triangles(), 12 * self.objects)
+        n = max(1, math.isqrt(budget // (12 * self.objects)))
+        resolutions = [n] * self.groups
+        total = 12 * n * n * self.objects
+        for g in range(self.groups):
+            if total >= budget:
+                break
+            total += 12 * (2 * n + 1) * int(sizes[g])
+            resolutions[g] = n + 1
+        return resolutions
+
     def triangle_counts(self) -> dict[str, int]:
-        n = self._body_resolution()
         segments, rings = self._column_tessellation()
-        counts = {f"bodies_{g}": 12 * n * n * int(k) for g, k in enumerate(self._group_sizes())}
+        counts = {
+            f"bodies_{g}": 12 * n * n * int(k)
+            for g, (n, k) in enumerate(zip(self._group_resolutions(), self._group_sizes()))
+        }
         counts["walls"] = 3 * 12
         counts["columns"] = 3 * COLUMNS_PER_WALL * (2 * segments * rings + 2 * segments)
         counts["ground"] = 2
@@ -116,18 +131,18 @@ class Rigid(ProceduralScene):
     # ---- Geometry --------------------------------------------------------------------
 
     @functools.cached_property
-    def _prototypes(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """Each body shape at unit reach (largest vertex distance 1), ``12 n^2``
-        triangles."""
-        n = self._body_resolution()
-        shapes = {
-            "sphere": meshes.rounded_box(n, 2.0),
-            "box": meshes.rounded_box(n, 6.0),
-            "torus": meshes.torus(0.7, 0.3, 3 * n, 2 * n),
-        }
-        return {
-            name: (p / np.linalg.norm(p, axis=1).max(), f) for name, (p, f) in shapes.items()
-        }
+    def _prototypes(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The body shape of each group at unit reach (largest vertex distance 1):
+        sphere, rounded box and torus in turn, ``12 n^2`` triangles."""
+        shapes = []
+        for g, n in enumerate(self._group_resolutions()):
+            kind = PROTOTYPES[g % len(PROTOTYPES)]
+            if kind == "torus":
+                positions, faces = meshes.torus(0.7, 0.3, 3 * n, 2 * n)
+            else:
+                positions, faces = meshes.rounded_box(n, 2.0 if kind == "sphere" else 6.0)
+            shapes.append((positions / np.linalg.norm(positions, axis=1).max(), faces))
+        return shapes
 
     @functools.cached_property
     def _paths(self) -> dict[str, np.ndarray]:
@@ -136,9 +151,10 @@ class Rigid(ProceduralScene):
         rng = np.random.default_rng(self.seed)
         k = self.objects
         size = rng.uniform(0.2, 0.45, k)
+        farthest = HALF_SIZE - WALL_THICKNESS - 2 * COLUMN_RADIUS - 0.3
         return {
             "size": size,
-            "orbit": rng.uniform(0.8, HALF_SIZE - WALL_THICKNESS - 2 * COLUMN_RADIUS - size - 0.3),
+            "orbit": rng.uniform(0.8, farthest - size),
             "speed": rng.choice([-1.0, 1.0], k) * rng.uniform(0.25, 0.8, k),
             "phase": rng.uniform(0.0, 2 * np.pi, k),
             "bounce": rng.uniform(0.3, 2.0, k),
@@ -151,11 +167,11 @@ class Rigid(ProceduralScene):
     def _build_parts(self) -> dict[str, Part]:
         parts = {}
         for g, count in enumerate(self._group_sizes()):
-            rest, faces = self._prototypes[PROTOTYPES[g % len(PROTOTYPES)]]
+            rest, faces = self._prototypes[g]
             vertex_count = len(rest)
             copies = faces[None].astype(np.int64) + vertex_count * np.arange(count)[:, None, None]
             parts[f"bodies_{g}"] = Part(
-                copies.reshape(-1, 3).astype(np.uint32), plastic(PALETTE[g % len(PALETTE)])
+                copies.reshape(-1, 3).astype(np.uint32), glossy(PALETTE[g % len(PALETTE)])
             )
         walls, wall_faces = _walls()
         parts["walls"] = Part(wall_faces, diffuse((0.72, 0.66, 0.58)), walls, smooth=False)
@@ -177,7 +193,7 @@ class Rigid(ProceduralScene):
         turns = rotation_matrices(paths["axis"], paths["spin"] * t) * radius[:, None, None]
         positions = {}
         for g in range(self.groups):
-            rest = self._prototypes[PROTOTYPES[g % len(PROTOTYPES)]][0]
+            rest = self._prototypes[g][0]
             bodies = np.arange(g, self.objects, self.groups)
             moved = np.einsum("kij,vj->kvi", turns[bodies], rest) + centres[bodies][:, None, :]
             positions[f"bodies_{g}"] = moved.reshape(-1, 3)

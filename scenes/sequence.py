@@ -80,6 +80,7 @@ class SequenceScene(AnimatedScene):
             if node.type == mi.ObjectType.Shape and "to_world" in node.props.keys():
                 self._to_world[node.props.id()] = node.props["to_world"]
         self._meshes = {}  # id -> (vertex count, face count, faces as mi.UInt32)
+        self._writable = set()  # ids of meshes whose vertex positions Mitsuba lets us set
         self._shape_ids = []
         for shape in reference.shapes():
             self._shape_ids.append(shape.id())
@@ -87,6 +88,8 @@ class SequenceScene(AnimatedScene):
                 self._meshes[shape.id()] = (
                     shape.vertex_count(), shape.face_count(), mi.UInt32(shape.faces_buffer())
                 )
+                if "vertex_positions" in mi.traverse(shape).keys():
+                    self._writable.add(shape.id())
         del reference
 
         # ---- The frame files ----
@@ -139,7 +142,9 @@ class SequenceScene(AnimatedScene):
         _configure_films(state, resolution, spp, self._box_filter)
         scene = self._instantiate(state)
         description = {"type": "scene"}
-        description["integrator"] = dict(integrator) if integrator is not None else scene.integrator()
+        own = scene.integrator()
+        if integrator is not None or own is not None:
+            description["integrator"] = dict(integrator) if integrator is not None else own
         for shape in scene.shapes():
             description[shape.id()] = shape
         for k, sensor in enumerate(scene.sensors()):
@@ -205,10 +210,16 @@ class SequenceScene(AnimatedScene):
         for entry in sorted(self._frames_dir.iterdir()):
             if not entry.is_dir():
                 continue
-            if entry.name not in self._meshes:
+            if entry.name not in self._writable:
+                reason = (
+                    "Mitsuba exposes no vertex positions for it (e.g. a rectangle): "
+                    "make it a ply or obj shape"
+                    if entry.name in self._meshes
+                    else "the scene has no mesh with that id"
+                )
                 raise ValueError(
-                    f"frames directory {str(entry)!r}: the scene has no mesh with id "
-                    f"{entry.name!r} (its meshes: {sorted(self._meshes)})"
+                    f"frames directory {str(entry)!r}: shape {entry.name!r} cannot be "
+                    f"animated: {reason} (animatable meshes: {sorted(self._writable)})"
                 )
             numbered: dict[int, Path] = {}
             for file in sorted(entry.iterdir()):
@@ -345,7 +356,7 @@ def _configure_films(state, resolution, spp, box_filter: bool) -> None:
                     isinstance(value, mi.Properties.ResolvedReference)
                     and state.nodes[value.index()].type == mi.ObjectType.ReconstructionFilter
                 ):
-                    props.remove_property(name)
+                    del props[name]
             props["rfilter"] = box
 
 

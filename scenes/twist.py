@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from . import meshes
-from .procedural import Part, ProceduralScene, View, ground, plastic
+from .procedural import Part, ProceduralScene, View, ground, glossy
 
 HALF_WIDTH = 0.35
 HEIGHT = 3.0
@@ -56,7 +56,7 @@ class Twist(ProceduralScene):
 
     def _build_parts(self) -> dict[str, Part]:
         return {
-            "bar": Part(self._bar[1], plastic((0.10, 0.45, 0.55))),
+            "bar": Part(self._bar[1], glossy((0.10, 0.45, 0.55))),
             "ground": ground(),
         }
 
