@@ -13,20 +13,24 @@ last frame's order, mostly fall into the same coarse voxel. CSD exploits it:
    primitives are grouped by coarse voxel, in ascending voxel order, and inside a voxel
    in start order.
 4. **Fine sort** inside each coarse voxel on the remaining bits. Only voxels that are
-   not yet in key order are touched: their keys are gathered, stably sorted and put
-   back on their own slots.
+   not in key order are touched: their keys are gathered, stably sorted on all their
+   bits (the voxel's top bits are equal) and put back on their own slots.
 
-Two shortcuts give the same result for less: when the keys are already in order in
-the start order (last frame's order, keys unchanged or changed without reordering), one
-pass that finds no descent returns the start order; when the compression does not
-compress (more runs than half the keys: an incoherent soup), the keys are sorted
-directly, as sorting and decoding that many runs costs more.
+Three shortcuts give the same result for less. When the keys are already in order in
+the start order (last frame's order, keys unchanged or moved without reordering), one
+pass that finds no descent returns the start order. When the compression does not
+compress (more runs than half the keys: an incoherent soup), or when more than half of
+the keys lie in voxels that would need their fine sort, the keys (in start order) are
+sorted whole: same stable order, less work than decoding the runs and gathering those
+keys. Whether a voxel needs its fine sort is read off the runs before decoding them:
+a run holding a descent, or a run starting below where the voxel's previous run ended.
 
-Cost, measured on the CPU (issue 2's report): steps 1–3 and the voxel test are about
-ten light passes over the keys, a third to a half of a full radix sort. CSD is cheaper
-than a plain ``dr.argsort`` when the start order leaves most coarse voxels sorted (a
-mostly static scene, last frame's order); for a first frame (identity start) or a
-motion that perturbs every voxel, it costs the full sort plus that bookkeeping.
+Cost, measured on the CPU at 1M keys (issue 2's report; single-thread CPU time): the
+run bookkeeping costs 6–10 ms, against 30 ms (30-bit) or 95 ms (60-bit) for
+``dr.argsort``. Starting from last frame's order, unchanged keys sort in 5–10 ms and a
+mesh of which 10% moved in 17 ms (30-bit) or 24 ms (60-bit); a first frame or a motion
+that perturbs every voxel costs the whole sort plus the bookkeeping (1.1–1.4 times
+``dr.argsort``).
 
 The result equals a full stable sort of the keys taken in start order:
 ``start[argsort(keys[start], stable)]`` (ties keep their start order).
@@ -118,31 +122,57 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
         return CsdResult(start, key, runs=runs, coarse_clusters=runs, resorted=0)
     run_start = dr.compress(run_head)  # UInt32[R]
     runs = dr.width(run_start)
-    # Sizes enter kernels as opaque values, so a new run count compiles nothing.
-    end = dr.opaque(UInt32, n)
     if runs > n // 2:
         # Incoherent keys (a random soup): the runs are about as many as the keys, and
         # sorting and decoding them would cost more than sorting the keys themselves.
-        by_key, sorted_keys = _radix_sort(key, key_bits)
-        order = dr.gather(UInt32, start, by_key)
+        order, sorted_keys = _sorted_whole(key, key_bits, start)
         sorted_coarse = _coarse_keys(sorted_keys, key_bits, coarse_bits)
         voxels = dr.count(
             (slot == 0) | (sorted_coarse != dr.gather(Coarse, sorted_coarse, before))
         )
-        dr.eval(order, sorted_keys, voxels)
-        return CsdResult(order, sorted_keys, runs=runs, coarse_clusters=int(voxels[0]), resorted=n)
-    run = dr.arange(UInt32, runs)
+        return CsdResult(order, sorted_keys, runs, coarse_clusters=int(voxels[0]), resorted=n)
+    # Sizes enter kernels as opaque values, so a new run count compiles nothing.
+    end = dr.opaque(UInt32, n)
     run_end = _next_or(run_start, end)
     run_key = dr.gather(Coarse, coarse, run_start)
 
     # ---- Sort the runs by coarse key (stable: equal voxels keep start order) ----
     by_key, sorted_run_key = _radix_sort(run_key, coarse_bits)
     src_start = dr.gather(UInt32, run_start, by_key)
-    dst_start = dr.prefix_sum(dr.gather(UInt32, run_end - run_start, by_key))
+    src_end = dr.gather(UInt32, run_end, by_key)
+    dst_start = dr.prefix_sum(src_end - src_start)
+    run = dr.arange(UInt32, runs)
     voxel_head = (run == 0) | (
         sorted_run_key != dr.gather(Coarse, sorted_run_key, dr.maximum(run, 1) - 1)
     )
-    dr.eval(src_start, dst_start, voxel_head)
+    dr.eval(src_start, src_end, dst_start, voxel_head)
+
+    # ---- Which coarse voxels will not be in key order after decompression ----
+    # A voxel is out of order when one of its runs holds a descent, or when a run
+    # ends above the key its successor in the voxel starts with; both are read at the
+    # run ends, from a prefix count of the descents in start order.
+    descents = dr.cumsum(UInt32(descent))
+    inner = dr.gather(UInt32, descents, src_end - 1) != dr.gather(UInt32, descents, src_start)
+    prev_run = dr.maximum(run, 1) - 1
+    step_down = ~voxel_head & (
+        dr.gather(Key, key, dr.gather(UInt32, src_end, prev_run) - 1)
+        > dr.gather(Key, key, src_start)
+    )
+    out_of_order = dr.cumsum(UInt32(inner | step_down))  # over sorted runs
+    voxel_first_run = dr.compress(voxel_head)  # UInt32[C]
+    coarse_clusters = dr.width(voxel_first_run)
+    voxel_last_run = _next_or(voxel_first_run, dr.opaque(UInt32, runs)) - 1
+    unsorted = dr.gather(UInt32, out_of_order, voxel_last_run) != dr.gather(
+        UInt32, out_of_order, voxel_first_run
+    ) - UInt32(dr.gather(ns.Bool, inner | step_down, voxel_first_run))
+    voxel_start = dr.gather(UInt32, dst_start, voxel_first_run)
+    voxel_size = _next_or(voxel_start, end) - voxel_start
+    resorted = int(dr.sum(dr.select(unsorted, voxel_size, 0))[0])
+    if resorted > n // 2:
+        # Most voxels need their fine sort: sorting all keys in start order gives the
+        # same stable order, for less than decoding the runs and gathering those keys.
+        order, sorted_keys = _sorted_whole(key, key_bits, start)
+        return CsdResult(order, sorted_keys, runs, coarse_clusters, resorted=n)
 
     # ---- Decompress: run-length decode the sorted runs into slots ----
     is_dst_start = dr.zeros(UInt32, n)
@@ -151,28 +181,26 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
     # source: slot -> position in start order
     source = dr.gather(UInt32, src_start, slot_run) + slot - dr.gather(UInt32, dst_start, slot_run)
     sorted_keys = dr.gather(Key, key, source)
-    dr.eval(source, sorted_keys)
-
-    # ---- Which coarse voxels are not in key order yet ----
-    # Voxels come in ascending coarse order, so a key smaller than its predecessor
-    # can only be a descent inside a voxel; a prefix count of the descents tells,
-    # from each voxel's first and last slot, whether it holds any.
-    descents = dr.cumsum(UInt32((slot > 0) & (sorted_keys < dr.gather(Key, sorted_keys, before))))
-    voxel_start = dr.gather(UInt32, dst_start, dr.compress(voxel_head))  # UInt32[C]
-    coarse_clusters = dr.width(voxel_start)
-    voxel_end = _next_or(voxel_start, end)
-    unsorted = dr.gather(UInt32, descents, voxel_end - 1) != dr.gather(UInt32, descents, voxel_start)
-    resorted = int(dr.sum(dr.select(unsorted, voxel_end - voxel_start, 0))[0])
 
     # ---- Fine sort inside each coarse voxel that is not in key order ----
     if resorted:
+        dr.eval(source, sorted_keys)
         voxel_of_run = dr.cumsum(UInt32(voxel_head)) - 1
         in_unsorted = dr.gather(ns.Bool, dr.gather(ns.Bool, unsorted, voxel_of_run), slot_run)
-        fine, sorted_keys = _voxel_sort(sorted_keys, key_bits, in_unsorted, resorted)
+        fine, sorted_keys = _voxel_sort(sorted_keys, key_bits, in_unsorted)
         source = dr.gather(UInt32, source, fine)
     order = dr.gather(UInt32, start, source)
     dr.eval(order, sorted_keys)
     return CsdResult(order, sorted_keys, runs, coarse_clusters, resorted)
+
+
+def _sorted_whole(key, key_bits: int, start):
+    """``(order, sorted_keys)`` of a plain stable sort of ``key`` (keys in start
+    order), evaluated."""
+    by_key, sorted_keys = _radix_sort(key, key_bits)
+    order = dr.gather(namespace_of(start).UInt32, start, by_key)
+    dr.eval(order, sorted_keys)
+    return order, sorted_keys
 
 
 def _next_or(first, end):
@@ -194,7 +222,7 @@ def _coarse_keys(keys, key_bits: int, coarse_bits: int):
     return Coarse(keys >> (key_bits - coarse_bits))
 
 
-def _voxel_sort(keys, key_bits, resort, count):
+def _voxel_sort(keys, key_bits, resort):
     """The stable sort of ``keys`` (grouped by coarse voxel, voxels ascending) that only
     moves keys inside the voxels flagged in ``resort``.
 
@@ -203,15 +231,12 @@ def _voxel_sort(keys, key_bits, resort, count):
         key_bits: significant bits of the keys.
         resort: Bool[N], true on every slot of a voxel to sort, false on every slot of
             a voxel already in key order.
-        count: number of true entries in ``resort`` (1..N).
 
     Returns:
         ``(perm, sorted_keys)``: UInt32[N] with slot ``i`` of the sorted sequence
         taking ``keys[perm[i]]``, and that sequence.
     """
     ns = namespace_of(keys)
-    if count == dr.width(keys):
-        return _radix_sort(keys, key_bits)
     # Whole voxels are gathered in ascending voxel order, so a stable sort of the
     # gathered keys keeps them grouped and puts each voxel back onto its own slots.
     slots = dr.compress(resort)
