@@ -114,6 +114,13 @@ def test04_only_unsorted_voxels_are_resorted():
     assert result.runs == 2 and result.coarse_clusters == 2 and result.resorted == 3
     assert result.order.numpy().tolist() == [3, 4, 5, 1, 0, 2]
 
+    # Voxel 0 in two runs, each in order, but the second starts below where the first
+    # ended (5 > 3): only voxel 0 is resorted; voxels 1 and 2 are in order.
+    v1, v2 = 1 << 27, 2 << 27
+    keys = np.array([1, 5, v1 | 1, v1 | 2, 3, 6, v1 | 3, v1 | 4, v2, v2, v2 | 1, v2 | 9])
+    result = check(keys.astype(np.uint32), 30, 3)
+    assert result.runs == 5 and result.coarse_clusters == 3 and result.resorted == 4
+
 
 def test05_incoherent_keys_are_sorted_whole():
     # More runs than half the keys: no compression, the keys are sorted directly.
