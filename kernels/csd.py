@@ -158,13 +158,15 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
         dr.gather(Key, key, dr.gather(UInt32, src_end, prev_run) - 1)
         > dr.gather(Key, key, src_start)
     )
-    out_of_order = dr.cumsum(UInt32(inner | step_down))  # over sorted runs
+    bad_run = UInt32(inner | step_down)  # over sorted runs
+    bad_runs = dr.cumsum(bad_run)
     voxel_first_run = dr.compress(voxel_head)  # UInt32[C]
     coarse_clusters = dr.width(voxel_first_run)
     voxel_last_run = _next_or(voxel_first_run, dr.opaque(UInt32, runs)) - 1
-    unsorted = dr.gather(UInt32, out_of_order, voxel_last_run) != dr.gather(
-        UInt32, out_of_order, voxel_first_run
-    ) - UInt32(dr.gather(ns.Bool, inner | step_down, voxel_first_run))
+    # Bad runs of a voxel: the inclusive count at its last run minus that before its first.
+    unsorted = dr.gather(UInt32, bad_runs, voxel_last_run) != (
+        dr.gather(UInt32, bad_runs, voxel_first_run) - dr.gather(UInt32, bad_run, voxel_first_run)
+    )
     voxel_start = dr.gather(UInt32, dst_start, voxel_first_run)
     voxel_size = _next_or(voxel_start, end) - voxel_start
     resorted = int(dr.sum(dr.select(unsorted, voxel_size, 0))[0])
