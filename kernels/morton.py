@@ -131,18 +131,19 @@ def choose_morton_bits(prim_lo, prim_hi, lo, hi) -> int:
     when at least 1% of the primitives are small. A share, not the median or the mean:
     a small detailed object on a huge, finely tessellated ground holds few of the
     primitives but all of the collisions, and the median and mean extent are those of
-    the ground. Measured (``/tmp/auto_bits.py`` in the issue's report; "shared" is the
-    share of primitives whose 30-bit key is shared by more than 4 primitives):
+    the ground. Measured on displaced grids and UV spheres (issue 2's report;
+    ``tests/test_morton.py`` checks the first and fourth kind of scene), where
+    "shared" is the share of primitives whose 30-bit key more than 4 primitives have:
 
-    ==========================================  =====  ===========  ======  ====
-    scene (triangles)                           small  shared, 30b  most/key  auto
-    ==========================================  =====  ===========  ======  ====
-    regular grid, 1M                            0      0            2       30
-    regular grid, 4M                            0      24%          8       30
-    sphere 200k on a 1M ground, 500x larger     17%    17%          23970   60
-    sphere 20k on a 1M ground, 500x larger      2%     2%           2448    60
-    sphere 200k on a 2-triangle ground          0      3.7%         57      30
-    ==========================================  =====  ===========  ======  ====
+    =======================================  =====  ===========  ============  ====
+    scene (triangles)                        small  shared, 30b  most per key  auto
+    =======================================  =====  ===========  ============  ====
+    regular grid, 1M                         0      0            2             30
+    regular grid, 4M                         0      24%          8             30
+    sphere 200k on a 1M ground 500x larger   17%    17%          23970         60
+    sphere 20k on a 1M ground 500x larger    2%     2%           2448          60
+    sphere 200k on a 2-triangle ground       0      3.7%         57            30
+    =======================================  =====  ===========  ============  ====
 
     (A 2-triangle ground adds nothing to the centroid bounds, so the object keeps the
     whole grid.) Thin slivers fanning around one point (a UV sphere's poles) collide
