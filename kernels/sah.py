@@ -11,12 +11,15 @@ The tree grows one level at a time and every open node of a level is split at on
 
 1. *Bin.* Every item's centroid (the centre of its box) falls into one of ``bins``
    equal slices of its node's centroid bounds, on each axis. Per (node, axis, bin) a
-   scatter-reduction accumulates the items' weight and the union of their boxes.
+   scatter-reduction accumulates the items' weight and the union of their boxes. Only
+   occupied bins get storage (a *cell*) in nodes of fewer than ``bins`` items, so a
+   level never stores more than three cells per item.
 2. *Sweep.* Per node, the ``3·(bins-1)`` split planes between adjacent bins are
    priced with the surface area heuristic ``A(L)·W(L) + A(R)·W(R)`` (C_trav = C_isect
    = 1, ``W`` the summed item weight) and the cheapest plane that leaves both sides
-   non-empty wins. A node with no such plane (all centroids equal, or every plane
-   leaves one side empty) is split at the middle index of its item range instead.
+   non-empty wins (the first in axis, then plane order on ties). A node with no such
+   plane (all centroids equal, or every plane leaves one side empty) is split at the
+   middle index of its item range instead.
 3. *Partition.* A prefix sum over the left/right decision of every item gives each
    item its rank inside its child, so the two children own adjacent, contiguous slot
    ranges of ``item_order`` (a stable partition: items keep their relative order).
@@ -25,9 +28,10 @@ The tree grows one level at a time and every open node of a level is split at on
    of at most ``leaf_items`` items is a leaf, the others are the next level's open
    nodes. Every split has two non-empty children, so the build always ends.
 
-Only the Python loop over levels (the tree's depth) and the unrolled loop over bins
-inside the sweep kernel run on the host; per-level sizes and offsets enter the kernels
-through ``dr.opaque`` so no kernel is recompiled from one level to the next.
+The host runs only the loop over levels (the tree's depth). Per-level sizes and
+offsets enter the kernels through ``dr.opaque``, so the same kernels serve every level
+and every input size; min/max/integer reductions make the result bit-identical from
+run to run.
 """
 
 from __future__ import annotations
@@ -39,7 +43,7 @@ import drjit as dr
 
 from .arrays import namespace_of, plain
 
-#: Bins per axis allowed by :func:`binned_sah` (a bin index is packed into 8 bits).
+#: Most bins per axis (a node's occupied bins are a 64-bit mask).
 MAX_BINS = 64
 
 #: Split code of a node split at the middle index of its range (no SAH plane).
@@ -48,11 +52,11 @@ _MIDDLE = 0xFFFFFFFF
 #: Floats per node record in the staging buffer: lo.xyz, hi.xyz, first, count.
 _RECORD = 8
 
-#: Scatter-reductions use plain atomics. ReduceMode.Expand (what Auto picks for small
-#: targets on LLVM) bakes the target's size into the kernel, so every level and every
-#: new input size would compile new kernels; it also measured no faster here.
+#: Scatter-reductions pre-reduce equal targets within a SIMD packet, then use atomics
+#: (measured faster than plain atomics here). ReduceMode.Expand, which Auto picks for
+#: small targets on LLVM, bakes the target's size into the kernel: every level and every
+#: new input size would compile new kernels.
 _MODE = dr.ReduceMode.Local
-
 
 
 @dataclass
@@ -107,7 +111,8 @@ def binned_sah(item_min, item_max, item_weight, leaf_items: int, bins: int = 16)
             larger node is split (the SAH top level of ``"hlbvh"`` passes 1).
         bins: int in 2..64; bins per axis. Centroids are binned in the node's centroid
             bounds: ``bin = min(floor((c - cmin) / (cmax - cmin) · bins), bins - 1)``
-            (bin 0 on an axis of zero extent).
+            (bin 0 on an axis of zero extent). Box extents are divided by the node's
+            largest extent before areas are taken, so costs stay finite at any scale.
 
     Returns:
         A :class:`SahTree` whose arrays live on the backend of ``item_min``.
@@ -200,6 +205,21 @@ class _Level:
     node: Any = None
 
 
+@dataclass
+class _Cells:
+    """The binned items of one level. A (node, axis) lane ``3·node + axis`` owns
+    ``count`` cells from ``first`` on, one per bit of ``occupied`` (its occupied bins,
+    or all bins when the node has at least ``bins`` items), in bin order; a cell holds
+    the union of its items' boxes (``box``, Float[6·cells] of lo.xyz, -hi.xyz) and
+    their summed ``weight``."""
+
+    occupied: Any  # UInt64[3K]
+    count: Any  # UInt32[3K]
+    first: Any  # UInt32[3K]
+    box: Any
+    weight: Any
+
+
 def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_start,
                  leaf_items: int, bins: int) -> _Level:
     """Split every open node of ``level``: write the children's node records and the
@@ -210,55 +230,23 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     grandchild_start = dr.opaque(ns.UInt32, block_start[-1] + 2 * K)
     block_start.append(block_start[-1] + 2 * K)
 
-    # ---- Bin every active item on the three axes of its node ----
+    # ---- Bin and sweep: the split of every node ----
     item_lo = dr.gather(ns.Array3f, lo, level.item)
     item_hi = dr.gather(ns.Array3f, hi, level.item)
     centroid = _centroid(item_lo, item_hi)
-    cmin = dr.gather(ns.Array3f, level.cmin, level.node)
-    cmax = dr.gather(ns.Array3f, level.cmax, level.node)
-    item_bin = [_bin_index(ns, centroid[a], cmin[a], cmax[a], bins) for a in range(3)]
-    packed_bins = item_bin[0] | (item_bin[1] << 8) | (item_bin[2] << 16)
-
-    # ---- Cells: the occupied bins of each (node, axis); all bins of a node with at
-    # least `bins` items, so a level stores at most 3·min(bins, count) cells per node ----
-    occupied = dr.zeros(ns.UInt64, 3 * K)
-    small_item = dr.gather(ns.UInt32, level.count, level.node) < bins
-    for a in range(3):
-        dr.scatter_reduce(dr.ReduceOp.Or, occupied, ns.UInt64(1) << ns.UInt64(item_bin[a]),
-                          level.node * 3 + a, small_item, mode=_MODE)
-    dr.eval(packed_bins)
-    item_bin = [(packed_bins >> (8 * a)) & 0xFF for a in range(3)]
-    big = dr.gather(ns.UInt32, level.count, dr.arange(ns.UInt32, 3 * K) // 3) >= bins
-    occupied = dr.select(big, (1 << bins) - 1, occupied)
-    n_cells = ns.UInt32(dr.popcnt(occupied))
-    dr.eval(occupied, n_cells)
-    cell_first = dr.prefix_sum(n_cells)
-
-    cells = 3 * min(bins * K, m)  # at least the cells in use: no need to read their count
-    cell_box = dr.full(ns.Float, dr.inf, 6 * cells)
-    cell_weight = dr.zeros(ns.UInt32, cells)
-    item_w = dr.gather(ns.UInt32, weight, level.item)
-    for a in range(3):
-        lane = level.node * 3 + a
-        below = dr.gather(ns.UInt64, occupied, lane) & ((ns.UInt64(1) << ns.UInt64(item_bin[a])) - 1)
-        cell = dr.gather(ns.UInt32, cell_first, lane) + ns.UInt32(dr.popcnt(below))
-        _reduce_box(cell_box, item_lo, item_hi, cell, 6)
-        dr.scatter_reduce(dr.ReduceOp.Add, cell_weight, item_w, cell, mode=_MODE)
-    dr.eval()
-
-    # ---- Sweep the split planes of every node: cheapest valid plane, or middle ----
-    split_key = _sweep(ns, cell_box, cell_weight, occupied, cell_first, n_cells,
-                       level.box_lo, level.box_hi, K, bins)
+    packed_bins, cells = _bin(ns, level, item_lo, item_hi, centroid,
+                              dr.gather(ns.UInt32, weight, level.item), bins)
+    split_key = _sweep(ns, cells, level, bins)
 
     # ---- Left/right decision of every item; ranks by a prefix sum ----
     position = dr.arange(ns.UInt32, m)
-    node_split = ns.UInt32(dr.gather(ns.UInt64, split_key, level.node) & 0xFFFFFFFF)
+    split = ns.UInt32(dr.gather(ns.UInt64, split_key, level.node) & 0xFFFFFFFF)
     act_first = dr.gather(ns.UInt32, level.act_first, level.node)
     count = dr.gather(ns.UInt32, level.count, level.node)
-    split_bin = (packed_bins >> (8 * dr.minimum(node_split // bins, 2))) & 0xFF
-    left = dr.select(node_split == _MIDDLE,
+    split_bin = (packed_bins >> (8 * dr.minimum(split // bins, 2))) & 0xFF
+    left = dr.select(split == _MIDDLE,
                      (position - act_first) < count // 2,
-                     split_bin <= node_split % bins)
+                     split_bin <= split % bins)
     goes_left = ns.UInt32(left)
     left_before = dr.prefix_sum(goes_left)
     dr.eval(goes_left, left_before)
@@ -275,7 +263,7 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     c_count = dr.select(is_right, p_count - n_left, n_left)
     c_slot = dr.gather(ns.UInt32, level.slot_first, parent) + dr.select(is_right, n_left, 0)
     c_open = c_count > leaf_items
-    # one prefix sum for both: open children before (high half), their items (low half)
+    # one inclusive prefix sum counts both: open children (high half), their items (low)
     open_and_items = (ns.UInt64(c_open) << 32) | ns.UInt64(dr.select(c_open, c_count, 0))
     dr.eval(c_count, c_slot, c_open, open_and_items)
     through = dr.cumsum(open_and_items)
@@ -283,10 +271,9 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     K_next, m_next = total >> 32, total & 0xFFFFFFFF
 
     def next_position(c):
-        """(next-level index, first active position) of open child(ren) ``c``."""
+        """(next-level index, first active position) of the open children ``c``."""
         before = dr.gather(ns.UInt64, through, c) - dr.gather(ns.UInt64, open_and_items, c)
         return ns.UInt32(before >> 32), ns.UInt32(before & 0xFFFFFFFF)
-
 
     # ---- Partition: move every item to its child, reduce the children's bounds ----
     left_rank = left_before - dr.gather(ns.UInt32, left_before, act_first)
@@ -294,9 +281,10 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     c = level.node * 2 + dr.select(left, 0, 1)
     to_open = dr.gather(ns.Bool, c_open, c)
     dr.scatter(item_order, level.item, dr.gather(ns.UInt32, c_slot, c) + rank, ~to_open)
-    child_box = dr.full(ns.Float, dr.inf, 12 * 2 * K)  # per child: box, centroid bounds
-    _reduce_box(child_box, item_lo, item_hi, c, 12)
-    _reduce_box(child_box, centroid, centroid, c, 12, 6, to_open)
+    child_box = dr.full(ns.Float, dr.inf, 6 * 2 * K)
+    child_cbounds = dr.full(ns.Float, dr.inf, 6 * 2 * K)
+    _reduce_box(child_box, item_lo, item_hi, c)
+    _reduce_box(child_cbounds, centroid, centroid, c, to_open)
     if K_next:
         next_item = dr.empty(ns.UInt32, m_next)
         next_node = dr.empty(ns.UInt32, m_next)
@@ -306,7 +294,7 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     dr.eval()
 
     # ---- Emit the children's node records and the next level's open nodes ----
-    box_lo, box_hi = _read_box(ns, child_box, child, 12)
+    box_lo, box_hi = _read_box(ns, child_box, child)
     next_index = next_position(child)[0]
     _write_records(ns, records, child_start + child, box_lo, box_hi,
                    dr.select(c_open, grandchild_start + 2 * next_index, c_slot),
@@ -317,8 +305,8 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     next_child = dr.empty(ns.UInt32, K_next)
     dr.scatter(next_child, child, next_index, c_open)
     dr.eval()
-    box_lo, box_hi = _read_box(ns, child_box, next_child, 12)
-    cmin, cmax = _read_box(ns, child_box, next_child, 12, 6)
+    box_lo, box_hi = _read_box(ns, child_box, next_child)
+    cmin, cmax = _read_box(ns, child_cbounds, next_child)
     nxt = _Level(
         size=K_next,
         node_id=child_start + next_child,
@@ -334,68 +322,108 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     return nxt
 
 
-def _sweep(ns, cell_box, cell_weight, occupied, cell_first, n_cells, box_lo, box_hi,
-           K: int, bins: int):
+def _bin(ns, level: _Level, item_lo, item_hi, centroid, item_weight, bins: int):
+    """Bin the active items of ``level`` on the three axes of their nodes.
+
+    Returns:
+        ``(packed_bins, cells)``: UInt32[m] with the item's bin on axis ``a`` in bits
+        ``8a .. 8a+7``, and the level's :class:`_Cells`.
+    """
+    K, m = level.size, dr.width(level.item)
+    cmin = dr.gather(ns.Array3f, level.cmin, level.node)
+    cmax = dr.gather(ns.Array3f, level.cmax, level.node)
+    item_bin = [_bin_index(ns, centroid[a], cmin[a], cmax[a], bins) for a in range(3)]
+    packed_bins = item_bin[0] | (item_bin[1] << 8) | (item_bin[2] << 16)
+
+    # ---- Occupied bins of the nodes of fewer than `bins` items (others: all bins) ----
+    occupied = dr.zeros(ns.UInt64, 3 * K)
+    small = dr.gather(ns.UInt32, level.count, level.node) < bins
+    for a in range(3):
+        dr.scatter_reduce(dr.ReduceOp.Or, occupied, ns.UInt64(1) << ns.UInt64(item_bin[a]),
+                          level.node * 3 + a, small, mode=_MODE)
+    dr.eval(packed_bins)
+    item_bin = [(packed_bins >> (8 * a)) & 0xFF for a in range(3)]
+    big = dr.gather(ns.UInt32, level.count, dr.arange(ns.UInt32, 3 * K) // 3) >= bins
+    occupied = dr.select(big, (1 << bins) - 1, occupied)
+    n_cells = ns.UInt32(dr.popcnt(occupied))
+    dr.eval(occupied, n_cells)
+    first = dr.prefix_sum(n_cells)
+
+    # ---- Per cell: union of the items' boxes and their summed weight ----
+    size = 3 * min(bins * K, m)  # no fewer than the cells in use, without reading them
+    cell_box = dr.full(ns.Float, dr.inf, 6 * size)
+    cell_weight = dr.zeros(ns.UInt32, size)
+    for a in range(3):
+        lane = level.node * 3 + a
+        below = dr.gather(ns.UInt64, occupied, lane) & ((ns.UInt64(1) << ns.UInt64(item_bin[a])) - 1)
+        cell = dr.gather(ns.UInt32, first, lane) + ns.UInt32(dr.popcnt(below))
+        _reduce_box(cell_box, item_lo, item_hi, cell)
+        dr.scatter_reduce(dr.ReduceOp.Add, cell_weight, item_weight, cell, mode=_MODE)
+    dr.eval()
+    return packed_bins, _Cells(occupied, n_cells, first, cell_box, cell_weight)
+
+
+def _sweep(ns, cells: _Cells, level: _Level, bins: int):
     """Per node (UInt64[K]): a key whose low half is the split code ``axis·bins + p``
     of the cheapest plane ``p`` (bins 0..p on the left) that leaves both sides
-    non-empty, the first in (axis, plane) order on ties; ``_MIDDLE`` when no plane
-    qualifies. The high half is the plane's cost.
+    non-empty, the first in (axis, plane) order on ties, or ``_MIDDLE`` when no plane
+    qualifies; the high half holds the plane's cost.
 
-    One lane per (node, axis) walks its cells (its occupied bins, in bin order) twice:
-    forward to store the cost share of every left side, backward to price each plane
-    with its right side. A plane between two occupied bins is reported as the last
-    occupied bin on its left, the lowest of the planes that make the same partition.
-    Extents are divided by the node's largest extent (``box_lo``/``box_hi``,
-    Array3f[K]), so areas neither overflow nor underflow at extreme coordinates.
+    One lane per (node, axis) walks its cells twice: forward to store the cost share of
+    every left side, backward to price each plane with its right side. A plane between
+    two occupied bins is reported as the last occupied bin on its left, the lowest of
+    the planes that make the same partition. Extents are divided by the node's largest
+    extent, so areas neither overflow nor underflow at extreme coordinates.
     """
+    K = level.size
     lane = dr.arange(ns.UInt32, 3 * K)
-    extent = dr.gather(ns.Array3f, box_hi, lane // 3) - dr.gather(ns.Array3f, box_lo, lane // 3)
+    node = lane // 3
+    extent = dr.gather(ns.Array3f, level.box_hi, node) - dr.gather(ns.Array3f, level.box_lo, node)
     largest = dr.maximum(extent.x, dr.maximum(extent.y, extent.z))
     s = dr.select(largest > 0, 1 / largest, 1)
-    cells = dr.width(cell_weight)
-    left_cost = dr.empty(ns.Float, cells)
-    left_weight = dr.empty(ns.UInt32, cells)
+    left_cost = dr.empty(ns.Float, dr.width(cells.weight))
+    left_weight = dr.empty(ns.UInt32, dr.width(cells.weight))
     empty_box = (dr.full(ns.Array3f, dr.inf, 3 * K), dr.full(ns.Array3f, -dr.inf, 3 * K))
+
+    def add_cell(q, lo, hi, w):
+        """(lo, hi, w) grown by the lane's cell ``q``."""
+        c_lo, c_hi = _read_box(ns, cells.box, cells.first + q)
+        w = w + dr.gather(ns.UInt32, cells.weight, cells.first + q)
+        return dr.minimum(lo, c_lo), dr.maximum(hi, c_hi), w
 
     # ---- Forward: the left side of the plane after cell q is cells 0..q ----
     def forward(q, lo, hi, w):
-        cell = cell_first + q
-        c_lo, c_hi = _read_box(ns, cell_box, cell, 6)
-        lo, hi = dr.minimum(lo, c_lo), dr.maximum(hi, c_hi)
-        w = w + dr.gather(ns.UInt32, cell_weight, cell)
-        dr.scatter(left_cost, _half_area((hi - lo) * s) * ns.Float(w), cell)
-        dr.scatter(left_weight, w, cell)
+        lo, hi, w = add_cell(q, lo, hi, w)
+        dr.scatter(left_cost, _half_area((hi - lo) * s) * ns.Float(w), cells.first + q)
+        dr.scatter(left_weight, w, cells.first + q)
         return q + 1, lo, hi, w
 
     dr.while_loop(
         state=(dr.zeros(ns.UInt32, 3 * K), *empty_box, dr.zeros(ns.UInt32, 3 * K)),
-        cond=lambda q, lo, hi, w: q + 1 < n_cells,
+        cond=lambda q, lo, hi, w: q + 1 < cells.count,
         body=forward,
         labels=("q", "lo", "hi", "w"),
     )
 
     # ---- Backward: the right side of the plane before cell q is cells q..end ----
     def backward(q, bin_of_q, lo, hi, w, best_cost, best_bin):
-        cell = cell_first + q
-        c_lo, c_hi = _read_box(ns, cell_box, cell, 6)
-        lo, hi = dr.minimum(lo, c_lo), dr.maximum(hi, c_hi)
-        w = w + dr.gather(ns.UInt32, cell_weight, cell)
-        last_left_bin = _highest_bit(ns, occupied & ((ns.UInt64(1) << ns.UInt64(bin_of_q)) - 1))
-        cost = dr.fma(_half_area((hi - lo) * s), ns.Float(w),
-                      dr.gather(ns.Float, left_cost, cell - 1))
-        better = (dr.gather(ns.UInt32, left_weight, cell - 1) > 0) & (w > 0) & (cost <= best_cost)
+        lo, hi, w = add_cell(q, lo, hi, w)
+        last_left_bin = _highest_bit(ns, cells.occupied & ((ns.UInt64(1) << ns.UInt64(bin_of_q)) - 1))
+        before = cells.first + q - 1
+        cost = dr.fma(_half_area((hi - lo) * s), ns.Float(w), dr.gather(ns.Float, left_cost, before))
+        better = (dr.gather(ns.UInt32, left_weight, before) > 0) & (w > 0) & (cost <= best_cost)
         best_cost = dr.select(better, cost, best_cost)
         best_bin = dr.select(better, last_left_bin, best_bin)
         return q - 1, last_left_bin, lo, hi, w, best_cost, best_bin
 
-    state = dr.while_loop(
-        state=(n_cells - 1, _highest_bit(ns, occupied), *empty_box, dr.zeros(ns.UInt32, 3 * K),
-               dr.full(ns.Float, dr.inf, 3 * K), dr.zeros(ns.UInt32, 3 * K)),
+    *_, best_cost, best_bin = dr.while_loop(
+        state=(cells.count - 1, _highest_bit(ns, cells.occupied), *empty_box,
+               dr.zeros(ns.UInt32, 3 * K), dr.full(ns.Float, dr.inf, 3 * K),
+               dr.zeros(ns.UInt32, 3 * K)),
         cond=lambda q, *_: q > 0,
         body=backward,
         labels=("q", "bin_of_q", "lo", "hi", "w", "best_cost", "best_bin"),
     )
-    best_cost, best_bin = state[-2], state[-1]
 
     # ---- Per node the least (cost, axis, plane): one min over packed keys ----
     key = (ns.UInt64(dr.reinterpret_array(ns.UInt32, best_cost)) << 32) | ns.UInt64(
@@ -409,18 +437,15 @@ def _highest_bit(ns, mask):
     return ns.UInt32(63 - dr.lzcnt(mask))
 
 
-def _reduce_box(target, box_lo, box_hi, index, stride, offset=0, active=True):
-    """Min-reduce the box (lo.xyz, -hi.xyz) into the record
-    ``target[index·stride + offset ..+5]``."""
-    base = index * stride + offset
+def _reduce_box(target, box_lo, box_hi, index, active=True):
+    """Min-reduce the box (lo.xyz, -hi.xyz) into the record ``target[6·index ..+5]``."""
     for j, value in enumerate((box_lo.x, box_lo.y, box_lo.z, -box_hi.x, -box_hi.y, -box_hi.z)):
-        dr.scatter_reduce(dr.ReduceOp.Min, target, value, base + j, active, mode=_MODE)
+        dr.scatter_reduce(dr.ReduceOp.Min, target, value, index * 6 + j, active, mode=_MODE)
 
 
-def _read_box(ns, target, index, stride, offset=0):
+def _read_box(ns, target, index):
     """The box (lo, hi) that :func:`_reduce_box` stored at ``index``."""
-    base = index * stride + offset
-    r = [dr.gather(ns.Float, target, base + j) for j in range(6)]
+    r = [dr.gather(ns.Float, target, index * 6 + j) for j in range(6)]
     return ns.Array3f(r[0], r[1], r[2]), -ns.Array3f(r[3], r[4], r[5])
 
 

@@ -219,10 +219,11 @@ def test02_root_split_equals_bruteforce_best_plane(bins):
     assert left == set(np.flatnonzero(b[:, a] <= p).tolist())
 
 
-def test03_whole_tree_equals_reference_build():
+@pytest.mark.parametrize("bins", [16, 5, 64])
+def test03_whole_tree_equals_reference_build(bins):
     lo, hi = random_boxes(300, 3, size=0.08)
-    tree = build(lo, hi, leaf_items=2)
-    assert_equals_reference(tree, lo, hi, np.ones(300, np.uint32), 2, 16)
+    tree = build(lo, hi, leaf_items=2, bins=bins)
+    assert_equals_reference(tree, lo, hi, np.ones(300, np.uint32), 2, bins)
 
 
 def test04_weights_steer_the_split():
@@ -322,3 +323,15 @@ def test12_grid_mesh_leaves_and_bounds():
     hi[:, 2] = lo[:, 2]
     tree = build(lo, hi, leaf_items=4)
     check_structure(tree, lo, hi, 4)
+
+
+@pytest.mark.parametrize("scale", [2.0**100, 2.0**-100])
+def test13_same_tree_at_extreme_scales(scale):
+    # power-of-two scales are exact in float32: near 1e+30 and 1e-30 the tree must be
+    # the one built at scale 1 (areas would overflow or underflow if not normalised)
+    lo, hi = random_boxes(500, 13)
+    a = as_numpy(build(lo, hi))
+    b = as_numpy(build((lo * F32(scale)).astype(F32), (hi * F32(scale)).astype(F32)))
+    for key in ("first", "count", "order"):
+        assert np.array_equal(a[key], b[key])
+    assert np.array_equal(a["min"] * F32(scale), b["min"])
