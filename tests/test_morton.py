@@ -81,12 +81,21 @@ def auto_bits(triangles):
 
 
 def test01_point_bounds_are_size_one_device_arrays_equal_to_numpy():
-    p = np.random.default_rng(0).normal(size=(1000, 3)).astype(np.float32)
-    lo, hi = point_bounds(Array3f(p.T))
-    assert type(lo) is Array3f and type(hi) is Array3f
-    assert dr.width(lo) == 1 and dr.width(hi) == 1
-    assert np.array_equal(lo.numpy().ravel(), p.min(axis=0))
-    assert np.array_equal(hi.numpy().ravel(), p.max(axis=0))
+    # Reduced as order-preserving integer bit patterns: check signs, zeros, extremes.
+    rng = np.random.default_rng(0)
+    extremes = [-3.4e38, 3.4e38, -1e-30, 1e-30, -0.0, 0.0, -1e-45, 1e-45]
+    for p in (
+        rng.normal(size=(1000, 3)),
+        -rng.random((500, 3)) - 1,  # all negative
+        rng.choice(extremes, size=(400, 3)),
+        rng.choice(extremes[2:6], size=(400, 3)) * np.array([1.0, 1e8, 1e-8]),
+    ):
+        p = p.astype(np.float32)
+        lo, hi = point_bounds(Array3f(np.ascontiguousarray(p.T)))
+        assert type(lo) is Array3f and type(hi) is Array3f
+        assert dr.width(lo) == 1 and dr.width(hi) == 1
+        assert np.array_equal(lo.numpy().ravel(), p.min(axis=0))
+        assert np.array_equal(hi.numpy().ravel(), p.max(axis=0))
 
 
 @pytest.mark.parametrize("quantization", ["cube", "axis"])
