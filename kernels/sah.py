@@ -148,6 +148,9 @@ def binned_sah(item_min, item_max, item_weight, leaf_items: int, bins: int = 16)
         cmax=dr.max(centroid, axis=1),
         item=dr.arange(ns.UInt32, n),
         node=dr.zeros(ns.UInt32, n),
+        item_lo=lo,
+        item_hi=hi,
+        item_weight=weight,
     )
 
     # ---- Split all open nodes of a level at once, until none is left ----
@@ -155,8 +158,7 @@ def binned_sah(item_min, item_max, item_weight, leaf_items: int, bins: int = 16)
     block_start = [0, 1]  # first node index of each depth's block, and one past the end
     while level.size:
         levels.append(level.node_id)
-        level = _split_level(ns, lo, hi, weight, level, records, item_order, block_start,
-                             leaf_items, bins)
+        level = _split_level(ns, level, records, item_order, block_start, leaf_items, bins)
 
     # ---- Final arrays: unpack the node records, depths from the block starts ----
     node_total = block_start[-1]
@@ -203,6 +205,9 @@ class _Level:
     cmax: Any = None
     item: Any = None
     node: Any = None
+    item_lo: Any = None
+    item_hi: Any = None
+    item_weight: Any = None
 
 
 @dataclass
@@ -220,8 +225,8 @@ class _Cells:
     weight: Any
 
 
-def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_start,
-                 leaf_items: int, bins: int) -> _Level:
+def _split_level(ns, level: _Level, records, item_order, block_start, leaf_items: int,
+                 bins: int) -> _Level:
     """Split every open node of ``level``: write the children's node records and the
     slots of the items that reached a leaf; return the next level's open nodes."""
     K = level.size
@@ -231,11 +236,9 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     block_start.append(block_start[-1] + 2 * K)
 
     # ---- Bin and sweep: the split of every node ----
-    item_lo = dr.gather(ns.Array3f, lo, level.item)
-    item_hi = dr.gather(ns.Array3f, hi, level.item)
+    item_lo, item_hi = level.item_lo, level.item_hi
     centroid = _centroid(item_lo, item_hi)
-    packed_bins, cells = _bin(ns, level, item_lo, item_hi, centroid,
-                              dr.gather(ns.UInt32, weight, level.item), bins)
+    packed_bins, cells = _bin(ns, level, item_lo, item_hi, centroid, level.item_weight, bins)
     split_key = _sweep(ns, cells, level, bins)
 
     # ---- Left/right decision of every item; ranks by a prefix sum ----
@@ -286,11 +289,11 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
     _reduce_box(child_box, item_lo, item_hi, c)
     _reduce_box(child_cbounds, centroid, centroid, c, to_open)
     if K_next:
-        next_item = dr.empty(ns.UInt32, m_next)
-        next_node = dr.empty(ns.UInt32, m_next)
         index, first = next_position(c)
-        dr.scatter(next_item, level.item, first + rank, to_open)
-        dr.scatter(next_node, index, first + rank, to_open)
+        moved = (level.item, index, item_lo, item_hi, level.item_weight)
+        next_items = tuple(dr.empty(type(x), m_next) for x in moved)
+        for target, value in zip(next_items, moved):
+            dr.scatter(target, value, first + rank, to_open)
     dr.eval()
 
     # ---- Emit the children's node records and the next level's open nodes ----
@@ -314,9 +317,8 @@ def _split_level(ns, lo, hi, weight, level: _Level, records, item_order, block_s
         act_first=next_position(next_child)[1],
         count=dr.gather(ns.UInt32, c_count, next_child),
         box_lo=box_lo, box_hi=box_hi, cmin=cmin, cmax=cmax,
-        item=next_item,
-        node=next_node,
     )
+    nxt.item, nxt.node, nxt.item_lo, nxt.item_hi, nxt.item_weight = next_items
     dr.eval(nxt.node_id, nxt.slot_first, nxt.act_first, nxt.count, nxt.box_lo, nxt.box_hi,
             nxt.cmin, nxt.cmax)
     return nxt
