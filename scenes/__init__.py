@@ -32,9 +32,12 @@ Every scene is an :class:`AnimatedScene`:
     Triangles per shape and in total, for procedural scenes computed in closed form
     without building any geometry.
 
-:func:`apply_frame(scene, params, frame_geometry) <apply_frame>` writes a frame into a
-loaded scene (``params[f"{id}.vertex_positions"]``, and faces when given), calls
-``params.update()`` once and returns the ids it changed.
+:func:`apply_frame(scene, params, frame_geometry, deterministic_normals=True)
+<apply_frame>` writes a frame into a loaded scene (``params[f"{id}.vertex_positions"]``,
+faces when given, and vertex normals computed the same way as Mitsuba but
+bit-reproducibly, see :mod:`hlbvh.scenes.normals`), calls ``params.update()`` once and
+returns the ids it changed. Two scenes loaded from the same animation and given the
+same frame render bit-identically (box filter, same seed).
 
 Procedural scenes (:func:`get`, :func:`names`)
 ----------------------------------------------

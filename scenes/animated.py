@@ -142,8 +142,6 @@ def apply_frame(
     frame gives faces) for every shape of ``frame_geometry``, and, for a mesh with
     vertex normals, ``params[f"{id}.vertex_normals"]``, then calls ``params.update()``
     once, which recomputes bounds and rebuilds the native acceleration structure.
-    (Writing back the very array a shape already holds is a no-op for Mitsuba: it sees
-    the same variable.)
 
     Args:
         scene: the scene loaded from the animated scene's ``scene_dict``.
@@ -195,7 +193,8 @@ def apply_frame(
             params[f"{shape_id}.faces"] = faces
         normals_key = f"{shape_id}.vertex_normals"
         if deterministic_normals and normals_key in params and dr.width(params[normals_key]):
-            params[normals_key] = vertex_normals(positions, params[f"{shape_id}.faces"])
+            triangles = faces if faces is not None else params[f"{shape_id}.faces"]
+            params[normals_key] = vertex_normals(positions, triangles)
     params.update()
     return [shape_id for shape_id, _, _ in staged]
 

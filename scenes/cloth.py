@@ -93,4 +93,4 @@ class Cloth(ProceduralScene):
         return {"flag": np.stack([x + POLE_RADIUS, y + FLAG_BOTTOM - sag, z], axis=1)}
 
     def _view(self) -> View:
-        return View(origin=(6.4, 3.0, 5.6), target=(1.4, 2.7, 0.0), fov=45.0)
+        return View(origin=(6.4, 3.0, 5.6), target=(2.1, 2.7, 0.0), fov=45.0)

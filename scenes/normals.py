@@ -6,7 +6,8 @@ positions can give normals differing in the last bit, and renders differing by a
 in a few pixels. Two scenes meant to be compared pixel for pixel (native and hlbvh)
 would then disagree for no reason of theirs. This module computes the same weighting
 as Mitsuba (each face's unit normal weighted by its angle at the vertex: Thürmer and
-Wüthrich, JGT 1998) with the scatter-adds on one thread, in a fixed order.
+Wüthrich, JGT 1998) with the scatter-adds on one thread, in a fixed order. (That
+holds on the LLVM backend; on CUDA the atomic adds keep their hardware order.)
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ with the default ``optimize=True``. Each part also gets its own BSDF object.
 Conventions shared by all procedural scenes: y is up, the ground is the plane
 ``y = 0``, time ``t = i / FPS`` seconds at frame ``i``, all randomness drawn from
 ``numpy.random.default_rng`` seeded by the scene's ``seed`` (per-frame randomness by
-``(seed, i)``), so a scene and its frames are the same on every run and backend.
+``(seed, i)``), so a scene's geometry and frames are the same on every run and backend.
 """
 
 from __future__ import annotations

@@ -41,9 +41,9 @@ class Rigid(ProceduralScene):
     body ``k`` with ``k % groups == g``, all copies of one prototype in one colour, each
     moving on its own), ``walls`` and ``columns`` (static: three walls and
     ``3 COLUMNS_PER_WALL`` columns along them), ``ground`` (static). A body keeps its
-    shape and only moves and turns, so its triangles move together while the bodies
-    move apart: a two-level (per body) structure would refit nothing and rebuild only
-    the top.
+    shape and only moves and turns: the triangles of one body stay together while the
+    bodies move apart, and most of the scene's area (floor, walls, columns) never
+    changes.
 
     Triangles: ``static_fraction`` of the budget goes to the columns (finely
     tessellated), the rest to the bodies, ``12 n^2`` triangles each.

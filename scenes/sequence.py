@@ -38,7 +38,8 @@ class SequenceScene(AnimatedScene):
     """A scene whose animated meshes are read from a directory of per-frame files.
 
     Args:
-        scene: a Mitsuba XML file, or a scene dict for ``mi.load_dict``.
+        scene: a Mitsuba XML file, or a scene dict for ``mi.load_dict`` (objects already
+            built in it, such as an ``mi.Mesh``, are shared by every ``scene_dict``).
         frames_dir: the directory of per-frame meshes (layout in the module docstring).
         topology: ``"fixed"`` or ``"changing"`` for every animated shape, or a dict from
             shape id to either (shapes it leaves out are ``"fixed"``).
@@ -79,15 +80,15 @@ class SequenceScene(AnimatedScene):
         for node in state.nodes:
             if node.type == mi.ObjectType.Shape and "to_world" in node.props.keys():
                 self._to_world[node.props.id()] = node.props["to_world"]
-        self._meshes = {}  # id -> (vertex count, face count, faces as mi.UInt32)
+        self._meshes = {}  # id -> (vertex count, face count)
         self._writable = set()  # ids of meshes whose vertex positions Mitsuba lets us set
         self._shape_ids = []
+        faces = {}
         for shape in reference.shapes():
             self._shape_ids.append(shape.id())
             if isinstance(shape, mi.Mesh):
-                self._meshes[shape.id()] = (
-                    shape.vertex_count(), shape.face_count(), mi.UInt32(shape.faces_buffer())
-                )
+                self._meshes[shape.id()] = (shape.vertex_count(), shape.face_count())
+                faces[shape.id()] = mi.UInt32(shape.faces_buffer())
                 if "vertex_positions" in mi.traverse(shape).keys():
                     self._writable.add(shape.id())
         del reference
@@ -95,6 +96,9 @@ class SequenceScene(AnimatedScene):
         # ---- The frame files ----
         self._files, self.frame_count = self._scan_frames()
         self._topology = self._topologies(topology)
+        self._fixed_faces = {
+            sid: faces[sid] for sid, kind in self._topology.items() if kind == "fixed"
+        }
 
     def __repr__(self) -> str:
         return (
@@ -113,7 +117,7 @@ class SequenceScene(AnimatedScene):
 
     def triangle_counts(self) -> dict[str, int]:
         """Triangles of every mesh as the scene loads them (frame files not read)."""
-        return {sid: counts[1] for sid, counts in self._meshes.items()}
+        return {sid: face_count for sid, (_, face_count) in self._meshes.items()}
 
     def frame(self, i: int) -> dict[str, FrameGeometry]:
         """Reads frame ``i`` of every animated shape.
@@ -279,7 +283,8 @@ class SequenceScene(AnimatedScene):
     def _read_frame(self, shape_id: str, i: int) -> FrameGeometry:
         path = self._files[shape_id][i]
         where = f"frame {i} of shape {shape_id!r} ({str(path)!r})"
-        plugin = {"type": path.suffix.lower()[1:], "filename": str(path)}
+        # face_normals: Mitsuba need not compute vertex normals only to drop them.
+        plugin = {"type": path.suffix.lower()[1:], "filename": str(path), "face_normals": True}
         if shape_id in self._to_world:
             plugin["to_world"] = self._to_world[shape_id]
         if not path.is_file():
@@ -292,14 +297,14 @@ class SequenceScene(AnimatedScene):
         faces = mesh.faces_buffer()
         if self._topology[shape_id] == "changing":
             return FrameGeometry(positions, faces)
-        vertex_count, face_count, scene_faces = self._meshes[shape_id]
+        vertex_count, face_count = self._meshes[shape_id]
         if mesh.vertex_count() != vertex_count or mesh.face_count() != face_count:
             raise ValueError(
                 f"{where}: {mesh.vertex_count()} vertices and {mesh.face_count()} faces, but "
                 f"the scene's shape has {vertex_count} and {face_count} (topology 'fixed'); "
                 f"pass topology={{{shape_id!r}: 'changing'}} if its topology changes"
             )
-        if not dr.all(mi.UInt32(faces) == scene_faces, axis=None):
+        if not dr.all(mi.UInt32(faces) == self._fixed_faces[shape_id], axis=None):
             raise ValueError(
                 f"{where}: its faces differ from the scene's shape (topology 'fixed'); pass "
                 f"topology={{{shape_id!r}: 'changing'}} if its topology changes"

@@ -436,9 +436,16 @@ def test16_sequence_rejects_wrong_counts_unknown_shapes_and_bad_input(sequence_d
     mesh_object("bar", written[1].reshape(-1, 3)[:-3], faces[:4], {"type": "diffuse"}).write_ply(
         str(frames / "frame_0002.ply")
     )
+    # Same counts, other triangles (each one's winding reversed).
+    mesh_object("bar", written[2].reshape(-1, 3), faces[:, ::-1], {"type": "diffuse"}).write_ply(
+        str(frames / "frame_0003.ply")
+    )
     sequence = scenes.SequenceScene(root / "scene.xml", root / "frames")
     with pytest.raises(ValueError, match=r"frame 1 of shape 'bar'.*frame_0002\.ply.*vertices"):
         sequence.frame(1)
+    with pytest.raises(ValueError, match=r"frame 2 of shape 'bar'.*frame_0003\.ply.*faces differ"):
+        sequence.frame(2)
+    assert scenes.SequenceScene(root / "scene.xml", root / "frames", topology="changing").frame(2)
     with pytest.raises(ValueError, match="topology"):
         scenes.SequenceScene(root / "scene.xml", root / "frames", topology="wobbly")
     with pytest.raises(ValueError, match="'teapot' cannot be animated: the scene has no mesh"):
