@@ -18,6 +18,7 @@ from .procedural import (
     View,
     ground,
     glossy,
+    positive_int,
 )
 from .rigid_motion import random_unit_vectors, rotate
 
@@ -63,11 +64,12 @@ class Fracture(ProceduralScene):
     the triangles is shuffled frame after frame.
 
     Triangles: ``4 nu nv`` on the two surfaces plus 4 per crack edge between two quads;
-    ``nu nv`` is chosen so the surfaces alone meet the budget.
+    the grid is sized so both together meet the budget, usually within 1%.
 
     Args:
-        pieces: the number of Voronoi sites, hence about that many shards (a site that
-            no quad centre is nearest to gives no shard, at tiny triangle budgets).
+        pieces: about how many shards: the sites fill a ``gu x gv`` grid of at least
+            ``pieces`` cells (a site no quad centre is nearest to, at tiny triangle
+            budgets, gives no shard).
         others: see :class:`ProceduralScene`.
     """
 
@@ -81,9 +83,7 @@ class Fracture(ProceduralScene):
         pieces: int = 300,
     ):
         super().__init__(triangles, frames, seed)
-        if isinstance(pieces, bool) or not isinstance(pieces, int) or pieces < 2:
-            raise ValueError(f"pieces={pieces!r}: expected an int >= 2")
-        self.pieces = pieces
+        self.pieces = positive_int("pieces", pieces, least=2)
 
     def __repr__(self) -> str:
         return super().__repr__()[:-1] + f", pieces={self.pieces})"

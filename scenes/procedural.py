@@ -84,8 +84,8 @@ class ProceduralScene(AnimatedScene):
     def __init__(
         self, triangles: int = DEFAULT_TRIANGLES, frames: int = DEFAULT_FRAMES, seed: int = 0
     ):
-        self.triangles = _positive_int("triangles", triangles)
-        self.frame_count = _positive_int("frames", frames)
+        self.triangles = positive_int("triangles", triangles)
+        self.frame_count = positive_int("frames", frames)
         if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
             raise ValueError(f"seed={seed!r}: expected a non-negative int")
         self.seed = int(seed)
@@ -149,7 +149,7 @@ class ProceduralScene(AnimatedScene):
         """See :meth:`AnimatedScene.scene_dict`. Defaults: ``DEFAULT_RESOLUTION``,
         ``DEFAULT_SPP``, ``DEFAULT_INTEGRATOR``. The animated parts hold frame 0."""
         width, height = _resolution(DEFAULT_RESOLUTION if resolution is None else resolution)
-        spp = _positive_int("spp", DEFAULT_SPP if spp is None else spp)
+        spp = positive_int("spp", DEFAULT_SPP if spp is None else spp)
         view = self._view()
         scene = {
             "type": "scene",
@@ -236,9 +236,11 @@ def ground(rgb=(0.45, 0.45, 0.42), size: float = GROUND_SIZE) -> Part:
     return Part(faces, diffuse(rgb), corners * (size / 2), smooth=False)
 
 
-def _positive_int(what: str, value) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
-        raise ValueError(f"{what}={value!r}: expected a positive int")
+def positive_int(what: str, value, least: int = 1) -> int:
+    """``value`` as an int after checking it is an integer ``>= least``; a ValueError
+    naming ``what`` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
+        raise ValueError(f"{what}={value!r}: expected an int >= {least}")
     return int(value)
 
 
@@ -247,4 +249,4 @@ def _resolution(resolution) -> tuple[int, int]:
         width, height = resolution
     except (TypeError, ValueError):
         raise ValueError(f"resolution={resolution!r}: expected (width, height)") from None
-    return _positive_int("resolution width", width), _positive_int("resolution height", height)
+    return positive_int("resolution width", width), positive_int("resolution height", height)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 
 import numpy as np
 
@@ -18,6 +19,7 @@ from .procedural import (
     diffuse,
     ground,
     glossy,
+    positive_int,
 )
 from .rigid_motion import random_unit_vectors, rotation_matrices
 
@@ -68,13 +70,13 @@ class Rigid(ProceduralScene):
         static_fraction: float = 0.2,
     ):
         super().__init__(triangles, frames, seed)
-        if isinstance(objects, bool) or not isinstance(objects, int) or objects < 1:
-            raise ValueError(f"objects={objects!r}: expected a positive int")
-        if isinstance(groups, bool) or not isinstance(groups, int) or not 1 <= groups <= objects:
-            raise ValueError(f"groups={groups!r}: expected an int in 1..objects ({objects})")
-        if not 0.0 <= static_fraction <= 0.9:
+        self.objects = positive_int("objects", objects)
+        self.groups = positive_int("groups", groups)
+        if self.groups > self.objects:
+            raise ValueError(f"groups={groups!r}: expected at most objects ({objects})")
+        if not isinstance(static_fraction, numbers.Real) or not 0.0 <= static_fraction <= 0.9:
             raise ValueError(f"static_fraction={static_fraction!r}: expected a number in 0..0.9")
-        self.objects, self.groups, self.static_fraction = objects, groups, float(static_fraction)
+        self.static_fraction = float(static_fraction)
 
     def __repr__(self) -> str:
         return super().__repr__()[:-1] + (
