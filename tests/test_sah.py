@@ -4,6 +4,8 @@ float32 cost arithmetic and the same tie rule (first axis, then lowest plane).""
 
 import hlbvh  # noqa: F401  (sets up libLLVM before drjit is imported)
 
+import re
+
 import drjit as dr
 import numpy as np
 import pytest
@@ -335,3 +337,32 @@ def test13_same_tree_at_extreme_scales(scale):
     for key in ("first", "count", "order"):
         assert np.array_equal(a[key], b[key])
     assert np.array_equal(a["min"] * F32(scale), b["min"])
+
+
+def _kernel_shape(entry):
+    """A launched kernel's LLVM IR without what Dr.Jit varies per buffer (its name,
+    which is a hash of the rest, and the alignment it proved for each pointer)."""
+    ir = entry["ir"]
+    ir = ir.getvalue() if hasattr(ir, "getvalue") else str(ir)
+    ir = re.sub(r"@drjit_[0-9a-f]+", "@kernel", ir)
+    ir = re.sub(r"align \d+", "align", ir)
+    return re.sub(r"(<\d+ x ptr> %\w+), i32 \d+", r"\1", ir)  # gather/scatter alignment
+
+
+def test14_new_sizes_reuse_the_same_kernels():
+    # sizes and offsets enter the kernels as opaque values: after a few builds (which
+    # meet Dr.Jit's variants for single-entry arrays), a build of a new size and depth
+    # launches only kernels that ran before
+    def kernels(n, seed):
+        lo, hi = random_boxes(n, seed)
+        dr.kernel_history()
+        build(lo, hi, np.arange(n, dtype=np.uint32) % 7 + 1, leaf_items=2)
+        return {_kernel_shape(e) for e in dr.kernel_history() if e["type"] == dr.KernelType.JIT}
+
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        first = kernels(700, 14) | kernels(1913, 15) | kernels(3001, 16)
+        second = kernels(2222, 17)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert second <= first, f"{len(second - first)} kernel(s) specialised on a size"
