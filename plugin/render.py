@@ -1,0 +1,578 @@
+"""``hlbvh render``: an animated scene rendered frame by frame to EXR and PNG, with
+per-frame statistics; interrupted renders resume where they stopped.
+
+Usage::
+
+    hlbvh render cloth --frames 0:24 --resolution 640x360 --spp 16 --out out/cloth
+    hlbvh render fracture --triangles 1000000 --frames 8 --accel native
+    hlbvh render scene.xml --frames-dir frames/ --integrator aov --out out/mine
+
+``SCENE`` is a procedural scene (``hlbvh.scenes.names()``: cloth, twist, fracture,
+rigid, soup; ``--triangles`` sets its size) or a Mitsuba XML file whose animated meshes
+are read from ``--frames-dir`` (see :class:`hlbvh.scenes.SequenceScene`).
+``--frames A:B`` renders frames ``A .. B-1``, ``--frames N`` the first ``N``; the
+default is every frame of the scene (60 for procedural scenes, whose motion goes on
+past that: any ``B`` is allowed there). ``--resolution W`` means ``W×W``.
+
+Each frame
+----------
+1. its geometry is written into the loaded scene with :func:`hlbvh.scenes.apply_frame`,
+   whose ``params.update()`` makes Mitsuba rebuild its own accelerator (Embree on the
+   LLVM backend) whatever ``--accel`` says;
+2. with ``--accel hlbvh`` our :class:`hlbvh.SceneAccel` follows (built, rebuilt or
+   refit, as its ``update`` policy decides), timed on its own;
+3. ``mi.render(scene, seed=seed + frame)``: the same seed for a frame whatever the
+   accelerator, so renders of both are comparable pixel by pixel (box filter);
+4. ``frame_NNNN.exr`` (linear float32, every film channel: R, G, B, and the AOVs of
+   ``--integrator aov``) and ``frame_NNNN.png`` (8-bit sRGB of R, G, B) are written
+   through :mod:`hlbvh.images`, each to a temporary file renamed into place;
+5. its row (:data:`STATS_FIELDS`) is added to ``stats.csv`` and ``stats.json``, both
+   rewritten whole and atomically.
+
+A frame is complete when its EXR, its PNG and its row exist. Running the same command
+again renders only the frames of the range that are not complete (after an interrupt:
+from the one that was being rendered), and removes the temporary files a killed
+process left. ``stats.json`` records the settings (scene, size, resolution, spp,
+integrator, accelerator, builder options, seed); rendering into a directory that
+holds frames of other settings is refused, so one directory never mixes two renders.
+
+Statistics (``stats.json``: ``{"settings": {...}, "frames": [row, ...]}``)
+--------------------------------------------------------------------------
+``frame``, ``accel``, ``triangles`` (of every mesh at that frame), ``seed``;
+``geometry_ms`` (reading or generating the frame and writing it into the scene),
+``mitsuba_update_ms`` (Mitsuba's ``params.update()``: its own accelerator's rebuild),
+``build_ms`` (``hlbvh``: our accelerator's update; ``native``: ``params.update()``,
+the native rebuild), ``render_ms``; ``sah_cost`` of our BVH (C_trav = C_isect = 1,
+normalised by the root's area; empty for ``native``, Embree does not report one);
+``decision``: ``build`` (first frame), ``rebuild``, ``refit``, ``kept`` (nothing
+moved), or ``native`` (Mitsuba rebuilt its accelerator). Times are wall-clock
+milliseconds with the device synchronised; the first frame of a process includes
+compiling kernels that Dr.Jit's disk cache did not hold.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import re
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from hlbvh import images, scenes
+from hlbvh.accel import ACCELS
+from hlbvh.cli import UserError
+from hlbvh.integrators.common import BUILD_OPTIONS
+from hlbvh.kernels.bvh import BuildConfig
+
+#: Columns of ``stats.csv``, and keys of every row of ``stats.json``.
+STATS_FIELDS = ("frame", "accel", "triangles", "seed", "geometry_ms", "mitsuba_update_ms",
+                "build_ms", "render_ms", "sah_cost", "decision")
+
+#: ``--integrator`` choices and the registered integrators they name.
+INTEGRATORS = {"path": "hlbvh_path", "aov": "hlbvh_aov"}
+
+#: ``--update`` choices: the per-frame policy of our accelerator.
+UPDATES = ("rebuild", "refit", "auto")
+
+#: Longest path of ``--integrator path`` unless ``--max-depth`` says otherwise.
+DEFAULT_MAX_DEPTH = 8
+
+_STALE = re.compile(r"^\.(frame_\d+\.(exr|png)|stats\.(csv|json))\.[0-9a-f]+\.tmp$")
+
+
+# ---------------------------------------------------------------------------------------
+# Settings
+# ---------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How the frames of an animation are rendered.
+
+    Attributes:
+        resolution: film ``(width, height)``; ``None`` keeps the scene's.
+        spp: samples per pixel; ``None`` keeps the scene's.
+        integrator: ``"path"`` (``hlbvh_path``) or ``"aov"`` (``hlbvh_aov``).
+        max_depth: longest path of ``"path"`` (-1: unbounded).
+        accel: ``"hlbvh"`` or ``"native"``.
+        build_options: options of :func:`hlbvh.build` (``builder``, ``leaf_size``, ...),
+            validated for both accelerators.
+        update: our accelerator's per-frame policy (``"rebuild"``, ``"refit"``,
+            ``"auto"``), or ``None`` for its default; handed to the integrator as its
+            ``update`` property.
+        seed: frame ``i`` is rendered with seed ``seed + i``.
+    Raises:
+        ValueError: naming the setting, for any value outside the above.
+    """
+
+    resolution: tuple[int, int] | None = None
+    spp: int | None = None
+    integrator: str = "path"
+    max_depth: int = DEFAULT_MAX_DEPTH
+    accel: str = "hlbvh"
+    build_options: dict = field(default_factory=dict)
+    update: str | None = None
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.resolution is not None and (
+            len(self.resolution) != 2 or not all(_is_int(v) and v >= 1 for v in self.resolution)
+        ):
+            raise ValueError(f"resolution={self.resolution!r}: expected (width, height) >= 1")
+        if self.spp is not None and not (_is_int(self.spp) and self.spp >= 1):
+            raise ValueError(f"spp={self.spp!r}: expected an int >= 1")
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(f"integrator={self.integrator!r}: expected one of {tuple(INTEGRATORS)}")
+        if not (_is_int(self.max_depth) and self.max_depth >= -1):
+            raise ValueError(f"max_depth={self.max_depth!r}: expected -1 (unbounded) or an int >= 0")
+        if self.accel not in ACCELS:
+            raise ValueError(f"accel={self.accel!r}: expected one of {ACCELS}")
+        BuildConfig.from_options(**self.build_options)
+        if self.update is not None and self.update not in UPDATES:
+            raise ValueError(f"update={self.update!r}: expected one of {UPDATES}")
+        if not (_is_int(self.seed) and self.seed >= 0):
+            raise ValueError(f"seed={self.seed!r}: expected an int >= 0")
+
+    def integrator_dict(self) -> dict:
+        """The Mitsuba description of the integrator these settings ask for."""
+        description = {"type": INTEGRATORS[self.integrator], "accel": self.accel,
+                       **self.build_options}
+        if self.integrator == "path":
+            description["max_depth"] = self.max_depth
+        if self.update is not None:
+            description["update"] = self.update
+        return description
+
+    def as_dict(self) -> dict:
+        """The settings as JSON values (what ``stats.json`` records)."""
+        record = asdict(self)
+        record["resolution"] = None if self.resolution is None else list(self.resolution)
+        return record
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+# ---------------------------------------------------------------------------------------
+# One frame
+# ---------------------------------------------------------------------------------------
+
+
+class FrameRenderer:
+    """An animated scene loaded once, rendering any of its frames with timings.
+
+    Args:
+        animation: the :class:`hlbvh.scenes.AnimatedScene`.
+        settings: the :class:`RenderSettings`.
+    Raises:
+        ValueError: the integrator cannot be made from the settings (naming what
+            Mitsuba or the builder objected to).
+
+    Attributes:
+        scene: the loaded ``mi.Scene``; ``params``: its ``mi.traverse``;
+        integrator: its hlbvh integrator.
+    """
+
+    def __init__(self, animation, settings: RenderSettings):
+        self.animation = animation
+        self.settings = settings
+        description = settings.integrator_dict()
+        try:
+            mi.load_dict(description)  # a bad property fails here, alone, before the scene
+        except RuntimeError as error:
+            raise ValueError(
+                f"integrator {description['type']}: {_mitsuba_message(error)}"
+            ) from None
+        self.scene = mi.load_dict(animation.scene_dict(
+            resolution=settings.resolution, spp=settings.spp, integrator=description))
+        self.params = mi.traverse(self.scene)
+        self.integrator = self.scene.integrator()
+        self._accel = None  # our accelerator as the last frame left it
+
+    def render(self, i: int, spp: int | None = None) -> tuple[mi.TensorXf, dict]:
+        """Apply frame ``i`` and render it.
+
+        Args:
+            i: the frame index.
+            spp: samples per pixel for this render; ``None`` keeps the scene's.
+        Returns:
+            ``(image, row)``: the film's channels ``(H, W, C)`` and the frame's
+            statistics (keys :data:`STATS_FIELDS`).
+        Raises:
+            ValueError: the frame's geometry cannot be read or applied (naming the file
+                and the frame for sequences).
+        """
+        # ---- The frame's geometry into the scene; Mitsuba updates itself ----
+        start = _clock()
+        parameters = _TimedUpdate(self.params)
+        scenes.apply_frame(self.scene, parameters, self.animation.frame(i))
+        geometry_ms = _clock() - start - parameters.update_ms
+
+        # ---- Our accelerator follows ----
+        if self.settings.accel == "hlbvh":
+            build_ms, sah_cost, decision = self._follow()
+        else:
+            build_ms, sah_cost, decision = parameters.update_ms, None, "native"
+
+        # ---- Render ----
+        seed = self.settings.seed + i
+        start = _clock()
+        image = mi.render(self.scene, seed=seed, spp=0 if spp is None else spp)
+        dr.eval(image)
+        render_ms = _clock() - start
+
+        row = {
+            "frame": i, "accel": self.settings.accel, "triangles": self.triangle_count(),
+            "seed": seed, "geometry_ms": geometry_ms,
+            "mitsuba_update_ms": parameters.update_ms, "build_ms": build_ms,
+            "render_ms": render_ms, "sah_cost": sah_cost, "decision": decision,
+        }
+        return image, row
+
+    def _follow(self) -> tuple[float, float | None, str]:
+        """Bring our accelerator up to date with the scene: (ms, SAH cost, decision)."""
+        previous = self._accel
+        previous_bvh = None if previous is None else previous.bvh
+        previous_refit = None if previous_bvh is None else previous_bvh.stats.stage_ms.get("refit")
+        start = _clock()
+        accel = self.integrator.accel(self.scene)
+        build_ms = _clock() - start
+        self._accel = accel
+        bvh = accel.bvh
+        if accel is not previous:
+            decision = "build"
+        elif bvh is not previous_bvh:
+            decision = "rebuild"
+        elif bvh is not None and bvh.stats.stage_ms.get("refit") is not previous_refit:
+            decision = "refit"
+        else:
+            decision = "kept"
+        return build_ms, None if bvh is None else float(bvh.stats.sah_cost), decision
+
+    def triangle_count(self) -> int:
+        """Triangles of every mesh of the scene as it is now."""
+        return sum(s.face_count() for s in self.scene.shapes() if s.is_mesh())
+
+    def channel_names(self, image) -> list[str]:
+        """Names of the film's channels in ``image``: R, G, B (, A), then the AOVs."""
+        aovs = list(self.integrator.aov_names())
+        colour = image.shape[2] - len(aovs)
+        return ["R", "G", "B", "A"][:colour] + aovs
+
+
+class _TimedUpdate:
+    """``mi.SceneParameters`` as :func:`hlbvh.scenes.apply_frame` uses them, with the
+    wall time of ``update()`` (Mitsuba's own refresh and accelerator rebuild) kept in
+    ``update_ms``. Values are evaluated as they are set, so pending arithmetic is not
+    counted as Mitsuba's."""
+
+    def __init__(self, params):
+        self._params = params
+        self.update_ms = 0.0
+
+    def __contains__(self, key):
+        return key in self._params
+
+    def __getitem__(self, key):
+        return self._params[key]
+
+    def __setitem__(self, key, value):
+        dr.eval(value)
+        self._params[key] = value
+
+    def update(self):
+        start = _clock()
+        self._params.update()
+        self.update_ms = _clock() - start
+
+
+def _clock() -> float:
+    """Milliseconds since an arbitrary origin, after the device finished its work."""
+    dr.sync_thread()
+    return time.perf_counter() * 1e3
+
+
+def _mitsuba_message(error: Exception) -> str:
+    """The informative part of a Mitsuba loader error, on one line."""
+    lines = [line.strip() for line in str(error).strip().splitlines() if line.strip()]
+    useful = [line for line in lines if not line.startswith(("File ", "Traceback"))]
+    text = " ".join(useful[-2:] if len(useful) > 1 else useful) or type(error).__name__
+    return re.sub(r"\[[\w.]+:\d+\]\s*", "", text)
+
+
+# ---------------------------------------------------------------------------------------
+# The output directory
+# ---------------------------------------------------------------------------------------
+
+
+class _Statistics:
+    """``stats.json`` and ``stats.csv`` of an output directory: the settings and one row
+    per complete frame, rewritten whole (atomically) whenever a row is added."""
+
+    def __init__(self, directory: Path, settings: dict):
+        self.directory = directory
+        self.settings = settings
+        self.rows: dict[int, dict] = {}
+        path = directory / "stats.json"
+        if not path.exists():
+            return
+        try:
+            stored = json.loads(path.read_text())
+            stored_settings, rows = stored["settings"], stored["frames"]
+            self.rows = {int(row["frame"]): row for row in rows}
+        except (OSError, ValueError, KeyError, TypeError) as error:
+            raise UserError(
+                f"{path}: unreadable ({type(error).__name__}: {error}); remove it to "
+                f"render this directory's frames again, or choose another --out"
+            ) from None
+        if stored_settings != settings and self.rows:
+            differ = sorted(k for k in set(settings) | set(stored_settings)
+                            if settings.get(k) != stored_settings.get(k))
+            changes = ", ".join(f"{k}: {stored_settings.get(k)!r} -> {settings.get(k)!r}"
+                                for k in differ)
+            raise UserError(
+                f"{directory} holds frames rendered with other settings ({changes}); "
+                f"choose another --out, or remove the directory to start over"
+            )
+
+    def complete(self, i: int) -> bool:
+        """Whether frame ``i`` has its row, EXR and PNG."""
+        name = frame_name(i)
+        return (i in self.rows and (self.directory / f"{name}.exr").is_file()
+                and (self.directory / f"{name}.png").is_file())
+
+    def add(self, row: dict) -> None:
+        self.rows[row["frame"]] = row
+        ordered = [self.rows[i] for i in sorted(self.rows)]
+        document = {"settings": self.settings, "frames": ordered}
+        with images.atomic_output(self.directory / "stats.json") as temporary:
+            temporary.write_text(json.dumps(document, indent=1) + "\n")
+        table = io.StringIO()
+        writer = csv.DictWriter(table, fieldnames=STATS_FIELDS, extrasaction="ignore",
+                                lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(ordered)
+        with images.atomic_output(self.directory / "stats.csv") as temporary:
+            temporary.write_text(table.getvalue())
+
+
+def frame_name(i: int) -> str:
+    """File name (without extension) of frame ``i``: ``frame_0007``."""
+    return f"frame_{i:04d}"
+
+
+def remove_stale_files(directory: Path) -> list[Path]:
+    """Remove the temporary files a killed render left in ``directory`` (hidden
+    ``.frame_NNNN.exr.<hex>.tmp``, ``.stats.json.<hex>.tmp``, ...); returns them."""
+    stale = [p for p in directory.glob(".*.tmp") if _STALE.match(p.name) and p.is_file()]
+    for path in stale:
+        path.unlink(missing_ok=True)
+    return stale
+
+
+def render_animation(animation, frames, out_dir, settings: RenderSettings,
+                     source: dict | None = None,
+                     progress: bool = True) -> tuple[list[dict], list[int]]:
+    """Render ``frames`` of ``animation`` into ``out_dir``, resuming a previous run.
+
+    Args:
+        animation: the :class:`hlbvh.scenes.AnimatedScene`.
+        frames: the frame indices (e.g. ``range(0, 24)``).
+        out_dir: the output directory (created if needed).
+        settings: the :class:`RenderSettings`.
+        source: what identifies the scene (JSON values, e.g. ``{"scene": "cloth",
+            "triangles": 200000}``), recorded with the settings.
+        progress: show a progress bar on stderr.
+    Returns:
+        ``(rows, rendered)``: every row of the directory's statistics (earlier runs'
+        included) in frame order, and the frames this call rendered.
+    Raises:
+        UserError: the directory holds frames of other settings, or unreadable
+            statistics.
+        ValueError: a frame cannot be read or applied; the frames finished before it
+            stay complete.
+    """
+    from tqdm import tqdm
+
+    directory = Path(out_dir)
+    directory.mkdir(parents=True, exist_ok=True)
+    remove_stale_files(directory)
+    statistics = _Statistics(directory, {**(source or {}), **settings.as_dict()})
+    todo = [i for i in frames if not statistics.complete(i)]
+    if todo:
+        renderer = FrameRenderer(animation, settings)
+        bar = tqdm(todo, desc=f"{animation.name} {settings.accel}", unit="frame",
+                   file=sys.stderr, disable=not progress, dynamic_ncols=True)
+        for i in bar:
+            image, row = renderer.render(i)
+            pixels = images.as_image(image)
+            names = renderer.channel_names(pixels)
+            images.write_exr(directory / f"{frame_name(i)}.exr", pixels, channel_names=names)
+            images.write_png(directory / f"{frame_name(i)}.png", pixels[..., :3])
+            statistics.add(row)
+            bar.set_postfix(build=f"{row['build_ms']:.0f}ms", render=f"{row['render_ms']:.0f}ms")
+    return [statistics.rows[i] for i in sorted(statistics.rows)], todo
+
+
+# ---------------------------------------------------------------------------------------
+# Command line
+# ---------------------------------------------------------------------------------------
+
+
+def configure(parser) -> None:
+    """Options of ``hlbvh render`` (values are checked in :func:`run`, so every
+    mistake is reported in one line)."""
+    parser.description = __doc__.split("\n\n")[0]
+    add = parser.add_argument
+    add("scene", help=f"a procedural scene ({', '.join(scenes.names())}) or a Mitsuba XML "
+                      "file (with --frames-dir)")
+    add("--frames-dir", help="directory of per-frame meshes <dir>/<shape id>/frame_0001.ply "
+                             "(with an XML scene)")
+    add("--frames", help="A:B (frames A .. B-1) or N (the first N); default: all")
+    add("--resolution", help="W (W×W) or WxH; default: the scene's")
+    add("--spp", help="samples per pixel; default: the scene's")
+    add("--triangles", help="size of a procedural scene (default 200000)")
+    add("--integrator", default="path", help="path (hlbvh_path, default) or aov (hlbvh_aov)")
+    add("--max-depth", default=str(DEFAULT_MAX_DEPTH),
+        help=f"longest path of the path integrator (default {DEFAULT_MAX_DEPTH}; -1: unbounded)")
+    add("--accel", default="hlbvh", help="hlbvh (default) or native")
+    for name in BUILD_OPTIONS:
+        add(f"--{name.replace('_', '-')}", dest=name,
+            help=f"builder option {name} (hlbvh.build; default {getattr(BuildConfig, name)!r})")
+    add("--update", help="our accelerator's per-frame policy: rebuild, refit or auto "
+                         "(default: the accelerator's own)")
+    add("--seed", default="0", help="frame i is rendered with seed SEED + i (default 0)")
+    add("--out", help="output directory (default out/render/<scene>-<accel>)")
+    add("--quiet", action="store_true", help="no progress bar")
+
+
+def run(args) -> int:
+    """``hlbvh render``: see the module docstring. Returns the exit status (0)."""
+    settings = RenderSettings(
+        resolution=None if args.resolution is None else parse_resolution(args.resolution),
+        spp=None if args.spp is None else _int_flag("--spp", args.spp, least=1),
+        integrator=_choice("--integrator", args.integrator, tuple(INTEGRATORS)),
+        max_depth=_int_flag("--max-depth", args.max_depth, least=-1),
+        accel=_choice("--accel", args.accel, ACCELS),
+        build_options={name: _option_value(getattr(args, name)) for name in BUILD_OPTIONS
+                       if getattr(args, name) is not None},
+        update=None if args.update is None else _choice("--update", args.update, UPDATES),
+        seed=_int_flag("--seed", args.seed, least=0),
+    )
+    animation, source, frames = open_animation(args.scene, args.frames_dir, args.triangles,
+                                               args.frames)
+    out = Path(args.out) if args.out else (
+        Path("out/render") / f"{Path(args.scene).stem}-{settings.accel}")
+    rows, rendered = render_animation(animation, frames, out, settings, source,
+                                      progress=not args.quiet)
+    ours = [row for row in rows if row["frame"] in frames]
+    print(f"{out}: frames {frames.start}..{frames.stop - 1} of {animation.name} with "
+          f"{settings.accel}: {len(rendered)} rendered, {len(frames) - len(rendered)} "
+          f"already complete; "
+          f"median build {_median(ours, 'build_ms'):.1f} ms, render "
+          f"{_median(ours, 'render_ms'):.1f} ms; statistics in {out / 'stats.csv'}")
+    return 0
+
+
+def open_animation(scene: str, frames_dir, triangles, frames) -> tuple:
+    """The animated scene, what identifies it, and the frame range, from the command
+    line's strings.
+
+    Returns:
+        ``(animation, source, range)``.
+    Raises:
+        UserError: an unknown scene, a missing file, options that do not fit the kind
+            of scene, a bad frame range.
+    """
+    start, stop = parse_frames(frames)
+    if scene in scenes.names():
+        if frames_dir is not None:
+            raise UserError(f"--frames-dir is for XML scenes; {scene!r} is procedural")
+        options = {}
+        if triangles is not None:
+            options["triangles"] = _int_flag("--triangles", triangles, least=1)
+        default = scenes.get(scene, **options).frame_count
+        # A procedural scene's motion is a function of time: frames past its own count
+        # are as valid as the others.
+        stop = default if stop is None else stop
+        animation = scenes.get(scene, **options, frames=max(default, stop))
+        source = {"scene": scene, "triangles": animation.triangles}
+    else:
+        path = Path(scene)
+        if path.suffix.lower() != ".xml" or not path.is_file():
+            raise UserError(
+                f"scene {scene!r}: not a procedural scene ({', '.join(scenes.names())}) "
+                f"nor an existing Mitsuba .xml file"
+            )
+        if frames_dir is None:
+            raise UserError(f"scene {scene!r}: an XML scene needs --frames-dir with its "
+                            f"per-frame meshes")
+        if triangles is not None:
+            raise UserError("--triangles sizes procedural scenes; an XML scene has its own")
+        animation = scenes.SequenceScene(path, frames_dir)
+        source = {"scene": str(path.resolve()), "frames_dir": str(Path(frames_dir).resolve())}
+        stop = animation.frame_count if stop is None else stop
+    if stop > animation.frame_count:
+        raise UserError(f"--frames {frames}: {scene!r} has frames 0:{animation.frame_count}")
+    if start >= stop:
+        raise UserError(f"--frames {frames}: the range is empty (expected A < B)")
+    return animation, source, range(start, stop)
+
+
+def parse_frames(text) -> tuple[int, int | None]:
+    """``"A:B"``, ``"A:"``, ``":B"`` or ``"N"`` (``0:N``) -> ``(A, B or None)``; ``None``
+    -> ``(0, None)``."""
+    if text is None:
+        return 0, None
+    match = re.fullmatch(r"\s*(\d*)\s*:\s*(\d*)\s*|\s*(\d+)\s*", text)
+    if not match:
+        raise UserError(f"--frames {text!r}: expected A:B (frames A .. B-1) or a count N")
+    if match.group(3) is not None:
+        count = int(match.group(3))
+        if count < 1:
+            raise UserError(f"--frames {text!r}: expected a count >= 1")
+        return 0, count
+    return int(match.group(1) or 0), int(match.group(2)) if match.group(2) else None
+
+
+def parse_resolution(text: str) -> tuple[int, int]:
+    """``"W"`` -> ``(W, W)``; ``"WxH"`` -> ``(W, H)``."""
+    match = re.fullmatch(r"\s*(\d+)\s*(?:[xX×]\s*(\d+)\s*)?", text)
+    if not match or int(match.group(1)) < 1 or (match.group(2) and int(match.group(2)) < 1):
+        raise UserError(f"--resolution {text!r}: expected W or WxH, positive integers")
+    width = int(match.group(1))
+    return width, int(match.group(2)) if match.group(2) else width
+
+
+def _int_flag(flag: str, text: str, least: int) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise UserError(f"{flag} {text!r}: expected an integer >= {least}") from None
+    if value < least:
+        raise UserError(f"{flag} {text!r}: expected an integer >= {least}")
+    return value
+
+
+def _choice(flag: str, text: str, choices) -> str:
+    if text not in choices:
+        raise UserError(f"{flag} {text!r}: expected one of {', '.join(choices)}")
+    return text
+
+
+def _option_value(text: str):
+    """A builder option from the command line: an int when it is one, else the word."""
+    return int(text) if re.fullmatch(r"-?\d+", text.strip()) else text.strip()
+
+
+def _median(rows: list[dict], key: str) -> float:
+    values = [row[key] for row in rows if row.get(key) is not None]
+    return float(np.median(values)) if values else float("nan")
