@@ -1,0 +1,476 @@
+"""Ray traversal of the BVH: closest hit and any hit.
+
+Each ray runs one symbolic ``dr.while_loop`` with a per-lane stack in local memory
+(``dr.alloc_local``). The loop follows Aila & Laine's *while-while* structure (HPG
+2009): an inner loop descends through internal nodes until every lane of the packet
+has reached a leaf (or finished), a second inner loop intersects that leaf's
+triangles, then the lane pops its next node.
+
+- **Ordered visit**: both children's boxes are tested together; the nearer child is
+  visited first, the farther one is pushed with its entry distance, and a popped node
+  whose entry distance lies beyond the closest hit so far is skipped.
+- **Conservative slab test** (Ize, "Robust BVH ray traversal", JCGT 2013): the exit
+  distance of a box is scaled by ``1 + 2·gamma(3)`` so rounding never culls a box the
+  ray touches. Reciprocal directions come from directions clamped away from zero
+  (``|d| >= FLT_MIN``, sign kept), so no ``0 · inf = NaN`` reaches the min/max.
+- **Watertight ray/triangle test** (Woop, Benthin & Wald, JCGT 2013): vertices are
+  translated to the ray origin, permuted so the ray's dominant axis is z and sheared so
+  the ray becomes the z axis. Every vertex is transformed the same way whichever
+  triangle it belongs to, and the 2D edge functions U, V, W of a shared edge are exact
+  negatives of each other, so no ray slips between two triangles that share an edge or
+  a vertex. A hit is accepted with barycentrics ``U/det, V/det, W/det`` down to
+  ``-BARYCENTRIC_MARGIN`` (2**-20): this also closes the one-ulp cracks where two
+  separately modelled meshes meet (the walls of Cornell box), as Embree does, and makes
+  the paper's double-precision recomputation of an edge function that rounds to zero
+  unnecessary (zero is inside either way). Triangles whose edge functions overflow or
+  underflow float32 (coordinates beyond ~1e19 or below ~1e-19 relative to the ray
+  origin) or whose determinant rounds to zero are recomputed in double precision, so
+  scenes at 1e+30 and 1e-30 scale trace correctly.
+
+A hit is reported at the smallest ``t`` with ``0 < t <= maxt``. Rays with a NaN or
+infinite component, a zero direction, ``maxt <= 0`` or ``maxt`` NaN are clean misses.
+
+Packed node records (built once per BVH and cached on it, see :func:`packed_records`):
+the node arrays of ``hlbvh.kernels.bvh`` are repacked so that one packet gather of 16
+floats (64 bytes, one cache line) gives everything a traversal step needs, and one
+more gives a triangle:
+
+=====================  ==================================================================
+``nodes[16·i + 0..5]``   left child's box of internal node ``i``: lo x, y, z, hi x, y, z
+``nodes[16·i + 6..11]``  right child's box
+``nodes[16·i + 12]``     left child's reference (the bits of a UInt32, see below)
+``nodes[16·i + 13]``     right child's reference; entries 14, 15 are zero padding
+``tris[16·s + 0..8]``    p0, p1, p2 of the triangle in slot ``s``; 9..15 zero padding
+=====================  ==================================================================
+
+A *reference* names a node: an internal node by its index (bit 31 clear); a leaf by
+``LEAF_BIT | first_slot << 4 | (count - 1)`` so a leaf needs no record of its own (this
+bounds leaves to 16 triangles and meshes to 2**27 triangles). Records of leaves are
+unused. The cache is keyed by the Dr.Jit variable indices of the BVH's arrays, so a
+refit (new box and vertex arrays) repacks on the next trace.
+
+Stack guard: the stack holds ``STACK_SIZE`` (64) entries; ordered traversal pushes at
+most one entry per level, so a tree of depth <= 64 never overflows, and deeper trees
+are refused with a ValueError before tracing. A corrupt tree that still overflows the
+stack, or that makes a ray visit more internal nodes than the tree has (a cycle), ends
+that ray deterministically as a miss (any hit: not occluded). Child references and
+leaf ranges are checked when the records are packed, so no gather leaves its array.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+
+from .arrays import namespace_of, plain
+
+#: Entries of the per-lane traversal stack.
+STACK_SIZE = 64
+#: Bit 31 of a reference marks a leaf.
+LEAF_BIT = 0x80000000
+#: Most triangles a leaf may hold (its count - 1 lives in the reference's low 4 bits).
+MAX_LEAF_SIZE = 16
+#: Most triangles a BVH may hold (the first slot of a leaf lives in bits 4..30).
+MAX_PRIMS = 1 << 27
+
+_RECORD = 16  # floats per packed node or triangle record
+_FLT_MIN = 2.0**-126  # smallest normal float: 1 / _FLT_MIN is finite
+_EPS = 2.0**-24  # unit roundoff of float32
+_GAMMA3 = 3 * _EPS / (1 - 3 * _EPS)  # gamma(3) of Pharr et al., as in Ize 2013
+_TFAR_SCALE = 1 + 2 * _GAMMA3
+#: A hit is accepted with barycentrics down to ``-BARYCENTRIC_MARGIN``: this closes
+#: cracks of up to ~1e-6 of a triangle's size between separately modelled meshes that
+#: meet at a seam (the walls of Mitsuba's Cornell box do), where Embree reports a hit.
+BARYCENTRIC_MARGIN = 2.0**-20
+
+
+# ---------------------------------------------------------------------------------------
+# Public API
+# ---------------------------------------------------------------------------------------
+
+
+def closest_hit(bvh, o, d, maxt, active=True):
+    """Nearest intersection of each ray with the BVH's triangles.
+
+    Args:
+        bvh: an ``hlbvh.BVH``.
+        o: Array3f (or ``mi.Point3f``) ray origins, width R (or 1).
+        d: Array3f (or ``mi.Vector3f``) ray directions, width R (or 1); need not be
+            normalised (``t`` is in units of ``d``).
+        maxt: Float (or Python float) largest accepted ``t``, width R or 1.
+        active: Bool (or Python bool) mask; inactive rays miss.
+    Returns:
+        ``(t, u, v, prim, valid)``: Float ``t`` (``inf`` on a miss), Float ``u``, ``v``
+        with ``p = (1-u-v)·p0 + u·p1 + v·p2`` of the face's vertices, UInt32 ``prim``
+        the input face index (0 on a miss), Bool ``valid``; all of width R, plain
+        (non-AD) arrays of the input's backend.
+    """
+    return _trace(bvh, o, d, maxt, active, any_hit=False)
+
+
+def any_hit(bvh, o, d, maxt, active=True):
+    """Whether each ray hits any triangle at ``0 < t <= maxt`` (stops at the first hit).
+
+    Arguments as in :func:`closest_hit`. Returns a Bool of width R.
+    """
+    return _trace(bvh, o, d, maxt, active, any_hit=True)
+
+
+def intersect(bvh, ray, active=True):
+    """Closest hit of ``ray`` (anything with ``o``, ``d``, ``maxt``) as a
+    ``mi.PreliminaryIntersection3f``: ``valid``, ``t`` (``inf`` on a miss),
+    ``prim_uv``, ``prim_index`` (the input face index); ``shape``, ``shape_index`` and
+    ``instance`` are left null/zero for the caller to fill."""
+    import mitsuba as mi
+
+    t, u, v, prim, valid = closest_hit(bvh, ray.o, ray.d, ray.maxt, active)
+    pi = dr.zeros(mi.PreliminaryIntersection3f, dr.width(t))
+    pi.valid = mi.Bool(valid)
+    pi.t = mi.Float(t)
+    pi.prim_uv = mi.Point2f(u, v)
+    pi.prim_index = mi.UInt32(prim)
+    return pi
+
+
+def occluded(bvh, ray, active=True):
+    """Whether anything lies on ``ray`` at ``0 < t <= ray.maxt``: a ``mi.Bool``."""
+    import mitsuba as mi
+
+    return mi.Bool(any_hit(bvh, ray.o, ray.d, ray.maxt, active))
+
+
+# ---------------------------------------------------------------------------------------
+# Packed records
+# ---------------------------------------------------------------------------------------
+
+
+def packed_records(bvh):
+    """The packed node and triangle records of ``bvh`` (layout in the module docstring),
+    built on first use and cached on the BVH object.
+
+    Returns:
+        ``(nodes, tris, root)``: Float (16·N), Float (16·F) and the Python int reference
+        of the root.
+    Raises:
+        ValueError: the tree is deeper than ``STACK_SIZE``, has a leaf of more than 16
+            triangles, more than 2**27 triangles, or a child/leaf range outside its
+            arrays.
+    """
+    arrays = (bvh.node_min, bvh.node_max, bvh.node_first, bvh.node_count,
+              bvh.tri_p0, bvh.tri_p1, bvh.tri_p2)
+    key = tuple(c.index for a in arrays for c in (a if dr.depth_v(a) > 1 else (a,)))
+    cache = getattr(bvh, "_traversal_records", None)
+    if cache is not None and cache[0] == key:
+        return cache[1]
+    records = _pack(bvh)
+    bvh._traversal_records = (key, records)
+    return records
+
+
+def _pack(bvh):
+    ns = namespace_of(bvh.node_count)
+    UInt32, Float, ArrayXf = ns.UInt32, ns.Float, ns.ArrayXf
+    n_nodes, n_prims = bvh.size, bvh.prim_count
+
+    # ---- Validate: depth, leaf sizes, child and slot ranges ----
+    depth = max(bvh.stats.depth, len(bvh.levels))
+    if depth > STACK_SIZE:
+        raise ValueError(
+            f"BVH depth {depth} exceeds the traversal stack ({STACK_SIZE} entries): "
+            "rebuild with a builder that bounds the depth"
+        )
+    if n_prims >= MAX_PRIMS:
+        raise ValueError(f"BVH has {n_prims} triangles; traversal supports < {MAX_PRIMS}")
+    if n_nodes == 0 or n_prims == 0:
+        raise ValueError("BVH is empty: build it from at least one triangle")
+    first, count = UInt32(bvh.node_first), UInt32(bvh.node_count)
+    internal = count == 0
+    bad = dr.select(
+        internal,
+        first + 1 >= n_nodes,
+        (count > MAX_LEAF_SIZE) | (first + count > n_prims) | (first + count < first),
+    )
+    if dr.any(bad, axis=None):
+        raise ValueError(
+            "corrupt BVH: a child index or leaf range lies outside the node/slot "
+            f"arrays, or a leaf holds more than {MAX_LEAF_SIZE} triangles"
+        )
+
+    # ---- Node records: both children's boxes and references, in the parent ----
+    ref = dr.select(internal, dr.arange(UInt32, n_nodes),
+                    LEAF_BIT | (first << 4) | (count - 1))
+    left = dr.select(internal, first, 0)
+    right = dr.select(internal, first + 1, 0)
+    rows = []
+    for child in (left, right):
+        lo = dr.gather(ns.Array3f, bvh.node_min, child)
+        hi = dr.gather(ns.Array3f, bvh.node_max, child)
+        rows += [lo.x, lo.y, lo.z, hi.x, hi.y, hi.z]
+    for child in (left, right):
+        rows.append(dr.reinterpret_array(Float, dr.gather(UInt32, ref, child)))
+    zero = dr.zeros(Float, n_nodes)
+    rows += [zero, zero]
+    nodes = dr.ravel(ArrayXf(rows))
+
+    # ---- Triangle records: the three vertices of each slot ----
+    rows = [c for p in (bvh.tri_p0, bvh.tri_p1, bvh.tri_p2) for c in (p.x, p.y, p.z)]
+    zero = dr.zeros(Float, n_prims)
+    rows += [zero] * (_RECORD - len(rows))
+    tris = dr.ravel(ArrayXf(rows))
+
+    root = int(ref[0])
+    dr.eval(nodes, tris)
+    return nodes, tris, root
+
+
+# ---------------------------------------------------------------------------------------
+# Traversal
+# ---------------------------------------------------------------------------------------
+
+
+def _broadcast(x, kind, ns, n):
+    """``x`` as a plain ``kind`` array of width exactly ``n`` (an evaluated variable, so
+    no literal of width 1 can enter the loop state; see DRJIT_NOTES pitfall 1)."""
+    x = plain(x, kind) if dr.is_array_v(x) else getattr(ns, kind)(x)
+    if dr.width(x) == n:
+        return x
+    return dr.gather(getattr(ns, kind), x, dr.opaque(ns.UInt32, 0, n))
+
+
+def _min(a, b):
+    """Minimum of two NaN-free arrays (one compare and blend; ``dr.minimum`` also
+    handles NaN and signed zeros at a few times the cost)."""
+    return dr.select(a < b, a, b)
+
+
+def _max(a, b):
+    """Maximum of two NaN-free arrays (see :func:`_min`)."""
+    return dr.select(a > b, a, b)
+
+
+def _pick(v, k0, k1):
+    """Per-lane component ``k`` of Array3f ``v``, with masks ``k0 = (k == 0)`` and
+    ``k1 = (k == 1)``."""
+    return dr.select(k0, v.x, dr.select(k1, v.y, v.z))
+
+
+def _ratios(ax, ay, az, bx, by, bz, cx, cy, cz, edges, det, t_scaled):
+    """Barycentrics (w, u, v) and distance t from float32 edge functions (Woop et al.:
+    ``b_i = edge_i / det``, ``t = T / det``); ``det != 0`` here."""
+    inv_det = dr.rcp(det)
+    return edges[0] * inv_det, edges[1] * inv_det, edges[2] * inv_det, t_scaled / det
+
+
+def _ratios_in_double(ax, ay, az, bx, by, bz, cx, cy, cz, edges, det, t_scaled):
+    """:func:`_ratios` with the edge functions and T recomputed in double precision
+    from the float32 sheared vertices (products of two floats are exact in double, so
+    the signs are exact too). A zero determinant (a triangle seen edge-on, or
+    degenerate) gives NaN: no hit."""
+    Float, F64 = type(ax), dr.float64_array_t(type(ax))
+    ax, ay, az, bx, by, bz, cx, cy, cz = (F64(x) for x in (ax, ay, az, bx, by, bz, cx, cy, cz))
+    e0, e1, e2 = cx * by - cy * bx, ax * cy - ay * cx, bx * ay - by * ax
+    det64 = e0 + e1 + e2
+    inv_det = dr.select(det64 != 0, 1.0 / det64, dr.nan)
+    t64 = (e0 * az + e1 * bz + e2 * cz) * inv_det
+    return Float(e0 * inv_det), Float(e1 * inv_det), Float(e2 * inv_det), Float(t64)
+
+
+def _trace(bvh, o, d, maxt, active, any_hit):
+    if not dr.is_array_v(o) or not dr.is_array_v(d):
+        raise TypeError("ray origin and direction must be Dr.Jit Array3f/Point3f/Vector3f")
+    ns = namespace_of(o)
+    Float, UInt32, Bool, Array3f = ns.Float, ns.UInt32, ns.Bool, ns.Array3f
+    widths = {dr.width(x) for x in (o, d, maxt, active) if dr.is_array_v(x)} - {1}
+    if len(widths) > 1:
+        raise ValueError(f"ray arrays of different widths {sorted(widths)}: expected one")
+    n = widths.pop() if widths else 1
+    nodes, tris, root = packed_records(bvh)
+
+    o = _broadcast(o, "Array3f", ns, n)
+    d = _broadcast(d, "Array3f", ns, n)
+    maxt = _broadcast(maxt, "Float", ns, n)
+    active = _broadcast(active, "Bool", ns, n)
+
+    # ---- Per-ray set-up ----
+    finite = dr.all(dr.isfinite(o)) & dr.all(dr.isfinite(d))
+    alive = active & finite & dr.any(d != 0) & (maxt > 0)
+    # Slab test: reciprocal of the direction clamped away from zero (sign kept).
+    d_safe = dr.select(dr.abs(d) < _FLT_MIN, dr.copysign(Array3f(_FLT_MIN), d), d)
+    inv_d = dr.rcp(d_safe)
+    # Watertight test: kz = dominant axis, (kx, ky) the others, swapped when d[kz] < 0
+    # to keep the winding (Woop et al. 2013, Fig. 1).
+    ad = dr.abs(d)
+    kz = dr.select((ad.x >= ad.y) & (ad.x >= ad.z), UInt32(0),
+                   dr.select(ad.y >= ad.z, UInt32(1), UInt32(2)))
+    kx = dr.select(kz == 2, 0, kz + 1)
+    ky = dr.select(kx == 2, 0, kx + 1)
+    dz = _pick(d, kz == 0, kz == 1)
+    kx, ky = dr.select(dz < 0, ky, kx), dr.select(dz < 0, kx, ky)
+    perm = ((kx == 0, kx == 1), (ky == 0, ky == 1), (kz == 0, kz == 1))
+    o_p = [_pick(o, *m) for m in perm]
+    shear_x = _pick(d, *perm[0]) / dz
+    shear_y = _pick(d, *perm[1]) / dz
+    shear_z = dr.rcp(dz)
+
+    def slab(rec, base, t_max):
+        """Entry distance and hit mask of the box in ``rec[base : base+6]``."""
+        t0 = [(rec[base + i] - o[i]) * inv_d[i] for i in range(3)]
+        t1 = [(rec[base + 3 + i] - o[i]) * inv_d[i] for i in range(3)]
+        lo = [_min(a, b) for a, b in zip(t0, t1)]
+        hi = [_max(a, b) for a, b in zip(t0, t1)]
+        t_near = _max(_max(lo[0], lo[1]), _max(lo[2], 0.0))
+        t_far = _min(_min(hi[0], hi[1]), hi[2]) * _TFAR_SCALE
+        return t_near, t_near <= _min(t_far, t_max)
+
+    def vertex(rec, base):
+        """A triangle vertex translated, permuted and sheared into ray space."""
+        p = [rec[base + i] for i in range(3)]
+        a = [dr.select(m0, p[0], dr.select(m1, p[1], p[2])) - oc
+             for (m0, m1), oc in zip(perm, o_p)]
+        return a[0] - shear_x * a[2], a[1] - shear_y * a[2], shear_z * a[2]
+
+    def woop(rec, t_max):
+        """Watertight intersection with the triangle in ``rec``: (hit, t, u, v)."""
+        ax, ay, az = vertex(rec, 0)
+        bx, by, bz = vertex(rec, 3)
+        cx, cy, cz = vertex(rec, 6)
+        edges = (cx * by - cy * bx, ax * cy - ay * cx, bx * ay - by * ax)
+        det = edges[0] + edges[1] + edges[2]
+        t_scaled = dr.fma(edges[0], az, dr.fma(edges[1], bz, edges[2] * cz))
+        # Products of coordinates beyond ~1e19 overflow and below ~1e-19 underflow in
+        # float32: redo those triangles (and zero determinants) in double precision.
+        in_range = dr.isfinite(t_scaled) & dr.isfinite(det) & (det != 0)
+        b0, b1, b2, t = dr.if_stmt(
+            args=(ax, ay, az, bx, by, bz, cx, cy, cz, edges, det, t_scaled),
+            cond=in_range,
+            true_fn=_ratios,
+            false_fn=_ratios_in_double,
+            arg_labels=("ax", "ay", "az", "bx", "by", "bz", "cx", "cy", "cz", "edges",
+                        "det", "t_scaled"),
+            rv_labels=("b0", "b1", "b2", "t"),
+            label="hlbvh_woop_range",
+        )
+        inside = (b0 >= -BARYCENTRIC_MARGIN) & (b1 >= -BARYCENTRIC_MARGIN) \
+            & (b2 >= -BARYCENTRIC_MARGIN)
+        hit = inside & (t > 0) & (t <= t_max)
+        return hit, t, b1, b2
+
+    # ---- Loop state (every variable at full width, pitfall 1) ----
+    stack = dr.alloc_local(ns.UInt64, STACK_SIZE)  # entry: t_near bits << 32 | reference
+    node = dr.full(UInt32, root, n)  # reference of the node to visit next
+    node_t = dr.zeros(Float, n)  # entry distance of its box
+    sp = dr.zeros(UInt32, n)  # stack pointer: entries in use
+    t_best = dr.select(alive, maxt, dr.inf)  # closest hit so far (or maxt)
+    u_best = dr.zeros(Float, n)
+    v_best = dr.zeros(Float, n)
+    slot_best = dr.zeros(UInt32, n)  # slot of the closest hit
+    found = dr.zeros(Bool, n)
+    visits = dr.zeros(UInt32, n)  # internal nodes visited (cycle guard)
+    corrupt = dr.zeros(Bool, n)  # the ray hit a stack overflow or a cycle
+    max_visits = dr.opaque(UInt32, bvh.size)
+
+    def pop(sp, alive, take):
+        """Next node from the stack for lanes ``take``; an empty stack ends the ray."""
+        has = sp > 0
+        sp = dr.select(take & has, sp - 1, sp)
+        entry = stack.read(sp, active=take & has)
+        ref = UInt32(entry)
+        ref_t = dr.reinterpret_array(Float, UInt32(entry >> 32))
+        return ref, ref_t, sp, alive & ~(take & ~has)
+
+    # ---- Descend: internal nodes until the lane reaches a leaf ----
+    def descend_cond(node, node_t, sp, alive, visits, corrupt, t_best):
+        return alive & ((node & LEAF_BIT) == 0)
+
+    def descend_body(node, node_t, sp, alive, visits, corrupt, t_best):
+        rec = dr.gather(ns.ArrayXf, nodes, node, shape=(_RECORD, n))
+        skip = node_t > t_best  # entered beyond the closest hit: cull the subtree
+        t_l, hit_l = slab(rec, 0, t_best)
+        t_r, hit_r = slab(rec, 6, t_best)
+        hit_l &= ~skip
+        hit_r &= ~skip
+        ref_l = dr.reinterpret_array(UInt32, rec[12])
+        ref_r = dr.reinterpret_array(UInt32, rec[13])
+        left_first = hit_l & (~hit_r | (t_l <= t_r))
+        near, near_t = dr.select(left_first, ref_l, ref_r), dr.select(left_first, t_l, t_r)
+        far, far_t = dr.select(left_first, ref_r, ref_l), dr.select(left_first, t_r, t_l)
+        # Both children hit: go to the nearer, push the farther.
+        both = hit_l & hit_r
+        overflow = both & (sp >= STACK_SIZE)
+        push = both & ~overflow
+        entry = ns.UInt64(far) | (ns.UInt64(dr.reinterpret_array(UInt32, far_t)) << 32)
+        stack.write(entry, sp, active=push)
+        sp = dr.select(push, sp + 1, sp)
+        # Neither hit: pop.
+        neither = ~hit_l & ~hit_r
+        ref, ref_t, sp, alive = pop(sp, alive, neither)
+        node = dr.select(neither, ref, near)
+        node_t = dr.select(neither, ref_t, near_t)
+        visits += 1
+        cycle = visits > max_visits
+        corrupt |= overflow | cycle
+        alive &= ~(overflow | cycle)
+        return node, node_t, sp, alive, visits, corrupt, t_best
+
+    # ---- Leaf: intersect its triangles ----
+    def leaf_cond(slot, end, t_best, u_best, v_best, slot_best, found):
+        return slot < end
+
+    def leaf_body(slot, end, t_best, u_best, v_best, slot_best, found):
+        rec = dr.gather(ns.ArrayXf, tris, slot, shape=(_RECORD, n))
+        hit, t, u, v = woop(rec, t_best)
+        t_best = dr.select(hit, t, t_best)
+        u_best = dr.select(hit, u, u_best)
+        v_best = dr.select(hit, v, v_best)
+        slot_best = dr.select(hit, slot, slot_best)
+        found |= hit
+        if any_hit:
+            end = dr.select(hit, slot, end)
+        return slot + 1, end, t_best, u_best, v_best, slot_best, found
+
+    # ---- Outer loop: descend, intersect one leaf, pop ----
+    def trace_cond(node, node_t, sp, alive, visits, corrupt, t_best, u_best, v_best,
+                   slot_best, found):
+        return alive
+
+    def trace_body(node, node_t, sp, alive, visits, corrupt, t_best, u_best, v_best,
+                   slot_best, found):
+        node, node_t, sp, alive, visits, corrupt, t_best = dr.while_loop(
+            state=(node, node_t, sp, alive, visits, corrupt, t_best),
+            cond=descend_cond,
+            body=descend_body,
+            labels=("node", "node_t", "sp", "alive", "visits", "corrupt", "t_best"),
+            label="hlbvh_descend",
+        )
+        at_leaf = alive & (node_t <= t_best)
+        first = (node & ~UInt32(LEAF_BIT)) >> 4
+        slot = dr.select(at_leaf, first, 0)
+        end = dr.select(at_leaf, first + (node & 15) + 1, 0)
+        _, _, t_best, u_best, v_best, slot_best, found = dr.while_loop(
+            state=(slot, end, t_best, u_best, v_best, slot_best, found),
+            cond=leaf_cond,
+            body=leaf_body,
+            labels=("slot", "end", "t_best", "u_best", "v_best", "slot_best", "found"),
+            label="hlbvh_leaf",
+        )
+        if any_hit:
+            alive &= ~found
+        node, node_t, sp, alive = pop(sp, alive, alive)
+        return (node, node_t, sp, alive, visits, corrupt, t_best, u_best, v_best,
+                slot_best, found)
+
+    state = dr.while_loop(
+        state=(node, node_t, sp, alive, visits, corrupt, t_best, u_best, v_best,
+               slot_best, found),
+        cond=trace_cond,
+        body=trace_body,
+        labels=("node", "node_t", "sp", "alive", "visits", "corrupt", "t_best",
+                "u_best", "v_best", "slot_best", "found"),
+        label="hlbvh_trace",
+    )
+    _, _, _, _, _, corrupt, t_best, u_best, v_best, slot_best, found = state
+    valid = found & ~corrupt
+    if any_hit:
+        return valid
+    prim = dr.gather(UInt32, UInt32(bvh.prim_ids), slot_best, valid)
+    return (dr.select(valid, t_best, dr.inf), dr.select(valid, u_best, 0),
+            dr.select(valid, v_best, 0), prim, valid)

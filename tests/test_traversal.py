@@ -1,0 +1,573 @@
+"""Traversal kernels (closest hit, any hit) against a brute-force intersector, against
+Mitsuba's native intersector, and on the inputs where ray tracers go wrong: shared
+edges and vertices, axis-parallel rays, maxt, rays starting on a surface, NaN rays,
+corrupt and too-deep trees."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+import pytest
+
+import hlbvh  # noqa: F401  (sets up libLLVM and the variant before drjit is used)
+import drjit as dr
+import mitsuba as mi
+
+sys.path.insert(0, os.path.dirname(__file__))
+from reference import brute_force, median_split_bvh, random_soup, triangle_grid  # noqa: E402
+
+from hlbvh.kernels import traversal  # noqa: E402
+from hlbvh.kernels.bvh import BVH, BuildConfig, BuildStats  # noqa: E402
+from hlbvh.kernels.traversal import any_hit, closest_hit  # noqa: E402
+
+BUILDERS = ("median", "lbvh", "hlbvh", "sah")
+T_REL = 1e-6  # relative tolerance on t against the float64 reference (see below)
+UV_ABS = 1e-5  # tolerance on the barycentrics (scaled as t's, see below)
+
+
+# ---------------------------------------------------------------------------------------
+# Helpers
+# ---------------------------------------------------------------------------------------
+
+
+def build(vertices, faces, builder, leaf_size=4):
+    """A BVH from our reference median-split builder or from ``hlbvh.build``."""
+    if builder == "median":
+        return median_split_bvh(vertices, faces, leaf_size)
+    return hlbvh.build(mi.Float(np.ravel(vertices)), mi.UInt32(np.ravel(faces)),
+                       builder=builder, leaf_size=leaf_size)
+
+
+def random_rays(rng, count, lo=-0.2, hi=1.2):
+    """Float32 origins uniform in a box, directions from a normal distribution."""
+    o = (lo + (hi - lo) * rng.random((count, 3))).astype(np.float32)
+    d = rng.normal(size=(count, 3)).astype(np.float32)
+    return o, d
+
+
+def trace(bvh, o, d, maxt=np.inf, active=True):
+    """closest_hit and any_hit on numpy rays; numpy results."""
+    O, D = mi.Point3f(np.asarray(o, np.float32).T), mi.Vector3f(np.asarray(d, np.float32).T)
+    if np.ndim(maxt):
+        maxt = mi.Float(np.asarray(maxt, np.float32))
+    t, u, v, prim, valid = closest_hit(bvh, O, D, maxt, active)
+    occluded = any_hit(bvh, O, D, maxt, active)
+    return {"t": t.numpy(), "u": u.numpy(), "v": v.numpy(), "prim": prim.numpy(),
+            "valid": valid.numpy(), "any": occluded.numpy()}
+
+
+def assert_matches_reference(ours, ref, vertices, faces, o, d):
+    """Same validity; same primitive unless the reference has an equal-t tie; t within
+    T_REL relative; barycentrics within UV_ABS where the primitive is the same.
+
+    "Relative" is relative to ``max(t, r) / cos``: ``r`` the distance (in units of
+    ``|d|``) from the origin to the hit triangle's farthest vertex, since float32
+    coordinates carry an absolute error proportional to their size (a hit at
+    ``t = 1e-4`` on a triangle 0.5 away cannot be located to 1e-10); ``cos`` the cosine
+    between ray and triangle normal, since a grazing ray's hit distance is
+    ill-conditioned.
+    """
+    np.testing.assert_array_equal(ours["valid"], ref["valid"])
+    np.testing.assert_array_equal(ours["any"], ref["valid"])
+    hit = ref["valid"]
+    rows = np.flatnonzero(hit)
+    t_ref = ref["t"][hit]
+    corners = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64)[ref["prim"][hit]]]
+    dirs = np.asarray(d, np.float64)[hit]
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    cos = np.abs(np.sum(normal * dirs, axis=1)) / np.linalg.norm(normal, axis=1)
+    reach = np.max(np.linalg.norm(corners - np.asarray(o, np.float64)[hit, None], axis=2),
+                   axis=1) / np.linalg.norm(np.asarray(d, np.float64)[hit], axis=1)
+    error = np.abs(ours["t"][hit] - t_ref)
+    bound = T_REL * np.maximum(t_ref, reach) / cos
+    assert np.all(error <= bound), np.max(error / bound)
+    assert np.all(np.isinf(ours["t"][~hit]))
+    same = ours["prim"][hit] == ref["prim"][hit]
+    t_of_ours = ref["t_all"][rows, ours["prim"][hit].astype(np.int64)]
+    tie = np.abs(t_of_ours - t_ref) <= T_REL * t_ref
+    assert np.all(same | tie), f"{np.sum(~(same | tie))} rays hit a farther primitive"
+    # Barycentrics: the same conditioning, in units of the triangle's size.
+    size = np.max(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2), axis=1)
+    uv_bound = UV_ABS * np.maximum(1.0, np.maximum(t_ref, reach) / size) / cos
+    for k in ("u", "v"):
+        uv_error = np.abs(ours[k][hit] - ref[k][hit])[same]
+        assert np.all(uv_error <= uv_bound[same]), np.max(uv_error / uv_bound[same])
+
+
+# ---------------------------------------------------------------------------------------
+# Against the brute-force intersector
+# ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("builder", BUILDERS)
+@pytest.mark.parametrize("leaf_size", [1, 4, 16])
+def test01_random_soup_matches_brute_force(builder, leaf_size):
+    rng = np.random.default_rng(1)
+    vertices, faces = random_soup(300, seed=2)
+    bvh = build(vertices, faces, builder, leaf_size)
+    o, d = random_rays(rng, 3000)
+    ref = brute_force(vertices, faces, o, d)
+    assert ref["valid"].sum() > 300  # the test exercises hits, not just misses
+    assert_matches_reference(trace(bvh, o, d), ref, vertices, faces, o, d)
+
+
+@pytest.mark.parametrize("builder", BUILDERS)
+def test02_tilted_grid_matches_brute_force(builder):
+    rng = np.random.default_rng(3)
+    vertices, faces = triangle_grid(12, 10)
+    rotation = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    vertices = (vertices / 10 @ rotation.T + 0.3).astype(np.float32)
+    bvh = build(vertices, faces, builder)
+    o, d = random_rays(rng, 3000, -1.0, 1.5)
+    # Aim two thirds of the rays at points on or just beyond the grid.
+    uv = rng.random((2000, 2)) * [1.4, 1.2] - 0.1
+    target = np.column_stack([uv, np.zeros(2000)]) * [1.2, 1.0, 0] @ rotation.T + 0.3
+    d[:2000] = (target - o[:2000]).astype(np.float32)
+    ref = brute_force(vertices, faces, o, d)
+    assert ref["valid"].sum() > 1000
+    assert_matches_reference(trace(bvh, o, d), ref, vertices, faces, o, d)
+
+
+def test03_single_triangle_root_leaf():
+    """A tree that is a single leaf (fewer triangles than the leaf size)."""
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    faces = np.array([[0, 1, 2]], np.uint32)
+    for builder in BUILDERS:
+        bvh = build(vertices, faces, builder)
+        o = np.array([[0.25, 0.25, 1], [0.9, 0.9, 1], [0.25, 0.25, -1]], np.float32)
+        d = np.array([[0, 0, -2], [0, 0, -1], [0, 0, 1]], np.float32)
+        ours = trace(bvh, o, d)
+        np.testing.assert_array_equal(ours["valid"], [True, False, True])
+        np.testing.assert_allclose(ours["t"][[0, 2]], [0.5, 1.0])
+        np.testing.assert_allclose(ours["u"][0], 0.25)
+        np.testing.assert_allclose(ours["v"][0], 0.25)
+
+
+# ---------------------------------------------------------------------------------------
+# Watertightness: shared edges and vertices
+# ---------------------------------------------------------------------------------------
+
+
+def _grid_targets(n):
+    """Interior vertices and points on interior edges (axis and diagonal) of an n×n
+    grid of unit squares, in the grid's own coordinates (float64)."""
+    points = [(i, j) for i in range(1, n) for j in range(1, n)]
+    for f in (0.25, 0.5, 1 / 3, 0.7):
+        points += [(i + f, j) for i in range(n) for j in range(1, n)]  # horizontal
+        points += [(i, j + f) for i in range(1, n) for j in range(n)]  # vertical
+        points += [(i + f, j + f) for i in range(n) for j in range(n)]  # diagonals
+    return np.array(points, np.float64)
+
+
+@pytest.mark.parametrize("builder", ["median", "hlbvh"])
+def test04_rays_at_shared_edges_and_vertices_never_slip_through(builder):
+    n = 8
+    targets = _grid_targets(n)
+    rng = np.random.default_rng(4)
+    # Axis-aligned grid at integer coordinates: the rays pass exactly through the
+    # edges and vertices. Rays straight down, and oblique from random origins above
+    # and below.
+    vertices, faces = triangle_grid(n, n)
+    bvh = build(vertices, faces, builder)
+    p = np.column_stack([targets, np.zeros(len(targets))]).astype(np.float32)
+    o = np.concatenate([p + [0, 0, 1]] + [
+        p + (rng.random((len(p), 3)) - 0.5) * [6, 6, 0] + [0, 0, z] for z in (2, -3, 5)
+    ]).astype(np.float32)
+    p = np.tile(p, (4, 1))
+    ours = trace(bvh, o, p - o)
+    assert ours["valid"].all(), f"{np.sum(~ours['valid'])} of {len(o)} rays slipped through"
+    assert ours["any"].all()
+    np.testing.assert_allclose(ours["t"], 1.0, rtol=1e-5)
+
+    # The same grid rotated and shifted: targets rounded to float32 lie within rounding
+    # of the edges, on one side or the other; every ray must still hit.
+    rotation = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    shift = np.array([0.37, -1.25, 2.5])
+    tilted = (vertices.astype(np.float64) @ rotation.T + shift).astype(np.float32)
+    bvh = build(tilted, faces, builder)
+    normal = rotation[:, 2]
+    p = (np.column_stack([targets, np.zeros(len(targets))]) @ rotation.T + shift)
+    rays_o, rays_d = [], []
+    for side in (1, -1):
+        for _ in range(3):
+            o = p + side * (2 + rng.random((len(p), 1))) * normal \
+                + (rng.random((len(p), 3)) - 0.5) * 3
+            rays_o.append(o)
+            rays_d.append(p - o)
+    o = np.concatenate(rays_o).astype(np.float32)
+    d = np.concatenate(rays_d).astype(np.float32)
+    ours = trace(bvh, o, d)
+    assert ours["valid"].all(), f"{np.sum(~ours['valid'])} of {len(o)} rays slipped through"
+    assert ours["any"].all()
+
+
+@pytest.mark.parametrize("builder", ["median", "lbvh"])
+def test05_axis_parallel_rays_match_brute_force(builder):
+    rng = np.random.default_rng(5)
+    # A random soup and a grid whose boxes are flat (zero extent in z).
+    soup_v, soup_f = random_soup(200, seed=6)
+    grid_v, grid_f = triangle_grid(6, 6)
+    grid_v = grid_v / 6
+    for vertices, faces in ((soup_v, soup_f), (grid_v, grid_f)):
+        bvh = build(vertices, faces, builder)
+        o, d = [], []
+        for axis in range(3):
+            for sign in (1, -1):
+                direction = np.zeros(3)
+                direction[axis] = sign
+                origin = rng.random((400, 3)) * 1.2 - 0.1
+                origin[:, axis] = 0.5 - 2 * sign
+                o.append(origin)
+                d.append(np.tile(direction, (400, 1)))
+        o = np.concatenate(o).astype(np.float32)
+        d = np.concatenate(d).astype(np.float32)
+        ref = brute_force(vertices, faces, o, d)
+        assert ref["valid"].sum() > 100
+        assert_matches_reference(trace(bvh, o, d), ref, vertices, faces, o, d)
+
+
+# ---------------------------------------------------------------------------------------
+# maxt, t <= 0, degenerate rays
+# ---------------------------------------------------------------------------------------
+
+
+def test06_maxt_is_honoured():
+    rng = np.random.default_rng(7)
+    vertices, faces = random_soup(300, seed=8)
+    bvh = build(vertices, faces, "median")
+    o, d = random_rays(rng, 3000)
+    ref = brute_force(vertices, faces, o, d)
+    hit = ref["valid"]
+
+    for maxt in (0.0, -1.0):
+        ours = trace(bvh, o, d, maxt)
+        assert not ours["valid"].any() and not ours["any"].any()
+
+    # Half the nearest distance: nothing is nearer, so every ray misses.
+    half = np.where(hit, 0.5 * ref["t"], 1.0)
+    ours = trace(bvh, o[hit], d[hit], half[hit])
+    assert not ours["valid"].any() and not ours["any"].any()
+
+    # maxt exactly at our own hit distance: the hit is kept (0 < t <= maxt).
+    full = trace(bvh, o, d)
+    ours = trace(bvh, o[hit], d[hit], full["t"][hit])
+    assert ours["valid"].all() and ours["any"].all()
+    np.testing.assert_array_equal(ours["t"], full["t"][hit])
+
+    # Random maxt per ray against the brute force with the same maxt, except rays whose
+    # nearest hit is within rounding of maxt.
+    maxt = (rng.random(len(o)) * 2).astype(np.float32)
+    ref = brute_force(vertices, faces, o, d, maxt.astype(np.float64))
+    t_any = np.min(np.where(np.isfinite(ref["t_all"]), ref["t_all"], np.inf), axis=1)
+    near = np.abs(brute_force(vertices, faces, o, d)["t"] - maxt) <= 1e-5 * maxt
+    ours = trace(bvh, o, d, maxt)
+    keep = ~near
+    np.testing.assert_array_equal(ours["valid"][keep], ref["valid"][keep])
+    np.testing.assert_array_equal(ours["any"][keep], ref["valid"][keep])
+    assert np.all(t_any[ours["valid"]] <= maxt[ours["valid"]] * (1 + 1e-5))
+
+    ours = trace(bvh, o, d, np.inf)
+    np.testing.assert_array_equal(ours["valid"], full["valid"])
+
+
+def test07_no_hit_at_or_behind_the_origin():
+    # Rays starting exactly on the plane of a grid (z = 0, exact coordinates): with z
+    # the dominant axis of the direction the transformed z of every vertex is exactly
+    # 0, so t = 0 and the grid is not hit. With another dominant axis, rounding may put
+    # a hit a few ulps in front of the origin (as in Embree; Mitsuba offsets spawned
+    # rays for that reason), but never at t <= 0.
+    vertices, faces = triangle_grid(4, 4)
+    bvh = build(vertices, faces, "median")
+    rng = np.random.default_rng(9)
+    o = np.column_stack([rng.random((500, 2)) * 4, np.zeros(500)]).astype(np.float32)
+    d = rng.normal(size=(500, 3)).astype(np.float32)
+    d[:250, 2] = np.sign(d[:250, 2]) * (np.abs(d[:250, :2]).max(axis=1) + 0.1)
+    ours = trace(bvh, o, d)
+    assert not ours["valid"][:250].any() and not ours["any"][:250].any()
+    assert np.all(ours["t"][ours["valid"]] > 0)
+    assert np.all(ours["t"][ours["valid"]] < 1e-5)
+
+    # A triangle behind the origin is never hit; one in front is.
+    o = np.array([[1.5, 1.5, 1.0], [1.5, 1.5, -1.0]], np.float32)
+    d = np.array([[0, 0, 1], [0, 0, 1]], np.float32)
+    ours = trace(bvh, o, d)
+    np.testing.assert_array_equal(ours["valid"], [False, True])
+
+    # On random meshes every reported hit has t > 0.
+    soup_v, soup_f = random_soup(200, seed=10)
+    bvh = build(soup_v, soup_f, "median")
+    start = soup_v[soup_f[:, 0]]  # origins at vertices of the soup
+    ours = trace(bvh, start, rng.normal(size=start.shape))
+    assert np.all(ours["t"][ours["valid"]] > 0)
+
+
+def test08_nan_inf_and_zero_rays_miss_cleanly():
+    vertices, faces = random_soup(100, seed=11)
+    bvh = build(vertices, faces, "median")
+    nan, inf = np.nan, np.inf
+    centroid = vertices[faces[0]].mean(axis=0)
+    good_o, good_d = [centroid[0], centroid[1], -1.0], [0.0, 0.0, 1.0]
+    cases = [  # (origin, direction, maxt)
+        ([nan, good_o[1], -1], good_d, inf),
+        (good_o, [0, nan, 1], inf),
+        (good_o, [0, 0, 0], inf),
+        ([inf, good_o[1], -1], good_d, inf),
+        (good_o, [0, 0, inf], inf),
+        (good_o, good_d, nan),
+        (good_o, good_d, -1.0),
+        (good_o, good_d, 0.0),
+        (good_o, [0, 0, -0.0], inf),
+    ]
+    o = np.array([c[0] for c in cases] + [good_o], np.float32)
+    d = np.array([c[1] for c in cases] + [good_d], np.float32)
+    maxt = np.array([c[2] for c in cases] + [inf], np.float32)
+    ours = trace(bvh, o, d, maxt)
+    ref = brute_force(vertices, faces, o[-1:], d[-1:])
+    assert ref["valid"][0]  # the control ray hits the soup
+    np.testing.assert_array_equal(ours["valid"], [False] * len(cases) + [True])
+    np.testing.assert_array_equal(ours["any"], ours["valid"])
+    assert np.all(np.isinf(ours["t"][:-1]))
+    # The mask: inactive rays miss too.
+    active = mi.Bool([True] * len(cases) + [False])
+    ours = trace(bvh, o, d, maxt, active)
+    assert not ours["valid"].any() and not ours["any"].any()
+
+
+# ---------------------------------------------------------------------------------------
+# API: types, widths, Dr.Jit's debug checks
+# ---------------------------------------------------------------------------------------
+
+
+def test09_intersect_and_occluded_return_mitsuba_types():
+    rng = np.random.default_rng(12)
+    vertices, faces = random_soup(200, seed=13)
+    bvh = build(vertices, faces, "hlbvh")
+    o, d = random_rays(rng, 500)
+    origin = mi.Point3f(o.T)
+    dr.enable_grad(origin)  # AD inputs are accepted and detached
+    ray = mi.Ray3f(origin, mi.Vector3f(d.T))
+    pi = bvh.intersect(ray)
+    assert isinstance(pi, mi.PreliminaryIntersection3f)
+    ref = brute_force(vertices, faces, o, d)
+    np.testing.assert_array_equal(pi.is_valid().numpy(), ref["valid"])
+    hit = ref["valid"]
+    np.testing.assert_allclose(pi.t.numpy()[hit], ref["t"][hit], rtol=T_REL)
+    assert np.all(np.isinf(pi.t.numpy()[~hit]))
+    np.testing.assert_array_equal(pi.prim_index.numpy()[hit], ref["prim"][hit])
+    np.testing.assert_allclose(pi.prim_uv.numpy()[0][hit], ref["u"][hit], atol=UV_ABS)
+    occ = bvh.occluded(ray)
+    assert isinstance(occ, mi.Bool)
+    np.testing.assert_array_equal(occ.numpy(), ref["valid"])
+    # maxt of the ray is honoured.
+    ray.maxt = mi.Float(0.5 * np.where(hit, ref["t"], 1.0))
+    assert not dr.any(bvh.occluded(ray)) and not dr.any(bvh.intersect(ray).is_valid())
+
+
+def test10_debug_mode_finds_no_out_of_bounds_access(capfd):
+    """Dr.Jit's debug mode range-checks every local-memory (stack) and gather access;
+    a loop-state variable of width 1 (DRJIT_NOTES pitfall 1) would show up here as
+    wrong hits or as out-of-bounds reports. Rays of width 1 are broadcast."""
+    rng = np.random.default_rng(14)
+    vertices, faces = random_soup(400, seed=15)
+    bvh = build(vertices, faces, "lbvh", leaf_size=2)
+    o, d = random_rays(rng, 2000)
+    o[:] = o[0]  # one origin for all rays: passed as a width-1 array
+    ref = brute_force(vertices, faces, o, d)
+    with dr.scoped_set_flag(dr.JitFlag.Debug, True):
+        t, u, v, prim, valid = closest_hit(bvh, mi.Point3f(o[0]), mi.Vector3f(d.T),
+                                           mi.Float(np.inf))
+        occ = any_hit(bvh, mi.Point3f(o[0]), mi.Vector3f(d.T), np.inf, mi.Bool(True))
+        dr.eval(t, u, v, prim, valid, occ)
+    err = capfd.readouterr().err
+    assert "out-of-bounds" not in err and "out of bounds" not in err, err
+    ours = {"t": t.numpy(), "u": u.numpy(), "v": v.numpy(), "prim": prim.numpy(),
+            "valid": valid.numpy(), "any": occ.numpy()}
+    assert_matches_reference(ours, ref, vertices, faces, o, d)
+
+
+def test11_bad_arguments_raise():
+    vertices, faces = random_soup(50, seed=16)
+    bvh = build(vertices, faces, "median")
+    with pytest.raises(ValueError, match="widths"):
+        closest_hit(bvh, mi.Point3f([0, 1], [0, 1], [0, 1]), mi.Vector3f([0, 1, 2], 0, 1),
+                    np.inf)
+    with pytest.raises(TypeError, match="Array3f"):
+        closest_hit(bvh, (0, 0, 0), mi.Vector3f(0, 0, 1), np.inf)
+
+
+# ---------------------------------------------------------------------------------------
+# Corrupt and too-deep trees
+# ---------------------------------------------------------------------------------------
+
+
+def _caterpillar(levels, depth_in_stats):
+    """A hand-made chain tree over ``levels`` stacked squares (two triangles each, one
+    leaf per square): node k has the leaf of square k and the subtree of squares
+    k+1... as children, so a ray from above pushes one entry per level."""
+    ns = dr.llvm if "llvm" in mi.variant() else dr.cuda
+    squares = np.arange(levels) * 0.01
+    vertices, faces = [], []
+    for k, z in enumerate(squares):
+        vertices += [[0, 0, z], [1, 0, z], [0, 1, z], [1, 1, z]]
+        faces += [[4 * k, 4 * k + 1, 4 * k + 3], [4 * k, 4 * k + 3, 4 * k + 2]]
+    vertices, faces = np.array(vertices, np.float32), np.array(faces, np.uint32)
+    # Nodes: internal node k at index 2k (k < levels-1), its leaf at 2k+1, its
+    # subtree at 2k+2; the last square is the leaf at index 2(levels-1).
+    lo, hi, first, count = [], [], [], []
+    for k in range(levels):
+        if k < levels - 1:
+            lo.append([0, 0, squares[k]]); hi.append([1, 1, squares[-1]])
+            first.append(2 * k + 1); count.append(0)
+            lo.append([0, 0, squares[k]]); hi.append([1, 1, squares[k]])
+            first.append(2 * k); count.append(2)
+        else:
+            lo.append([0, 0, squares[k]]); hi.append([1, 1, squares[k]])
+            first.append(2 * k); count.append(2)
+    p = vertices[faces]
+    return BVH(
+        node_min=ns.Array3f(np.array(lo, np.float32).T),
+        node_max=ns.Array3f(np.array(hi, np.float32).T),
+        node_first=ns.UInt32(np.array(first, np.uint32)),
+        node_count=ns.UInt32(np.array(count, np.uint32)),
+        prim_ids=ns.UInt32(np.arange(len(faces), dtype=np.uint32)),
+        tri_p0=ns.Array3f(p[:, 0].T), tri_p1=ns.Array3f(p[:, 1].T),
+        tri_p2=ns.Array3f(p[:, 2].T),
+        faces=ns.UInt32(faces.ravel()), levels=[], config=BuildConfig(leaf_size=2),
+        stats=BuildStats(depth=depth_in_stats),
+    )
+
+
+def test12_too_deep_tree_is_refused_and_stack_overflow_ends_the_ray():
+    levels = traversal.STACK_SIZE + 10
+    with pytest.raises(ValueError, match="depth"):
+        trace(_caterpillar(levels, depth_in_stats=levels - 1), [[0.5, 0.5, 2]], [[0, 0, -1]])
+
+    # A tree whose statistics understate its depth: rays from above overflow the stack
+    # and end as misses (deterministically); rays from below hit the lowest square.
+    bvh = _caterpillar(levels, depth_in_stats=0)
+    o = np.array([[0.3, 0.6, 2.0], [0.3, 0.6, -1.0], [0.3, 0.6, 0.5 * 0.01]], np.float32)
+    d = np.array([[0, 0, -1], [0, 0, 1], [0, 0, -1]], np.float32)
+    for _ in range(2):
+        with dr.scoped_set_flag(dr.JitFlag.Debug, True):
+            ours = trace(bvh, o, d)
+        np.testing.assert_array_equal(ours["valid"], [False, True, True])
+        np.testing.assert_allclose(ours["t"][1:], [1.0, 0.5 * 0.01], rtol=1e-5)
+
+
+def test13_cycle_in_the_tree_ends_the_ray():
+    vertices, faces = random_soup(64, seed=17)
+    bvh = median_split_bvh(vertices, faces, 4)
+    first = bvh.node_first.numpy()
+    first[first[0]] = 0  # the root's left child now has the root as its children
+    bvh.node_first = type(bvh.node_first)(first)
+    o = np.array([[0.5, 0.5, -1.0]] * 4, np.float32)
+    d = np.array([[0, 0, 1], [0.1, 0, 1], [0, 0.1, 1], [0.1, 0.1, 1]], np.float32)
+    results = [trace(bvh, o, d) for _ in range(2)]  # terminates, same answer twice
+    for key in ("t", "valid", "prim", "any"):
+        np.testing.assert_array_equal(results[0][key], results[1][key])
+
+
+def test14_out_of_range_children_and_leaves_raise():
+    vertices, faces = random_soup(40, seed=18)
+    for field, value in (("node_first", 10**6), ("node_count", 17)):
+        bvh = median_split_bvh(vertices, faces, 4)
+        arr = getattr(bvh, field).numpy()
+        target = 0 if field == "node_first" else int(np.flatnonzero(arr)[0])
+        arr[target] = value
+        setattr(bvh, field, type(getattr(bvh, field))(arr))
+        with pytest.raises(ValueError, match="corrupt BVH"):
+            trace(bvh, [[0.5, 0.5, -1]], [[0, 0, 1]])
+
+
+def test15_refit_is_seen_by_the_next_trace():
+    rng = np.random.default_rng(19)
+    vertices, faces = random_soup(300, seed=20)
+    bvh = build(vertices, faces, "hlbvh")
+    o, d = random_rays(rng, 1000)
+    assert_matches_reference(trace(bvh, o, d), brute_force(vertices, faces, o, d),
+                             vertices, faces, o, d)
+    moved = (vertices * [1.0, 0.5, 1.0] + [0.1, 0.3, 0.0]).astype(np.float32)
+    bvh.refit(mi.Float(moved.ravel()))
+    assert_matches_reference(trace(bvh, o, d), brute_force(moved, faces, o, d),
+                             moved, faces, o, d)
+
+
+# ---------------------------------------------------------------------------------------
+# Against Mitsuba's native intersector (Embree) on ~100k triangles
+# ---------------------------------------------------------------------------------------
+
+
+def _on_edge(u, v, tol=1e-4):
+    return np.minimum(np.minimum(u, v), 1 - u - v) < tol
+
+
+def assert_matches_native(ours, pi, prim_key, n_prim_key):
+    """Our closest hits against a native ``PreliminaryIntersection3f``: the primitive
+    keys must agree except at ties, i.e. where a hit lies on a triangle edge (grazing a
+    shared edge, or the seam between two meshes) and the distances agree (or one side
+    found nothing there). Returns the fraction of rays that differ at all, and the mask
+    of rays with a hit on an edge (ours or native)."""
+    t, u, v, valid = ours["t"], ours["u"], ours["v"], ours["valid"]
+    n_t = pi.t.numpy()
+    n_u, n_v = pi.prim_uv.numpy()
+    n_valid = np.isfinite(n_t)
+    differ = (valid != n_valid) | (valid & n_valid & (prim_key != n_prim_key))
+    edge = (valid & _on_edge(u, v)) | (n_valid & _on_edge(n_u, n_v))
+    with np.errstate(invalid="ignore"):
+        same_t = ~(valid & n_valid) | (np.abs(t - n_t) <= 1e-5 * n_t)
+    unexplained = differ & ~(edge & same_t)
+    assert unexplained.sum() == 0, f"{unexplained.sum()} rays disagree off edges"
+    both = valid & n_valid
+    # Hits a few ulps from the origin (a spawned ray grazing its own surface) agree in
+    # absolute terms only, hence atol (the scenes here are of size ~1).
+    np.testing.assert_allclose(t[both], n_t[both], rtol=1e-5, atol=1e-6)
+    return differ.mean(), edge
+
+
+@pytest.mark.parametrize("builder", ["hlbvh", "lbvh", "sah"])
+def test16_matches_mitsuba_native_on_100k_triangles(builder):
+    from hlbvh.comparison.bench_trace import (displaced_grid, mesh_scene, primary_rays,
+                                              secondary_rays, _grid_sensor)
+
+    vertices, faces = displaced_grid(100_000)
+    scene = mesh_scene(vertices, faces, _grid_sensor(320))
+    bvh = hlbvh.build(vertices, faces, builder=builder)
+    primary = primary_rays(scene)
+    secondary = secondary_rays(scene, primary)
+    total = 0
+    for ray in (primary, secondary):
+        t, u, v, prim, valid = [x.numpy() for x in closest_hit(bvh, ray.o, ray.d, ray.maxt)]
+        occ = any_hit(bvh, ray.o, ray.d, ray.maxt).numpy()
+        np.testing.assert_array_equal(occ, valid)
+        for coherent in (True, False):
+            pi = scene.ray_intersect_preliminary(ray, coherent=coherent)
+            ours = {"t": t, "u": u, "v": v, "valid": valid}
+            differ, edge = assert_matches_native(ours, pi, prim, pi.prim_index.numpy())
+            assert differ <= 1e-4
+            occ_differ = scene.ray_test(ray, coherent=coherent).numpy() != occ
+            assert np.all(edge[occ_differ]) and occ_differ.mean() <= 1e-4
+        total += len(t)
+    assert total > 100_000
+
+
+def test17_matches_mitsuba_native_on_cornell_box():
+    from hlbvh.accel import collect_geometry
+    from hlbvh.comparison.bench_trace import primary_rays, secondary_rays
+
+    box = mi.cornell_box()
+    box["sensor"]["film"]["width"] = box["sensor"]["film"]["height"] = 128
+    scene = mi.load_dict(box)
+    g = collect_geometry(scene.shapes())
+    bvh = hlbvh.build(g.vertices, g.faces)
+    primary = primary_rays(scene)
+    for ray in (primary, secondary_rays(scene, primary)):
+        t, u, v, prim, valid = [x.numpy() for x in closest_hit(bvh, ray.o, ray.d, ray.maxt)]
+        pi = scene.ray_intersect_preliminary(ray, coherent=False)
+        key = g.prim_shape.numpy()[prim].astype(np.int64) << 32 | g.prim_local.numpy()[prim]
+        n_key = pi.shape_index.numpy().astype(np.int64) << 32 | pi.prim_index.numpy()
+        ours = {"t": t, "u": u, "v": v, "valid": valid}
+        # Camera rays along the image diagonals run exactly into the box's corners.
+        assert assert_matches_native(ours, pi, key, n_key)[0] < 1e-2
