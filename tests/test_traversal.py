@@ -336,12 +336,28 @@ def test08_nan_inf_and_zero_rays_miss_cleanly():
     assert not ours["valid"].any() and not ours["any"].any()
 
 
+@pytest.mark.parametrize("scale", [1e30, 1e-30])
+def test09_huge_and_tiny_coordinates(scale):
+    """Edge functions of coordinates near 1e30 overflow float32 and near 1e-30
+    underflow: those triangles are redone in double precision."""
+    rng = np.random.default_rng(21)
+    vertices, faces = random_soup(200, seed=22)
+    o, d = random_rays(rng, 2000)
+    vertices = (vertices.astype(np.float64) * scale).astype(np.float32)
+    o = (o.astype(np.float64) * scale).astype(np.float32)
+    ref = brute_force(vertices, faces, o, d)
+    assert ref["valid"].sum() > 150
+    for builder in ("median", "hlbvh"):
+        bvh = build(vertices, faces, builder)
+        assert_matches_reference(trace(bvh, o, d), ref, vertices, faces, o, d)
+
+
 # ---------------------------------------------------------------------------------------
 # API: types, widths, Dr.Jit's debug checks
 # ---------------------------------------------------------------------------------------
 
 
-def test09_intersect_and_occluded_return_mitsuba_types():
+def test10_intersect_and_occluded_return_mitsuba_types():
     rng = np.random.default_rng(12)
     vertices, faces = random_soup(200, seed=13)
     bvh = build(vertices, faces, "hlbvh")
@@ -366,7 +382,7 @@ def test09_intersect_and_occluded_return_mitsuba_types():
     assert not dr.any(bvh.occluded(ray)) and not dr.any(bvh.intersect(ray).is_valid())
 
 
-def test10_debug_mode_finds_no_out_of_bounds_access(capfd):
+def test11_debug_mode_finds_no_out_of_bounds_access(capfd):
     """Dr.Jit's debug mode range-checks every local-memory (stack) and gather access;
     a loop-state variable of width 1 (DRJIT_NOTES pitfall 1) would show up here as
     wrong hits or as out-of-bounds reports. Rays of width 1 are broadcast."""
@@ -388,7 +404,7 @@ def test10_debug_mode_finds_no_out_of_bounds_access(capfd):
     assert_matches_reference(ours, ref, vertices, faces, o, d)
 
 
-def test11_bad_arguments_raise():
+def test12_bad_arguments_raise():
     vertices, faces = random_soup(50, seed=16)
     bvh = build(vertices, faces, "median")
     with pytest.raises(ValueError, match="widths"):
@@ -440,7 +456,7 @@ def _caterpillar(levels, depth_in_stats):
     )
 
 
-def test12_too_deep_tree_is_refused_and_stack_overflow_ends_the_ray():
+def test13_too_deep_tree_is_refused_and_stack_overflow_ends_the_ray():
     levels = traversal.STACK_SIZE + 10
     with pytest.raises(ValueError, match="depth"):
         trace(_caterpillar(levels, depth_in_stats=levels - 1), [[0.5, 0.5, 2]], [[0, 0, -1]])
@@ -457,7 +473,7 @@ def test12_too_deep_tree_is_refused_and_stack_overflow_ends_the_ray():
         np.testing.assert_allclose(ours["t"][1:], [1.0, 0.5 * 0.01], rtol=1e-5)
 
 
-def test13_cycle_in_the_tree_ends_the_ray():
+def test14_cycle_in_the_tree_ends_the_ray():
     vertices, faces = random_soup(64, seed=17)
     bvh = median_split_bvh(vertices, faces, 4)
     first = bvh.node_first.numpy()
@@ -470,7 +486,7 @@ def test13_cycle_in_the_tree_ends_the_ray():
         np.testing.assert_array_equal(results[0][key], results[1][key])
 
 
-def test14_out_of_range_children_and_leaves_raise():
+def test15_out_of_range_children_and_leaves_raise():
     vertices, faces = random_soup(40, seed=18)
     for field, value in (("node_first", 10**6), ("node_count", 17)):
         bvh = median_split_bvh(vertices, faces, 4)
@@ -482,7 +498,7 @@ def test14_out_of_range_children_and_leaves_raise():
             trace(bvh, [[0.5, 0.5, -1]], [[0, 0, 1]])
 
 
-def test15_refit_is_seen_by_the_next_trace():
+def test16_refit_is_seen_by_the_next_trace():
     rng = np.random.default_rng(19)
     vertices, faces = random_soup(300, seed=20)
     bvh = build(vertices, faces, "hlbvh")
@@ -528,7 +544,7 @@ def assert_matches_native(ours, pi, prim_key, n_prim_key):
 
 
 @pytest.mark.parametrize("builder", ["hlbvh", "lbvh", "sah"])
-def test16_matches_mitsuba_native_on_100k_triangles(builder):
+def test17_matches_mitsuba_native_on_100k_triangles(builder):
     from hlbvh.comparison.bench_trace import (displaced_grid, mesh_scene, primary_rays,
                                               secondary_rays, _grid_sensor)
 
@@ -553,7 +569,7 @@ def test16_matches_mitsuba_native_on_100k_triangles(builder):
     assert total > 100_000
 
 
-def test17_matches_mitsuba_native_on_cornell_box():
+def test18_matches_mitsuba_native_on_cornell_box():
     from hlbvh.accel import collect_geometry
     from hlbvh.comparison.bench_trace import primary_rays, secondary_rays
 
