@@ -231,8 +231,9 @@ def _split_level(ns, level: _Level, records, item_order, block_start, leaf_items
     slots of the items that reached a leaf; return the next level's open nodes."""
     K = level.size
     m = dr.width(level.item)
-    child_start = dr.opaque(ns.UInt32, block_start[-1])
-    grandchild_start = dr.opaque(ns.UInt32, block_start[-1] + 2 * K)
+    # first node index of the children's and of the grandchildren's blocks (opaque)
+    starts = ns.UInt32(block_start[-1], block_start[-1] + 2 * K)
+    child_start, grandchild_start = (dr.gather(ns.UInt32, starts, i) for i in range(2))
     block_start.append(block_start[-1] + 2 * K)
 
     # ---- Bin and sweep: the split of every node ----
@@ -284,10 +285,9 @@ def _split_level(ns, level: _Level, records, item_order, block_start, leaf_items
     c = level.node * 2 + dr.select(left, 0, 1)
     to_open = dr.gather(ns.Bool, c_open, c)
     dr.scatter(item_order, level.item, dr.gather(ns.UInt32, c_slot, c) + rank, ~to_open)
-    child_box = dr.full(ns.Float, dr.inf, 6 * 2 * K)
-    child_cbounds = dr.full(ns.Float, dr.inf, 6 * 2 * K)
-    _reduce_box(child_box, item_lo, item_hi, c)
-    _reduce_box(child_cbounds, centroid, centroid, c, to_open)
+    bounds = dr.full(ns.Float, dr.inf, 12 * 2 * K)  # per child: box, centroid bounds
+    _reduce_box(bounds, item_lo, item_hi, 2 * c)
+    _reduce_box(bounds, centroid, centroid, 2 * c + 1, to_open)
     if K_next:
         index, first = next_position(c)
         moved = (level.item, index, item_lo, item_hi, level.item_weight)
@@ -297,7 +297,7 @@ def _split_level(ns, level: _Level, records, item_order, block_start, leaf_items
     dr.eval()
 
     # ---- Emit the children's node records and the next level's open nodes ----
-    box_lo, box_hi = _read_box(ns, child_box, child)
+    box_lo, box_hi = _read_box(ns, bounds, 2 * child)
     next_index = next_position(child)[0]
     _write_records(ns, records, child_start + child, box_lo, box_hi,
                    dr.select(c_open, grandchild_start + 2 * next_index, c_slot),
@@ -308,8 +308,8 @@ def _split_level(ns, level: _Level, records, item_order, block_start, leaf_items
     next_child = dr.empty(ns.UInt32, K_next)
     dr.scatter(next_child, child, next_index, c_open)
     dr.eval()
-    box_lo, box_hi = _read_box(ns, child_box, next_child)
-    cmin, cmax = _read_box(ns, child_cbounds, next_child)
+    box_lo, box_hi = _read_box(ns, bounds, 2 * next_child)
+    cmin, cmax = _read_box(ns, bounds, 2 * next_child + 1)
     nxt = _Level(
         size=K_next,
         node_id=child_start + next_child,
