@@ -35,6 +35,7 @@ import mitsuba as mi
 
 from hlbvh.kernels.build import build
 from hlbvh.kernels.bvh import BuildConfig
+from hlbvh.kernels.traversal import any_hit, closest_hit
 
 ACCELS = ("hlbvh", "native")
 
@@ -350,8 +351,6 @@ class SceneAccel(_Accel):
         if self.bvh is None:
             return (dr.full(mi.Float, dr.inf, n), dr.zeros(mi.Point2f, n),
                     dr.zeros(mi.UInt32, n), dr.zeros(mi.UInt32, n))
-        from hlbvh.kernels.traversal import closest_hit
-
         t, u, v, prim, valid = closest_hit(self.bvh, ray.o, ray.d, ray.maxt, active)
         valid = mi.Bool(valid)
         prim = mi.UInt32(prim)
@@ -367,8 +366,6 @@ class SceneAccel(_Accel):
         if self.bvh is None:
             hit = dr.zeros(mi.Bool, dr.width(ray))
         else:
-            from hlbvh.kernels.traversal import any_hit
-
             hit = mi.Bool(any_hit(self.bvh, ray.o, ray.d, ray.maxt, active))
         for _, shape in self.geometry.analytic:
             hit |= shape.ray_test(ray, active & ~hit)
