@@ -261,3 +261,18 @@ def test09_accel_is_cached_per_scene_and_follows_updates():
     del scene, integrator, first, other, params
     gc.collect()
     assert alive() is None
+
+
+@needs_build
+@pytest.mark.parametrize("builder", ["lbvh", "sah"])
+def test12_builder_options_reach_the_build(builder):
+    """Builder properties of the integrator are the options of the scene's HLBVH, and
+    every builder renders the same image as native (within test11's tolerance)."""
+    desc = cornell_box(res=16, spp=2)
+    desc["integrator"] = dict(type="hlbvh_path", max_depth=4, builder=builder, leaf_size=2)
+    scene = mi.load_dict(desc)
+    ours = np.array(mi.render(scene, seed=8))
+    config = scene.integrator().accel(scene).bvh.config
+    assert (config.builder, config.leaf_size) == (builder, 2)
+    native = render(scene, dict(type="hlbvh_path", accel="native", max_depth=4), seed=8)
+    np.testing.assert_allclose(ours, native, atol=5e-4, rtol=1e-4)
