@@ -1,0 +1,307 @@
+"""``hlbvh bench frame``: what an animation costs per frame, our HLBVH against
+Mitsuba's native rebuild, measured side by side in one process.
+
+For each scene (the deforming ``cloth`` and ``twist``, the fracturing ``fracture``) and
+size:
+
+**Build**, over the animated meshes (the geometry that moves; static shapes are a few
+triangles), with :func:`hlbvh.build` on frames ``0 .. drift_frames-1``:
+
+- ``fresh``: a build per frame from scratch (no temporal reuse);
+- ``seeded``: a build per frame seeded with the previous frame's BVH (``previous=``: the
+  CSD sort starts from last frame's primitive order);
+- ``refit``: frame 0's tree refit to each frame (same topology, new boxes);
+- SAH drift: SAH cost of frame 0's tree refit to frame ``i`` over that of a fresh build
+  of frame ``i`` (1 = as good as a rebuild); its value at the last frame and its largest.
+
+``cold`` is frame 0's build (the first of the scene in the process: kernels compiled
+unless Dr.Jit's disk cache holds them); ``min``/``median`` are over frames ``1 ..``.
+
+**Frame time** at ``resolution``² and each ``spp``, through
+:class:`hlbvh.render.FrameRenderer` (what ``hlbvh render`` does), ``repeats + 1``
+consecutive frames per spp, every frame a new pose:
+
+- ``hlbvh``: ``hlbvh_path`` with ``accel="hlbvh"``; frame = build (our accelerator's
+  update for the new pose) + render;
+- ``native``: ``hlbvh_path`` with ``accel="native"`` (bit-identical to Mitsuba's C++
+  ``path`` and as fast: every query goes to the scene's Embree BVH); frame =
+  ``params.update()`` (Mitsuba's rebuild of its accelerator) + render.
+
+Mitsuba rebuilds its own accelerator in ``params.update()`` whatever the integrator, so
+hlbvh frames rendered through Mitsuba today pay that too: it is reported
+(``mitsuba_update_ms``) but not counted in the hlbvh frame, which measures the
+algorithm. ``cold`` is the first frame at that spp (for the first spp: the scene's
+first build and kernel compilation).
+
+The **crossover** is the spp from which native is faster per frame: a line
+``frame_ms = a + k·spp`` is fitted to each accelerator's median frame times, and the
+crossover is where the lines meet (0: native is faster at every spp; ``None``: never).
+
+Run: ``hlbvh bench frame [--sizes ...] [--resolution 512] [--repeats N]``, or
+``python -m hlbvh.comparison.bench_frame --help`` for every knob.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+import hlbvh
+from hlbvh.scenes import get as get_scene
+from hlbvh.render import FrameRenderer, RenderSettings
+
+SCENES = ("cloth", "twist", "fracture")
+SPPS = (1, 4, 16)
+
+#: Keys of every row :func:`run` returns.
+ROW_KEYS = (
+    "scene", "triangles", "builder", "resolution", "spp", "drift_frames",
+    "build_cold_ms", "build_min_ms", "build_median_ms",
+    "seeded_min_ms", "seeded_median_ms", "refit_min_ms", "refit_median_ms",
+    "sah_fresh", "sah_drift_last", "sah_drift_max",
+    "hlbvh_build_ms", "hlbvh_render_ms", "mitsuba_update_ms",
+    "hlbvh_frame_cold_ms", "hlbvh_frame_min_ms", "hlbvh_frame_median_ms",
+    "native_update_ms", "native_render_ms",
+    "native_frame_cold_ms", "native_frame_min_ms", "native_frame_median_ms",
+    "native_over_hlbvh", "crossover_spp",
+)
+
+
+def run(repeats: int = 3, sizes=(1_000_000,), resolution: int = 512, builder: str = "hlbvh",
+        scenes=SCENES, spps=SPPS, drift_frames: int = 100, max_depth: int = 8) -> list[dict]:
+    """Measure build, refit, SAH drift and frame time per scene, size and spp.
+
+    Args:
+        repeats: warm frames per spp after the cold one.
+        sizes: triangle counts of the scenes (``triangles=`` of :func:`hlbvh.scenes.get`).
+        resolution: image width and height in pixels.
+        builder: ``"hlbvh"``, ``"lbvh"`` or ``"sah"``.
+        scenes: procedural scene names.
+        spps: samples per pixel of the frame-time runs (2 or more for a crossover).
+        drift_frames: frames of the build, refit and SAH drift runs (>= 2).
+        max_depth: longest path of the path tracer.
+    Returns:
+        One dict per (scene, size, spp) with the keys :data:`ROW_KEYS` (build and drift
+        values repeat over a scene's spp rows; times in ms).
+    Raises:
+        ValueError: an unknown scene or builder, or counts out of range.
+    """
+    if repeats < 1 or drift_frames < 2 or not spps:
+        raise ValueError(f"repeats={repeats}, drift_frames={drift_frames}, spps={spps}: "
+                         "expected repeats >= 1, drift_frames >= 2 and at least one spp")
+    hlbvh.BuildConfig.from_options(builder=builder)
+    rows = []
+    for name in scenes:
+        for size in sizes:
+            render_frames = len(spps) * (repeats + 1)
+            animation = get_scene(name, triangles=size,
+                                   frames=max(drift_frames, render_frames))
+            renderers = {
+                accel: FrameRenderer(animation, RenderSettings(
+                    resolution=(resolution, resolution), integrator="path",
+                    max_depth=max_depth, accel=accel, build_options={"builder": builder}))
+                for accel in ("hlbvh", "native")
+            }
+            build = _build_runs(animation, renderers["native"].scene, builder, drift_frames)
+            frames = {accel: _frame_runs(renderer, spps, repeats)
+                      for accel, renderer in renderers.items()}
+            crossover = _crossover(spps, frames["hlbvh"], frames["native"])
+            for spp in spps:
+                ours, native = frames["hlbvh"][spp], frames["native"][spp]
+                rows.append({
+                    "scene": name, "triangles": renderers["native"].triangle_count(),
+                    "builder": builder, "resolution": resolution, "spp": spp,
+                    "drift_frames": drift_frames, **build,
+                    "hlbvh_build_ms": ours["build_ms"], "hlbvh_render_ms": ours["render_ms"],
+                    "mitsuba_update_ms": ours["mitsuba_update_ms"],
+                    "hlbvh_frame_cold_ms": ours["cold_ms"], "hlbvh_frame_min_ms": ours["min_ms"],
+                    "hlbvh_frame_median_ms": ours["median_ms"],
+                    "native_update_ms": native["build_ms"],
+                    "native_render_ms": native["render_ms"],
+                    "native_frame_cold_ms": native["cold_ms"],
+                    "native_frame_min_ms": native["min_ms"],
+                    "native_frame_median_ms": native["median_ms"],
+                    "native_over_hlbvh": native["min_ms"] / ours["min_ms"],
+                    "crossover_spp": crossover,
+                })
+    return rows
+
+
+def _animated_mesh(animation, scene):
+    """Faces of the animated meshes of ``scene`` in one buffer (indices offset) and a
+    function giving their concatenated positions at frame ``i``."""
+    meshes = {shape.id(): shape for shape in scene.shapes()}
+    ids = animation.animated_ids()
+    faces, base = [], 0
+    for shape_id in ids:
+        faces.append(meshes[shape_id].faces_buffer() + base)
+        base += meshes[shape_id].vertex_count()
+
+    def positions(i: int) -> mi.Float:
+        frame = animation.frame(i)
+        vertices = dr.concat([mi.Float(np.asarray(frame[s].positions)) for s in ids])
+        dr.eval(vertices)
+        return vertices
+
+    faces = dr.concat(faces)
+    dr.eval(faces)
+    return faces, positions
+
+
+def _build_runs(animation, scene, builder: str, drift_frames: int) -> dict:
+    """Fresh, seeded and refit times over ``drift_frames`` frames, and the SAH drift."""
+    faces, positions = _animated_mesh(animation, scene)
+    fresh_ms, seeded_ms, refit_ms, drift = [], [], [], []
+    tree = seeded = fresh = None
+    for i in range(drift_frames):
+        vertices = positions(i)
+        ms, fresh = _timed(lambda: hlbvh.build(vertices, faces, builder=builder))
+        fresh_ms.append(ms)
+        if i == 0:
+            tree = seeded = fresh
+            continue
+        ms, seeded = _timed(lambda: hlbvh.build(vertices, faces, builder=builder,
+                                                previous=seeded))
+        seeded_ms.append(ms)
+        ms, _ = _timed(lambda: tree.refit(vertices))
+        refit_ms.append(ms)
+        drift.append(tree.stats.sah_cost / fresh.stats.sah_cost)
+    return {
+        "build_cold_ms": fresh_ms[0], "build_min_ms": min(fresh_ms[1:]),
+        "build_median_ms": statistics.median(fresh_ms[1:]),
+        "seeded_min_ms": min(seeded_ms), "seeded_median_ms": statistics.median(seeded_ms),
+        "refit_min_ms": min(refit_ms), "refit_median_ms": statistics.median(refit_ms),
+        "sah_fresh": fresh.stats.sah_cost, "sah_drift_last": drift[-1],
+        "sah_drift_max": max(drift),
+    }
+
+
+def _frame_runs(renderer: FrameRenderer, spps, repeats: int) -> dict:
+    """Per spp: cold, min and median frame time, and median build, render and Mitsuba
+    update times over the warm frames. Each render is of a new frame."""
+    results, frame = {}, 0
+    for spp in spps:
+        frame_ms, parts = [], []
+        for _ in range(repeats + 1):
+            _, row = renderer.render(frame, spp=spp)
+            frame += 1
+            build_ms = row["build_ms"]
+            frame_ms.append(build_ms + row["render_ms"])
+            parts.append(row)
+        warm = parts[1:]
+        results[spp] = {
+            "cold_ms": frame_ms[0], "min_ms": min(frame_ms[1:]),
+            "median_ms": statistics.median(frame_ms[1:]),
+            "build_ms": statistics.median(r["build_ms"] for r in warm),
+            "render_ms": statistics.median(r["render_ms"] for r in warm),
+            "mitsuba_update_ms": statistics.median(r["mitsuba_update_ms"] for r in warm),
+        }
+    return results
+
+
+def _crossover(spps, ours: dict, native: dict) -> float | None:
+    """The spp from which native's fitted frame time is below ours (see the module
+    docstring); ``None`` when that never happens or fewer than two spp were measured."""
+    if len(set(spps)) < 2:
+        return None
+    x = np.array(spps, dtype=float)
+    k_ours, a_ours = np.polyfit(x, [ours[s]["median_ms"] for s in spps], 1)
+    k_native, a_native = np.polyfit(x, [native[s]["median_ms"] for s in spps], 1)
+    if k_ours <= k_native:  # ours gains (or keeps its lead) with every sample
+        return None if a_ours < a_native else 0.0
+    return max(0.0, float((a_native - a_ours) / (k_ours - k_native)))
+
+
+def _timed(fn):
+    """(wall ms with the device synchronised, result)."""
+    dr.sync_thread()
+    start = time.perf_counter()
+    result = fn()
+    dr.sync_thread()
+    return (time.perf_counter() - start) * 1e3, result
+
+
+def format_table(rows: list[dict]) -> str:
+    """Two fixed-width tables: builds per scene, frame times per scene and spp."""
+    head = (f"{'scene':9} {'tris':>8} {'fresh cold/min/med':>20} {'seeded min/med':>15} "
+            f"{'refit min/med':>14} {'SAH':>6} {'drift last/max':>15}")
+    lines = ["per-frame build (ms), hlbvh.build over the animated meshes", head, "-" * len(head)]
+    seen = set()
+    for r in rows:
+        if (r["scene"], r["triangles"]) in seen:
+            continue
+        seen.add((r["scene"], r["triangles"]))
+        lines.append(
+            f"{r['scene']:9} {r['triangles']:>8} "
+            f"{_slash(r['build_cold_ms'], r['build_min_ms'], r['build_median_ms']):>20} "
+            f"{_slash(r['seeded_min_ms'], r['seeded_median_ms']):>15} "
+            f"{_slash(r['refit_min_ms'], r['refit_median_ms']):>14} {r['sah_fresh']:6.2f} "
+            f"{r['sah_drift_last']:7.3f}/{r['sah_drift_max']:.3f} "
+            f"(over {r['drift_frames']} frames)"
+        )
+    head = (f"{'scene':9} {'tris':>8} {'spp':>4} | {'build':>7} {'render':>8} "
+            f"{'frame min/med/cold':>20} | {'update':>7} {'render':>8} "
+            f"{'frame min/med/cold':>20} | {'nat/ours':>8} {'crossover':>9}")
+    lines += ["", f"frame time (ms) at {rows[0]['resolution']}x{rows[0]['resolution']}"
+              if rows else "frame time (ms)",
+              f"{'':24}| {'hlbvh (hlbvh_path, accel=hlbvh)':^37} | "
+              f"{'native (hlbvh_path, accel=native)':^37} |", head, "-" * len(head)]
+    for r in rows:
+        crossover = "never" if r["crossover_spp"] is None else f"{r['crossover_spp']:.1f}"
+        lines.append(
+            f"{r['scene']:9} {r['triangles']:>8} {r['spp']:>4} | {r['hlbvh_build_ms']:7.1f} "
+            f"{r['hlbvh_render_ms']:8.1f} "
+            f"{_slash(r['hlbvh_frame_min_ms'], r['hlbvh_frame_median_ms'], r['hlbvh_frame_cold_ms']):>20} | "
+            f"{r['native_update_ms']:7.1f} {r['native_render_ms']:8.1f} "
+            f"{_slash(r['native_frame_min_ms'], r['native_frame_median_ms'], r['native_frame_cold_ms']):>20} | "
+            f"{r['native_over_hlbvh']:7.2f}x {crossover:>9}"
+        )
+    if rows:
+        update = statistics.median(r["mitsuba_update_ms"] for r in rows)
+        lines.append(
+            f"frame = build + render (median of warm frames for build/render; min/median/cold "
+            f"of the sum). nat/ours = native frame / hlbvh frame (min; > 1: hlbvh faster). "
+            f"crossover = spp from which native is faster per frame. hlbvh frames rendered "
+            f"through Mitsuba also pay its own params.update() rebuild (median "
+            f"{update:.1f} ms here), not counted. builder={rows[0]['builder']}, variant "
+            f"{mi.variant()}"
+        )
+    return "\n".join(lines)
+
+
+def _slash(*values) -> str:
+    return "/".join(f"{v:.1f}" for v in values)
+
+
+def main(argv=None) -> int:
+    """Print the frame benchmark (``python -m hlbvh.comparison.bench_frame``)."""
+    import argparse
+    import json
+
+    parser = argparse.ArgumentParser(prog="python -m hlbvh.comparison.bench_frame",
+                                     description=__doc__.split("\n\n")[0])
+    ints = lambda text: [int(v) for v in text.split(",")]  # noqa: E731
+    parser.add_argument("--scenes", default=",".join(SCENES), help="comma separated")
+    parser.add_argument("--sizes", type=ints, default=[1_000_000], help="triangle counts")
+    parser.add_argument("--spp", type=ints, default=list(SPPS), help="samples per pixel")
+    parser.add_argument("--resolution", type=int, default=512, help="image side in pixels")
+    parser.add_argument("--repeats", type=int, default=3, help="warm frames per spp")
+    parser.add_argument("--drift-frames", type=int, default=100,
+                        help="frames of the build, refit and SAH drift runs")
+    parser.add_argument("--builder", default="hlbvh", help="hlbvh | lbvh | sah")
+    parser.add_argument("--max-depth", type=int, default=8, help="longest path")
+    parser.add_argument("--json", action="store_true", help="print JSON rows")
+    args = parser.parse_args(argv)
+    rows = run(repeats=args.repeats, sizes=args.sizes, resolution=args.resolution,
+               builder=args.builder, scenes=args.scenes.split(","), spps=args.spp,
+               drift_frames=args.drift_frames, max_depth=args.max_depth)
+    print(json.dumps(rows, indent=1) if args.json else format_table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
