@@ -12,17 +12,6 @@ import pytest
 T = mi.ScalarTransform4f
 
 
-def _build_landed() -> bool:
-    try:
-        hlbvh.build(mi.Float([0, 0, 0, 1, 0, 0, 0, 1, 0]), mi.UInt32([0, 1, 2]))
-    except NotImplementedError:
-        return False
-    return True
-
-
-needs_build = pytest.mark.skipif(not _build_landed(), reason="hlbvh.build has not landed yet")
-
-
 # ---------------------------------------------------------------------------------------
 # Scenes (shared with test_integrators.py)
 # ---------------------------------------------------------------------------------------
@@ -178,8 +167,6 @@ def test08_overloads_bind_arguments_like_mi_scene(accel_name):
     """mi.Scene's short overloads take (ray, active); the long ones (ray, ray_flags,
     coherent, active) and (ray, coherent, active); ray_intersect_preliminary only
     (ray, coherent, active). Same answers as the scene for every spelling."""
-    if accel_name == "hlbvh" and not _build_landed():
-        pytest.skip("hlbvh.build has not landed yet")
     scene = mi.load_dict(analytic_scene())
     accel = hlbvh.make_accel(scene, accel_name)
     ray = camera_rays(scene, 8)
@@ -197,6 +184,8 @@ def test08_overloads_bind_arguments_like_mi_scene(accel_name):
         ("ray_intersect_preliminary", (ray, True, mask), {}),
         ("ray_intersect_preliminary", (ray, mask), {}),
         ("ray_intersect_preliminary", (ray,), dict(active=mask)),
+        ("ray_intersect_preliminary", (ray,), dict(coherent=True, reorder=False, active=mask)),
+        ("ray_intersect", (ray,), dict(ray_flags=mi.RayFlags.All, coherent=False, active=mask)),
     ]
     for name, args, kwargs in calls:
         ours = getattr(accel, name)(*args, **kwargs)
@@ -220,7 +209,6 @@ def test09_native_accel_is_the_scene_bit_for_bit():
 # ---------------------------------------------------------------------------------------
 
 
-@needs_build
 def test10_collected_triangles_are_the_meshes_world_space_triangles():
     """Every global triangle maps back to (shape index, local index) and has exactly
     that mesh's world-space vertices (numpy reference built shape by shape)."""
@@ -271,7 +259,6 @@ def _compare_preliminary(ray, ours, theirs, rtol=2e-5) -> float:
     return np.mean((~v_o & ~v_t) | (both & same_t))
 
 
-@needs_build
 @pytest.mark.parametrize("scene_fn", [cornell_box, analytic_scene])
 def test11_preliminary_hits_and_shadow_tests_equal_native(scene_fn):
     """Camera rays (coherent) and rays from inside the scene in every direction
@@ -288,7 +275,6 @@ def test11_preliminary_hits_and_shadow_tests_equal_native(scene_fn):
         np.testing.assert_array_equal(occluded, np.array(ours.is_valid()))
 
 
-@needs_build
 def test12_analytic_hits_equal_native():
     """Spheres, disks, cylinders go through Mitsuba's own routine in both accelerators:
     spheres and disks give the same bits; cylinders differ in the last bits (Embree's
@@ -312,7 +298,6 @@ def test12_analytic_hits_equal_native():
                 np.testing.assert_array_equal(a[..., on_shape], b[..., on_shape], err_msg=field)
 
 
-@needs_build
 def test13_nan_and_degenerate_rays_miss_cleanly():
     scene = mi.load_dict(analytic_scene())
     accel = hlbvh.SceneAccel(scene)
@@ -328,7 +313,6 @@ def test13_nan_and_degenerate_rays_miss_cleanly():
     assert not dr.any(si.is_valid())
 
 
-@needs_build
 def test14_update_follows_params_update():
     """Move the Cornell box's geometry through params.update(): changed() notices,
     update() rebuilds, and the hits follow the native ones again."""

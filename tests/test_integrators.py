@@ -12,7 +12,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from test_accel import analytic_scene, cornell_box, needs_build
+from test_accel import analytic_scene, cornell_box
 
 
 def render(scene, integrator: dict, seed=0) -> np.ndarray:
@@ -148,11 +148,10 @@ def test07_path_on_a_scene_without_geometry_equals_native():
 
 
 # ---------------------------------------------------------------------------------------
-# hlbvh against native (need the builder)
+# hlbvh against native
 # ---------------------------------------------------------------------------------------
 
 
-@needs_build
 @pytest.mark.parametrize("scene_name", SCENES)
 def test10_aov_primary_hits_hlbvh_equal_native(scene_name):
     scene = mi.load_dict(SCENES[scene_name](spp=1))
@@ -169,7 +168,6 @@ def test10_aov_primary_hits_hlbvh_equal_native(scene_name):
     np.testing.assert_allclose(depth_o[same], depth_n[same], rtol=2e-4)
 
 
-@needs_build
 @pytest.mark.parametrize("scene_name", SCENES)
 @pytest.mark.parametrize("options", [dict(max_depth=6), dict(max_depth=3, hide_emitters=True)])
 def test11_path_hlbvh_close_to_native(scene_name, options):
@@ -221,7 +219,7 @@ print("ok")
 """
 
 
-def test08_register_after_a_variant_change(tmp_path):
+def test12_register_after_a_variant_change(tmp_path):
     """In a fresh process (the variant is global): a scalar variant is refused with a
     clear error; after switching to a spectral JIT variant and register(), hlbvh_path
     renders bit-identically to path there too."""
@@ -231,8 +229,7 @@ def test08_register_after_a_variant_change(tmp_path):
     assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-3000:]
 
 
-@needs_build
-def test09_accel_is_cached_per_scene_and_follows_updates():
+def test13_accel_is_cached_per_scene_and_follows_updates():
     """The HLBVH is built on the first render, reused by the next, rebuilt for another
     scene, rebuilt after params.update() gave a mesh new vertices, and does not keep
     the scene alive once the user lets go of it."""
@@ -263,9 +260,8 @@ def test09_accel_is_cached_per_scene_and_follows_updates():
     assert alive() is None
 
 
-@needs_build
 @pytest.mark.parametrize("builder", ["lbvh", "sah"])
-def test12_builder_options_reach_the_build(builder):
+def test14_builder_options_reach_the_build(builder):
     """Builder properties of the integrator are the options of the scene's HLBVH, and
     every builder renders the same image as native (within test11's tolerance)."""
     desc = cornell_box(res=16, spp=2)
