@@ -1,0 +1,286 @@
+"""``hlbvh render``: frames and statistics written whole, hlbvh frames equal to native
+ones within the plugin's tolerance, resuming, user errors, mesh sequences; and the
+frame benchmark's rows."""
+
+import csv
+import json
+import math
+import pathlib
+import shutil
+import subprocess
+import sys
+
+import mitsuba as mi
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+from hlbvh import cli, images, scenes
+from hlbvh.comparison import bench_frame
+from hlbvh.integrators.aov import CHANNELS
+from hlbvh.render import STATS_FIELDS
+from hlbvh.scenes.procedural import mesh_object
+
+
+
+def tiny(spp=4):
+    """Options of a small, quick render."""
+    return ["--triangles", "2000", "--resolution", "32", "--spp", str(spp), "--quiet"]
+
+
+def render(capsys, *argv):
+    """``hlbvh render argv`` in this process: (exit status, stdout, stderr lines)."""
+    status = cli.main(["render", *map(str, argv)])
+    out, err = capsys.readouterr()
+    return status, out, [line for line in err.splitlines() if line.strip()]
+
+
+def stats(directory):
+    document = json.loads((directory / "stats.json").read_text())
+    with open(directory / "stats.csv", newline="") as f:
+        table = list(csv.DictReader(f))
+    return document, table
+
+
+def frame_files(directory, i):
+    return directory / f"frame_{i:04d}.exr", directory / f"frame_{i:04d}.png"
+
+
+def mtimes(directory, frames):
+    return {p.name: p.stat().st_mtime_ns for i in frames for p in frame_files(directory, i)}
+
+
+def assert_close_to_native(ours, native):
+    """The tolerance of tests/test_integrators.py::test11 (measured there: same seed and
+    box filter, hits differ only in the last bits): 5e-4 absolute + 1e-4 relative per
+    pixel, one pixel may exceed it, mean difference below 1e-6, and many pixels
+    bit-identical."""
+    diff = np.abs(ours - native)
+    outside = (diff > 5e-4 + 1e-4 * np.abs(native)).any(axis=-1)
+    assert outside.sum() <= 1, f"{outside.sum()} pixels beyond tolerance, max {diff.max()}"
+    assert diff.mean() < 1e-6
+    assert (diff == 0).all(axis=-1).mean() > 0.05
+
+
+@pytest.fixture(scope="module")
+def both_accels(tmp_path_factory):
+    """Frames 0..2 of a small cloth, rendered by the CLI with each accelerator."""
+    root = tmp_path_factory.mktemp("render")
+    results = {}
+    for accel in ("hlbvh", "native"):
+        status = cli.main(["render", "cloth", "--frames", "0:3", "--accel", accel,
+                           "--out", str(root / accel), *tiny()])
+        results[accel] = (status, root / accel)
+    return results
+
+
+@pytest.mark.parametrize("accel", ["hlbvh", "native"])
+def test01_frames_and_statistics_are_written_whole(both_accels, accel):
+    status, directory = both_accels[accel]
+    assert status == 0
+    pixels = []
+    for i in range(3):
+        exr, png = frame_files(directory, i)
+        image = images.read_exr(exr, ["R", "G", "B"])
+        assert image.shape == (32, 32, 3) and np.isfinite(image).all() and image.mean() > 0.01
+        source = oiio.ImageInput.open(str(png))
+        spec = source.spec()
+        source.close()
+        assert (spec.width, spec.height, spec.nchannels, spec.format) == (32, 32, 3, oiio.UINT8)
+        pixels.append(image)
+    assert not np.array_equal(pixels[0], pixels[2])  # the cloth moved
+    assert not list(directory.glob(".*.tmp"))
+
+    document, table = stats(directory)
+    rows = document["frames"]
+    assert [row["frame"] for row in rows] == [0, 1, 2]
+    assert document["settings"]["accel"] == accel and document["settings"]["spp"] == 4
+    assert document["settings"]["scene"] == "cloth"
+    for row in rows:
+        assert set(row) == set(STATS_FIELDS) and row["accel"] == accel
+        assert row["triangles"] >= 2000 and row["seed"] == row["frame"]
+        for key in ("geometry_ms", "mitsuba_update_ms", "build_ms", "render_ms"):
+            assert math.isfinite(row[key]) and row[key] >= 0, key
+        if accel == "hlbvh":
+            assert math.isfinite(row["sah_cost"]) and row["sah_cost"] >= 1
+        else:
+            assert row["sah_cost"] is None and row["decision"] == "native"
+            assert row["build_ms"] == row["mitsuba_update_ms"]
+    if accel == "hlbvh":
+        assert rows[0]["decision"] == "build"
+        assert {row["decision"] for row in rows[1:]} <= {"rebuild", "refit"}
+    # The CSV holds the same rows, in the documented columns.
+    assert list(table[0]) == list(STATS_FIELDS)
+    assert [int(r["frame"]) for r in table] == [0, 1, 2]
+    assert [float(r["render_ms"]) for r in table] == pytest.approx(
+        [row["render_ms"] for row in rows])
+
+
+def test02_hlbvh_frames_agree_with_native_frame_by_frame(both_accels):
+    for i in range(3):
+        ours = images.read_exr(frame_files(both_accels["hlbvh"][1], i)[0], ["R", "G", "B"])
+        native = images.read_exr(frame_files(both_accels["native"][1], i)[0], ["R", "G", "B"])
+        assert_close_to_native(ours, native)
+
+
+def test03_resume_renders_only_incomplete_frames_and_cleans_temporary_files(tmp_path, capsys):
+    out = tmp_path / "out"
+    status, summary, _ = render(capsys, "cloth", "--frames", "0:2", "--accel", "native",
+                                "--out", out, *tiny())
+    assert status == 0 and "2 rendered, 0 already complete" in summary
+    before, rows_before = mtimes(out, [0, 1]), stats(out)[0]["frames"]
+
+    # A crash left a half-written temporary file, and frame 3 got an EXR but no PNG
+    # nor statistics row.
+    stale = out / ".frame_0002.exr.deadbeef.tmp"
+    stale.write_bytes(b"\x76\x2f\x31\x01 half an EXR")
+    frame_files(out, 3)[0].write_bytes(b"not an image")
+
+    status, summary, _ = render(capsys, "cloth", "--frames", "0:4", "--accel", "native",
+                                "--out", out, *tiny())
+    assert status == 0 and "2 rendered, 2 already complete" in summary
+    assert mtimes(out, [0, 1]) == before
+    rows = stats(out)[0]["frames"]
+    assert rows[:2] == rows_before and [row["frame"] for row in rows] == [0, 1, 2, 3]
+    for i in (2, 3):
+        assert np.isfinite(images.read_exr(frame_files(out, i)[0])).all()
+    assert not stale.exists() and not list(out.glob(".*.tmp"))
+
+    # A frame is complete only with its PNG too.
+    frame_files(out, 1)[1].unlink()
+    before = mtimes(out, [0, 2, 3])
+    status, summary, _ = render(capsys, "cloth", "--frames", "0:4", "--accel", "native",
+                                "--out", out, *tiny())
+    assert status == 0 and "1 rendered, 3 already complete" in summary
+    assert frame_files(out, 1)[1].is_file() and mtimes(out, [0, 2, 3]) == before
+
+    # Other settings into the same directory: refused, nothing touched.
+    before = mtimes(out, range(4))
+    status, _, err = render(capsys, "cloth", "--frames", "0:5", "--accel", "native",
+                            "--out", out, *tiny(spp=2))
+    assert status == 2 and len(err) == 1 and "other settings" in err[0] and "spp" in err[0]
+    assert mtimes(out, range(4)) == before and not frame_files(out, 4)[0].exists()
+
+
+@pytest.fixture
+def sequence(tmp_path):
+    """A scene file with a twisting bar (PLY) over a floor, and 4 frames of the bar
+    written by Mitsuba."""
+    twist = scenes.get("twist", triangles=800, frames=4)
+    faces = twist.parts["bar"].faces
+    frames_dir = tmp_path / "frames" / "bar"
+    frames_dir.mkdir(parents=True)
+    for i in range(4):
+        positions = twist.frame(i)["bar"].positions.reshape(-1, 3)
+        mesh_object("bar", positions, faces, {"type": "diffuse"}).write_ply(
+            str(frames_dir / f"frame_{i + 1:04d}.ply"))
+    shutil.copy(frames_dir / "frame_0001.ply", tmp_path / "bar.ply")
+    (tmp_path / "scene.xml").write_text("""<scene version="3.0.0">
+  <sensor type="perspective">
+    <transform name="to_world"><lookat origin="4,2.5,6" target="0,1.5,0" up="0,1,0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="16"/></film>
+  </sensor>
+  <shape type="ply" id="bar"><string name="filename" value="bar.ply"/></shape>
+  <shape type="rectangle" id="floor">
+    <transform name="to_world"><rotate x="1" angle="-90"/><scale value="10"/></transform></shape>
+  <emitter type="constant"/>
+</scene>""")
+    return tmp_path
+
+
+def test04_mesh_sequence_renders_and_bad_frame_files_are_named(sequence, capsys):
+    out = sequence / "out"
+    argv = [sequence / "scene.xml", "--frames-dir", sequence / "frames", "--out", out,
+            "--spp", "2", "--quiet"]
+    status, summary, _ = render(capsys, *argv, "--frames", "0:2")
+    assert status == 0 and "2 rendered" in summary
+    rows = stats(out)[0]["frames"]
+    assert [row["frame"] for row in rows] == [0, 1] and rows[0]["triangles"] >= 800
+    image = images.read_exr(frame_files(out, 1)[0])
+    assert image.shape == (16, 24, 3) and np.isfinite(image).all()
+    before = mtimes(out, [0, 1])
+
+    # A corrupt file: frames before it are rendered, it is named with its frame.
+    frames = sequence / "frames" / "bar"
+    (frames / "frame_0004.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n")
+    status, _, err = render(capsys, *argv, "--frames", "0:4")
+    assert status == 2 and len(err) == 1
+    assert "frame 3 of shape 'bar'" in err[0] and "frame_0004.ply" in err[0]
+    assert mtimes(out, [0, 1]) == before
+    assert [row["frame"] for row in stats(out)[0]["frames"]] == [0, 1, 2]
+    assert frame_files(out, 2)[0].is_file() and not frame_files(out, 3)[0].exists()
+
+    # A missing file: named with its frame before anything is rendered.
+    before = mtimes(out, [0, 1, 2])
+    (frames / "frame_0002.ply").unlink()
+    status, _, err = render(capsys, *argv, "--frames", "0:4")
+    assert status == 2 and len(err) == 1
+    assert "frame 1 of shape 'bar'" in err[0] and "frame_0002.ply" in err[0]
+    assert mtimes(out, [0, 1, 2]) == before
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["nosuchscene"], "not a procedural scene"),
+    (["cloth", "--frames", "5:3"], "range is empty"),
+    (["cloth", "--frames", "1-4"], "expected A:B"),
+    (["cloth", "--spp", "0"], "--spp"),
+    (["cloth", "--resolution", "32x0"], "--resolution"),
+    (["cloth", "--accel", "embree"], "--accel"),
+    (["cloth", "--leaf-size", "99"], "leaf_size=99"),
+    (["cloth", "--integrator", "direct"], "--integrator"),
+    (["cloth", "--frames-dir", "frames"], "--frames-dir is for XML scenes"),
+    (["{xml}"], "needs --frames-dir"),
+    (["{xml}", "--frames-dir", "{tmp}/nowhere"], "no such directory"),
+    (["{xml}", "--frames-dir", "{frames}", "--frames", "2:9"], "has frames 0:4"),
+    (["{xml}", "--frames-dir", "{frames}", "--triangles", "5"], "--triangles"),
+])
+def test05_user_errors_exit_2_with_one_line(sequence, capsys, argv, message):
+    fill = dict(xml=sequence / "scene.xml", frames=sequence / "frames", tmp=sequence)
+    argv = [a.format(**fill) for a in argv]
+    status, out, err = render(capsys, *argv, "--out", sequence / "out", "--quiet")
+    assert status == 2
+    assert len(err) == 1 and err[0].startswith("hlbvh render:") and message in err[0], err
+    assert not (sequence / "out").exists()
+
+
+def test06_console_script_exits_2_without_traceback():
+    script = pathlib.Path(sys.executable).with_name("hlbvh")
+    done = subprocess.run([str(script), "render", "cloth", "--frames", "x"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2
+    assert done.stderr.strip() == "hlbvh render: --frames 'x': expected A:B (frames A .. B-1) or a count N"
+
+
+def test07_aov_frames_hold_named_channels_equal_to_native(tmp_path, capsys):
+    for accel in ("hlbvh", "native"):
+        status, _, _ = render(capsys, "fracture", "--frames", "4:5", "--integrator", "aov",
+                              "--accel", accel, "--out", tmp_path / accel, *tiny(spp=1))
+        assert status == 0
+    names = list(CHANNELS)
+    ours = images.read_exr(frame_files(tmp_path / "hlbvh", 4)[0], names)
+    native = images.read_exr(frame_files(tmp_path / "native", 4)[0], names)
+    hit = native[..., 0] > 0
+    assert hit.any() and (~hit).any()
+    same = (ours[..., 1] == native[..., 1]) & (ours[..., 2] == native[..., 2])
+    assert same.mean() >= 1 - 2 / same.size  # edge ties may pick a neighbour
+    np.testing.assert_allclose(ours[..., 0][same], native[..., 0][same], rtol=1e-5)
+    assert not frame_files(tmp_path / "native", 0)[0].exists()
+
+
+def test08_frame_benchmark_rows_have_the_promised_keys():
+    rows = bench_frame.run(repeats=1, sizes=(1500,), resolution=16, scenes=("fracture",),
+                           spps=(1, 2), drift_frames=3)
+    assert [(r["scene"], r["spp"]) for r in rows] == [("fracture", 1), ("fracture", 2)]
+    for r in rows:
+        assert set(r) == set(bench_frame.ROW_KEYS)
+        for key in bench_frame.ROW_KEYS:
+            if key.endswith("_ms") or key.startswith("sah_"):
+                assert math.isfinite(r[key]) and r[key] > 0, key
+        assert r["native_over_hlbvh"] == pytest.approx(
+            r["native_frame_min_ms"] / r["hlbvh_frame_min_ms"])
+        assert r["hlbvh_frame_min_ms"] <= r["hlbvh_frame_median_ms"]
+        assert r["crossover_spp"] is None or r["crossover_spp"] >= 0
+        assert r["triangles"] >= 1500 and r["drift_frames"] == 3
+    assert rows[0]["crossover_spp"] == rows[1]["crossover_spp"]
+    table = bench_frame.format_table(rows)
+    assert "fracture" in table and "crossover" in table
