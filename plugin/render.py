@@ -231,9 +231,9 @@ class FrameRenderer:
 
         row = {
             "frame": i, "accel": self.settings.accel, "triangles": self.triangle_count(),
-            "seed": seed, "geometry_ms": geometry_ms,
-            "mitsuba_update_ms": parameters.update_ms, "build_ms": build_ms,
-            "render_ms": render_ms, "sah_cost": sah_cost, "decision": decision,
+            "seed": seed, "geometry_ms": round(geometry_ms, 3),
+            "mitsuba_update_ms": round(parameters.update_ms, 3), "build_ms": round(build_ms, 3),
+            "render_ms": round(render_ms, 3), "sah_cost": sah_cost, "decision": decision,
         }
         return image, row
 
