@@ -22,6 +22,7 @@ Run: ``python -m hlbvh.comparison.bench_trace`` (the CLI's ``hlbvh bench trace``
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
 
@@ -121,17 +122,30 @@ def _scene_triangles(scene):
 # ---------------------------------------------------------------------------------------
 
 
-def _timed(fn, repeats: int):
-    """(cold ms, [warm ms...], last output) of ``fn`` (outputs evaluated, device synced)."""
-    times, out = [], None
+def _run(fn) -> tuple[float, object]:
+    """(ms, output) of one call of ``fn``, its outputs evaluated and the device synced."""
+    dr.sync_thread()
+    start = time.perf_counter()
+    out = fn()
+    dr.eval(out)
+    dr.sync_thread()
+    return 1e3 * (time.perf_counter() - start), out
+
+
+def _timed_pair(ours, native, repeats: int):
+    """Cold and warm times of two queries, alternating ours and native on every
+    repeat so that both see the same machine load.
+
+    Returns:
+        ``((cold, [warm...], output), (cold, [warm...], output))`` for ours, native.
+    """
+    runs = {ours: [], native: []}
+    outs = {}
     for _ in range(repeats + 1):
-        dr.sync_thread()
-        start = time.perf_counter()
-        out = fn()
-        dr.eval(out)
-        dr.sync_thread()
-        times.append(1e3 * (time.perf_counter() - start))
-    return times[0], times[1:], out
+        for fn in (ours, native):
+            ms, outs[fn] = _run(fn)
+            runs[fn].append(ms)
+    return tuple((runs[fn][0], runs[fn][1:], outs[fn]) for fn in (ours, native))
 
 
 def _measure(scene, bvh, prim_shape, prim_local, ray, coherent: bool, repeats: int):
@@ -158,8 +172,7 @@ def _measure(scene, bvh, prim_shape, prim_local, ray, coherent: bool, repeats: i
         ("closest", ours_closest, native_closest),
         ("any", ours_any, native_any),
     ):
-        o_cold, o_warm, o_out = _timed(ours, repeats)
-        n_cold, n_warm, n_out = _timed(native, repeats)
+        (o_cold, o_warm, o_out), (n_cold, n_warm, n_out) = _timed_pair(ours, native, repeats)
         if query == "closest":
             _, _, _, prim, valid = o_out
             n_valid = dr.isfinite(n_out[0])
@@ -271,7 +284,9 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     rows = run(sizes=args.sizes, repeats=args.repeats, resolution=args.resolution,
                cornell=not args.no_cornell, builder=args.builder)
-    print(f"hlbvh trace benchmark ({mi.variant()}, builder={args.builder})")
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    print(f"hlbvh trace benchmark ({mi.variant()}, builder={args.builder}, "
+          f"{dr.thread_count()} threads, load average {load})")
     print(format_table(rows))
     return 0
 
