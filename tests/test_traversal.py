@@ -404,7 +404,31 @@ def test11_debug_mode_finds_no_out_of_bounds_access(capfd):
     assert_matches_reference(ours, ref, vertices, faces, o, d)
 
 
-def test12_bad_arguments_raise():
+def test12_traced_inside_a_symbolic_loop():
+    """Integrators trace rays inside their own symbolic loops: with the records packed
+    beforehand (as an accelerator does when it builds), closest_hit and any_hit nest."""
+    rng = np.random.default_rng(23)
+    vertices, faces = random_soup(300, seed=24)
+    bvh = build(vertices, faces, "hlbvh")
+    traversal.packed_records(bvh)
+    o, d = random_rays(rng, 1000)
+    origin, direction = mi.Point3f(o.T), mi.Vector3f(d.T)
+
+    def body(i, t_sum, hits):
+        t, _, _, _, valid = closest_hit(bvh, origin, direction, mi.Float(np.inf))
+        occluded = any_hit(bvh, origin, direction, np.inf)
+        return i + 1, t_sum + dr.select(valid, t, 0), hits + mi.UInt32(occluded)
+
+    state = (dr.zeros(mi.UInt32, 1000), dr.zeros(mi.Float, 1000), dr.zeros(mi.UInt32, 1000))
+    _, t_sum, hits = dr.while_loop(state, lambda i, t_sum, hits: i < 2, body,
+                                   labels=("i", "t_sum", "hits"), mode="symbolic")
+    ref = brute_force(vertices, faces, o, d)
+    np.testing.assert_allclose(t_sum.numpy(), 2 * np.where(ref["valid"], ref["t"], 0),
+                               rtol=1e-5)
+    np.testing.assert_array_equal(hits.numpy(), 2 * ref["valid"])
+
+
+def test13_bad_arguments_raise():
     vertices, faces = random_soup(50, seed=16)
     bvh = build(vertices, faces, "median")
     with pytest.raises(ValueError, match="widths"):
@@ -456,7 +480,7 @@ def _caterpillar(levels, depth_in_stats):
     )
 
 
-def test13_too_deep_tree_is_refused_and_stack_overflow_ends_the_ray():
+def test14_too_deep_tree_is_refused_and_stack_overflow_ends_the_ray():
     levels = traversal.STACK_SIZE + 10
     with pytest.raises(ValueError, match="depth"):
         trace(_caterpillar(levels, depth_in_stats=levels - 1), [[0.5, 0.5, 2]], [[0, 0, -1]])
@@ -473,7 +497,7 @@ def test13_too_deep_tree_is_refused_and_stack_overflow_ends_the_ray():
         np.testing.assert_allclose(ours["t"][1:], [1.0, 0.5 * 0.01], rtol=1e-5)
 
 
-def test14_cycle_in_the_tree_ends_the_ray():
+def test15_cycle_in_the_tree_ends_the_ray():
     vertices, faces = random_soup(64, seed=17)
     bvh = median_split_bvh(vertices, faces, 4)
     first = bvh.node_first.numpy()
@@ -486,7 +510,7 @@ def test14_cycle_in_the_tree_ends_the_ray():
         np.testing.assert_array_equal(results[0][key], results[1][key])
 
 
-def test15_out_of_range_children_and_leaves_raise():
+def test16_out_of_range_children_and_leaves_raise():
     vertices, faces = random_soup(40, seed=18)
     for field, value in (("node_first", 10**6), ("node_count", 17)):
         bvh = median_split_bvh(vertices, faces, 4)
@@ -498,7 +522,7 @@ def test15_out_of_range_children_and_leaves_raise():
             trace(bvh, [[0.5, 0.5, -1]], [[0, 0, 1]])
 
 
-def test16_refit_is_seen_by_the_next_trace():
+def test17_refit_is_seen_by_the_next_trace():
     rng = np.random.default_rng(19)
     vertices, faces = random_soup(300, seed=20)
     bvh = build(vertices, faces, "hlbvh")
@@ -544,7 +568,7 @@ def assert_matches_native(ours, pi, prim_key, n_prim_key):
 
 
 @pytest.mark.parametrize("builder", ["hlbvh", "lbvh", "sah"])
-def test17_matches_mitsuba_native_on_100k_triangles(builder):
+def test18_matches_mitsuba_native_on_100k_triangles(builder):
     from hlbvh.comparison.bench_trace import (displaced_grid, mesh_scene, primary_rays,
                                               secondary_rays, _grid_sensor)
 
@@ -569,7 +593,7 @@ def test17_matches_mitsuba_native_on_100k_triangles(builder):
     assert total > 100_000
 
 
-def test18_matches_mitsuba_native_on_cornell_box():
+def test19_matches_mitsuba_native_on_cornell_box():
     from hlbvh.accel import collect_geometry
     from hlbvh.comparison.bench_trace import primary_rays, secondary_rays
 
