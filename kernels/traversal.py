@@ -296,6 +296,8 @@ def _trace(bvh, o, d, maxt, active, any_hit):
     if len(widths) > 1:
         raise ValueError(f"ray arrays of different widths {sorted(widths)}: expected one")
     n = widths.pop() if widths else 1
+    if n == 0:
+        return Bool() if any_hit else (Float(), Float(), Float(), UInt32(), Bool())
     records, root = packed_records(bvh)
 
     o = _broadcast(o, "Array3f", ns, n)

@@ -428,7 +428,7 @@ def test12_traced_inside_a_symbolic_loop():
     np.testing.assert_array_equal(hits.numpy(), 2 * ref["valid"])
 
 
-def test13_bad_arguments_raise():
+def test13_bad_arguments_raise_and_no_rays_give_empty_results():
     vertices, faces = random_soup(50, seed=16)
     bvh = build(vertices, faces, "median")
     with pytest.raises(ValueError, match="widths"):
@@ -436,6 +436,10 @@ def test13_bad_arguments_raise():
                     np.inf)
     with pytest.raises(TypeError, match="Array3f"):
         closest_hit(bvh, (0, 0, 0), mi.Vector3f(0, 0, 1), np.inf)
+    # No rays: empty results.
+    results = closest_hit(bvh, mi.Point3f(), mi.Vector3f(), mi.Float())
+    assert [dr.width(x) for x in results] == [0] * 5
+    assert dr.width(any_hit(bvh, mi.Point3f(), mi.Vector3f(), np.inf)) == 0
 
 
 # ---------------------------------------------------------------------------------------
