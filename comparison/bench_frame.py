@@ -19,7 +19,8 @@ unless Dr.Jit's disk cache holds them); ``min``/``median`` are over frames ``1 .
 
 **Frame time** at ``resolution``² and each ``spp``, through
 :class:`hlbvh.render.FrameRenderer` (what ``hlbvh render`` does), ``repeats + 1``
-consecutive frames per spp, every frame a new pose:
+consecutive frames per spp, every frame a new pose, the two accelerators taking turns
+frame by frame (both see the same machine load):
 
 - ``hlbvh``: ``hlbvh_path`` with ``accel="hlbvh"``; frame = build (our accelerator's
   update for the new pose) + render;
@@ -43,6 +44,7 @@ Run: ``hlbvh bench frame [--sizes ...] [--resolution 512] [--repeats N]``, or
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
 
@@ -107,8 +109,7 @@ def run(repeats: int = 3, sizes=(1_000_000,), resolution: int = 512, builder: st
                 for accel in ("hlbvh", "native")
             }
             build = _build_runs(animation, renderers["native"].scene, builder, drift_frames)
-            frames = {accel: _frame_runs(renderer, spps, repeats)
-                      for accel, renderer in renderers.items()}
+            frames = _frame_runs(renderers, spps, repeats)
             crossover = _crossover(spps, frames["hlbvh"], frames["native"])
             for spp in spps:
                 ours, native = frames["hlbvh"][spp], frames["native"][spp]
@@ -180,26 +181,31 @@ def _build_runs(animation, scene, builder: str, drift_frames: int) -> dict:
     }
 
 
-def _frame_runs(renderer: FrameRenderer, spps, repeats: int) -> dict:
-    """Per spp: cold, min and median frame time, and median build, render and Mitsuba
-    update times over the warm frames. Each render is of a new frame."""
-    results, frame = {}, 0
+def _frame_runs(renderers: dict, spps, repeats: int) -> dict:
+    """Per accelerator and spp: cold, min and median frame time, and median build,
+    render and Mitsuba update times over the warm frames. Every render is of a new
+    frame; the accelerators take turns frame by frame, so both see the same machine
+    load."""
+    rows = {accel: {spp: [] for spp in spps} for accel in renderers}
+    frame = 0
     for spp in spps:
-        frame_ms, parts = [], []
         for _ in range(repeats + 1):
-            _, row = renderer.render(frame, spp=spp)
+            for accel, renderer in renderers.items():
+                rows[accel][spp].append(renderer.render(frame, spp=spp)[1])
             frame += 1
-            build_ms = row["build_ms"]
-            frame_ms.append(build_ms + row["render_ms"])
-            parts.append(row)
-        warm = parts[1:]
-        results[spp] = {
-            "cold_ms": frame_ms[0], "min_ms": min(frame_ms[1:]),
-            "median_ms": statistics.median(frame_ms[1:]),
-            "build_ms": statistics.median(r["build_ms"] for r in warm),
-            "render_ms": statistics.median(r["render_ms"] for r in warm),
-            "mitsuba_update_ms": statistics.median(r["mitsuba_update_ms"] for r in warm),
-        }
+    results = {}
+    for accel, per_spp in rows.items():
+        results[accel] = {}
+        for spp, runs in per_spp.items():
+            frame_ms = [r["build_ms"] + r["render_ms"] for r in runs]
+            warm = runs[1:]
+            results[accel][spp] = {
+                "cold_ms": frame_ms[0], "min_ms": min(frame_ms[1:]),
+                "median_ms": statistics.median(frame_ms[1:]),
+                "build_ms": statistics.median(r["build_ms"] for r in warm),
+                "render_ms": statistics.median(r["render_ms"] for r in warm),
+                "mitsuba_update_ms": statistics.median(r["mitsuba_update_ms"] for r in warm),
+            }
     return results
 
 
@@ -268,7 +274,8 @@ def format_table(rows: list[dict]) -> str:
             f"crossover = spp from which native is faster per frame. hlbvh frames rendered "
             f"through Mitsuba also pay its own params.update() rebuild (median "
             f"{update:.1f} ms here), not counted. builder={rows[0]['builder']}, variant "
-            f"{mi.variant()}"
+            f"{mi.variant()}, {os.cpu_count()} cores, load average "
+            f"{os.getloadavg()[0]:.1f} at the end"
         )
     return "\n".join(lines)
 
