@@ -14,7 +14,8 @@ grid and 2x on Cornell box.
   whose entry distance lies beyond the closest hit so far is skipped.
 - **Conservative slab test** (Ize, "Robust BVH ray traversal", JCGT 2013): the exit
   distance of a box is scaled by ``1 + 2·gamma(3)`` so rounding never culls a box the
-  ray touches. Reciprocal directions come from directions clamped away from zero
+  ray touches; so is the closest hit so far when a box's entry distance is compared
+  with it (a triangle lying on a box face at exactly ``maxt`` is still found). Reciprocal directions come from directions clamped away from zero
   (``|d| >= FLT_MIN``, sign kept), so no ``0 · inf = NaN`` reaches the min/max.
 - **Watertight ray/triangle test** (Woop, Benthin & Wald, JCGT 2013): vertices are
   translated to the ray origin, permuted so the ray's dominant axis is z and sheared so
@@ -333,8 +334,8 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         lo = [_min(a, b) for a, b in zip(t0, t1)]
         hi = [_max(a, b) for a, b in zip(t0, t1)]
         t_near = _max(_max(lo[0], lo[1]), _max(lo[2], 0.0))
-        t_far = _min(_min(hi[0], hi[1]), hi[2]) * _TFAR_SCALE
-        return t_near, t_near <= _min(t_far, t_max)
+        t_far = _min(_min(hi[0], hi[1]), hi[2])
+        return t_near, t_near <= _min(t_far, t_max) * _TFAR_SCALE
 
     def vertex(rec, base):
         """A triangle vertex translated, permuted and sheared into ray space."""
@@ -416,7 +417,7 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         rec = dr.gather(ns.ArrayXf, records, cur, shape=(_RECORD, n))
         in_leaf = cur >= n_nodes
         # A node (or leaf) entered beyond the closest hit so far is skipped.
-        stale = entering & (node_t > t_best)
+        stale = entering & (node_t > t_best * _TFAR_SCALE)
 
         # ---- A lane in a leaf: test one triangle ----
         at_triangle = in_leaf & ~stale
