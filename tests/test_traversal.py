@@ -272,6 +272,18 @@ def test06_maxt_is_honoured():
     ours = trace(bvh, o, d, np.inf)
     np.testing.assert_array_equal(ours["valid"], full["valid"])
 
+    # A flat grid (its boxes have zero height) hit at exactly t = maxt = 1, and missed
+    # with maxt one ulp below.
+    grid_v, grid_f = triangle_grid(5, 5)
+    bvh = build(grid_v, grid_f, "median", leaf_size=1)
+    o = np.column_stack([rng.random((200, 2)) * 5, np.ones(200)]).astype(np.float32)
+    d = np.tile(np.float32([0, 0, -1]), (200, 1))
+    ours = trace(bvh, o, d, np.ones(200, np.float32))
+    assert ours["valid"].all() and ours["any"].all()
+    np.testing.assert_array_equal(ours["t"], 1.0)
+    ours = trace(bvh, o, d, np.full(200, np.nextafter(np.float32(1), np.float32(0))))
+    assert not ours["valid"].any() and not ours["any"].any()
+
 
 def test07_no_hit_at_or_behind_the_origin():
     # Rays starting exactly on the plane of a grid (z = 0, exact coordinates): with z
