@@ -148,8 +148,7 @@ def _morton_build(config: BuildConfig, stats: BuildStats, clock, previous, tri_l
             bits = choose_morton_bits(tri_lo, tri_hi, lo, hi)
         keys = morton_codes(centroid, lo, hi, bits, config.quantization)
     stats.morton_bits = bits
-    coarse_bits = min(config.coarse_bits * bits // 30, bits)
-    coarse_bits -= coarse_bits % 3
+    coarse_bits = config.coarse_bits  # the same coarse voxels for 30- and 60-bit keys
 
     # ---- CSD sort, from last frame's order when there is one ----
     with clock("csd"):
