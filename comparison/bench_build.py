@@ -20,7 +20,7 @@ import drjit as dr
 import mitsuba as mi
 
 import hlbvh
-from hlbvh.comparison.bench_trace import _timed, displaced_grid, mesh_scene
+from hlbvh.comparison.bench_trace import displaced_grid, mesh_scene
 
 
 def random_soup(triangles: int, seed: int = 7, size: float = 0.02):
@@ -39,6 +39,18 @@ def random_soup(triangles: int, seed: int = 7, size: float = 0.02):
 
 
 MESHES = {"grid": displaced_grid, "soup": random_soup}
+
+
+def _timed(fn, repeats: int):
+    """(cold ms, [warm ms...], last output) of ``fn``, outputs evaluated, device synced."""
+    times, out = [], None
+    for _ in range(repeats + 1):
+        dr.sync_thread()
+        start = time.perf_counter()
+        out = fn()
+        dr.sync_thread()
+        times.append(1e3 * (time.perf_counter() - start))
+    return times[0], times[1:], out
 
 
 def _stats_of(fn, repeats: int):
