@@ -277,12 +277,13 @@ def _emit_treelets(keys, key_bits, level, pe, seg, splits, records: NodeRecords,
     )
     keep = reached & (hi - lo > leaf_size)
     index = dr.prefix_sum(UInt32(keep))
-    dr.eval(index, keep)
-    count = int(dr.gather(UInt32, index, dr.opaque(UInt32, len(index) - 1))[0]) + int(
-        dr.gather(ns.Bool, keep, dr.opaque(UInt32, len(keep) - 1))[0]
-    )
+    last = dr.opaque(UInt32, len(index) - 1)
+    kept = dr.gather(UInt32, index, last) + UInt32(dr.gather(ns.Bool, keep, last))
+    dr.eval(index, keep, kept)
+    count = int(kept[0])
     remap = dr.select(keep, index, NONE)
-    out = Segments(*(dr.zeros(UInt32, count) for _ in range(4)))
+    # Every entry of the new segments is written below: no need to clear them.
+    out = Segments(*(dr.empty(UInt32, count) for _ in range(4)))
     if count:
         for target, value in zip((out.start, out.end, out.node, out.depth), (lo, hi, node, depth)):
             dr.scatter(target, value, index, keep)
