@@ -26,6 +26,7 @@ inside a kernel. Every array is of the backend of the input vertices.
 from __future__ import annotations
 
 import dataclasses
+import numbers
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -65,29 +66,23 @@ class BuildConfig:
     sah_bins: int = 16
 
     def validated(self) -> "BuildConfig":
-        """Self, after checking every field; raises ValueError naming the bad option."""
+        """Self, after checking every field; raises ValueError naming the bad option.
+        Integer options accept any integer type (numpy's too) but not bools or floats,
+        and are stored as Python ints."""
         if self.builder not in BUILDERS:
             raise ValueError(f"builder={self.builder!r}: expected one of {BUILDERS}")
-        if not isinstance(self.leaf_size, int) or not 1 <= self.leaf_size <= 16:
-            raise ValueError(f"leaf_size={self.leaf_size!r}: expected an int in 1..16")
-        if self.morton_bits not in (30, 60, "auto"):
-            raise ValueError(f"morton_bits={self.morton_bits!r}: expected 30, 60 or 'auto'")
+        self.leaf_size = _integer("leaf_size", self.leaf_size, range(1, 17))
+        if self.morton_bits != "auto":
+            self.morton_bits = _integer("morton_bits", self.morton_bits, (30, 60), "30, 60 or 'auto'")
         if self.quantization not in QUANTIZATIONS:
             raise ValueError(
                 f"quantization={self.quantization!r}: expected one of {QUANTIZATIONS}"
             )
-        if not isinstance(self.p, int) or not 1 <= self.p <= 5:
-            raise ValueError(f"p={self.p!r}: expected an int in 1..5")
-        if not isinstance(self.sah_bins, int) or not 2 <= self.sah_bins <= 64:
-            raise ValueError(f"sah_bins={self.sah_bins!r}: expected an int in 2..64")
-        if (
-            not isinstance(self.coarse_bits, int)
-            or self.coarse_bits % 3
-            or not 0 <= self.coarse_bits <= 24
-        ):
-            raise ValueError(
-                f"coarse_bits={self.coarse_bits!r}: expected a multiple of 3 in 0..24"
-            )
+        self.p = _integer("p", self.p, range(1, 6))
+        self.sah_bins = _integer("sah_bins", self.sah_bins, range(2, 65))
+        self.coarse_bits = _integer(
+            "coarse_bits", self.coarse_bits, range(0, 25, 3), "a multiple of 3 in 0..24"
+        )
         return self
 
     @classmethod
@@ -100,6 +95,20 @@ class BuildConfig:
                 f"unknown build option(s) {unknown}: expected some of {sorted(names)}"
             )
         return cls(**options).validated()
+
+
+def _integer(name: str, value, allowed, expected: str = "") -> int:
+    """``value`` as a Python int if it is an integer (bools and floats are not) in
+    ``allowed``; otherwise a ValueError naming the option and what it accepts."""
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, numbers.Integral)
+        or int(value) not in allowed
+    ):
+        if not expected:
+            expected = f"an int in {allowed[0]}..{allowed[-1]}"
+        raise ValueError(f"{name}={value!r}: expected {expected}")
+    return int(value)
 
 
 @dataclass

@@ -9,7 +9,7 @@ from .arrays import namespace_of, plain
 
 def as_points(vertices):
     """Plain flat Float[3·V] (xyz interleaved) from a flat Float or any Array3f/Point3f."""
-    if not dr.is_jit_v(vertices):
+    if vertices is None or not dr.is_jit_v(vertices):
         raise TypeError(
             f"vertices: expected a Dr.Jit Float (3·V) or Array3f/Point3f, got {type(vertices).__name__}"
         )
@@ -32,7 +32,7 @@ def as_points(vertices):
 
 def as_faces(faces):
     """Plain flat UInt32 (3·F) from a flat UInt32/Int32 array or an Array3u."""
-    if not dr.is_jit_v(faces):
+    if faces is None or not dr.is_jit_v(faces):
         raise TypeError(f"faces: expected a Dr.Jit UInt32 array (3·F), got {type(faces).__name__}")
     if dr.depth_v(faces) > 1:
         ns = namespace_of(faces)
@@ -52,6 +52,8 @@ def checked_vertices(vertices, faces):
     that ``faces`` (flat UInt32) only index existing vertices; ValueError otherwise."""
     points = as_points(vertices)
     v = len(points) // 3
+    if v == 0:
+        raise ValueError("vertices: the array is empty; pass the positions the faces index")
     bad = dr.count(~dr.isfinite(points))
     top = dr.max(faces) if len(faces) else 0
     dr.eval(bad, top)
@@ -61,8 +63,9 @@ def checked_vertices(vertices, faces):
             "fix or drop those vertices before building"
         )
     if len(faces) and int(top[0]) >= v:
+        hint = " (a negative index?)" if int(top[0]) >= 2**31 else ""
         raise ValueError(
-            f"faces: index {int(top[0])} is out of range for {v} vertices"
+            f"faces: index {int(top[0])} is out of range for {v} vertices{hint}"
         )
     return points
 
