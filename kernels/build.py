@@ -24,7 +24,10 @@ from .bounds import internal_levels, leaf_histogram, node_bounds, sah_cost, tria
 from .bvh import BVH, BuildConfig, BuildStats
 from .csd import csd_sort
 from .emission import NodeRecords, emit_hierarchy
-from .geometry import checked_faces, checked_vertices, gather_triangles, pack_triangles, unpack_triangles
+from .geometry import (
+    checked_faces, checked_vertices, gather_triangles, pack_triangles, unpack_triangles,
+    warn_if_out_of_range,
+)
 from .morton import choose_morton_bits, morton_codes, point_bounds
 from .arrays import namespace_of
 from .sah import binned_sah
@@ -58,6 +61,10 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
             quantization, coarse_bits, p, sah_bins).
     Returns:
         A :class:`BVH` whose ``stats`` say what the build measured.
+    Warns:
+        UserWarning: when the scene is less than 2**-100 wide or reaches beyond 2**125,
+            where float32 ray tracing loses hits (see
+            :func:`~hlbvh.kernels.geometry.warn_if_out_of_range`).
     Raises:
         ValueError: unknown or invalid options, empty input, non-finite vertices,
             faces indexing missing vertices.
@@ -80,6 +87,7 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
         tri_lo, tri_hi = triangle_boxes(tri)
         packed = pack_triangles(tri)
         dr.eval(tri_lo, tri_hi, packed)
+        warn_if_out_of_range(tri_lo, tri_hi)
     stats.prim_count = prim_count
 
     if config.builder == "sah":
