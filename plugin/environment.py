@@ -92,7 +92,16 @@ def check_backend() -> None:
     """Fail with one clear sentence when neither the LLVM nor the CUDA backend works."""
     import drjit as dr
 
-    if dr.has_backend(dr.JitBackend.LLVM) or dr.has_backend(dr.JitBackend.CUDA):
+    if dr.has_backend(dr.JitBackend.LLVM):
+        major = dr.detail.llvm_version()[0]
+        if major < MIN_LLVM_MAJOR:
+            # Dr.Jit was imported before hlbvh and chose an LLVM that crashes it.
+            raise LLVMNotFoundError(
+                f"Dr.Jit loaded LLVM {major}, which crashes Dr.Jit 1.5: import hlbvh before "
+                f"drjit/mitsuba, or {INSTALL_HINT}."
+            )
+        return
+    if dr.has_backend(dr.JitBackend.CUDA):
         return
     raise LLVMNotFoundError(
         "Dr.Jit could not initialise its LLVM backend with "
