@@ -409,16 +409,17 @@ def render_animation(animation, frames, out_dir, settings: RenderSettings,
     todo = [i for i in frames if not statistics.complete(i)]
     if todo:
         renderer = FrameRenderer(animation, settings)
-        bar = tqdm(todo, desc=f"{animation.name} {settings.accel}", unit="frame",
-                   file=sys.stderr, disable=not progress, dynamic_ncols=True)
-        for i in bar:
-            image, row = renderer.render(i)
-            pixels = images.as_image(image)
-            names = renderer.channel_names(pixels)
-            images.write_exr(directory / f"{frame_name(i)}.exr", pixels, channel_names=names)
-            images.write_png(directory / f"{frame_name(i)}.png", pixels[..., :3])
-            statistics.add(row)
-            bar.set_postfix(build=f"{row['build_ms']:.0f}ms", render=f"{row['render_ms']:.0f}ms")
+        with tqdm(todo, desc=f"{animation.name} {settings.accel}", unit="frame",
+                  file=sys.stderr, disable=not progress, dynamic_ncols=True) as bar:
+            for i in bar:
+                image, row = renderer.render(i)
+                pixels = images.as_image(image)
+                names = renderer.channel_names(pixels)
+                images.write_exr(directory / f"{frame_name(i)}.exr", pixels, channel_names=names)
+                images.write_png(directory / f"{frame_name(i)}.png", pixels[..., :3])
+                statistics.add(row)
+                bar.set_postfix(build=f"{row['build_ms']:.0f}ms",
+                                render=f"{row['render_ms']:.0f}ms")
     return [statistics.rows[i] for i in sorted(statistics.rows)], todo
 
 
