@@ -10,7 +10,6 @@ import shutil
 import subprocess
 import sys
 
-import mitsuba as mi
 import numpy as np
 import OpenImageIO as oiio
 import pytest
