@@ -1,0 +1,299 @@
+"""``hlbvh compare``: every frame of an animation rendered with Mitsuba's native
+accelerator and with ours, the same integrator, seed and box filter, compared pixel by
+pixel and timed, in a report directory.
+
+Usage::
+
+    hlbvh compare cloth --frames 0:8 --resolution 320x180 --spp 4 --out out/compare/cloth
+    hlbvh compare fracture --triangles 1000000 --frames 4 --builder lbvh --update refit
+    hlbvh compare scene.xml --frames-dir frames/ --frames 0:10
+
+``SCENE``, ``--frames``, ``--resolution``, ``--spp``, ``--triangles``, the builder
+options, ``--update``, ``--max-depth`` and ``--seed`` mean what they mean for
+``hlbvh render`` (see :mod:`hlbvh.render`), which does the rendering.
+
+What is rendered
+----------------
+Four renders of every frame, each an ``hlbvh render`` into a subdirectory of ``--out``
+(frames written whole, statistics per frame; an interrupted compare resumes, and a
+directory holding frames of other settings is refused):
+
+==================  =====================================================================
+``native/``         ``hlbvh_path`` with ``accel="native"`` (bit-identical to Mitsuba's
+                    C++ ``path``): the reference
+``hlbvh/``          ``hlbvh_path`` with ``accel="hlbvh"``: ours, same seed per frame
+``hits-native/``    ``hlbvh_aov`` at 1 spp, native: the first shape and primitive per pixel
+``hits-hlbvh/``     ``hlbvh_aov`` at 1 spp, ours (the very same camera rays)
+==================  =====================================================================
+
+What is compared, per frame
+---------------------------
+- ``image``: :func:`hlbvh.comparison.metrics.image_metrics` of ours against native over
+  R, G, B: largest and mean absolute difference, fraction of pixels bit-identical,
+  fraction within ``--tolerance`` (default :data:`TOLERANCE`), PSNR;
+- ``hits``: :func:`hlbvh.comparison.metrics.hit_agreement` of the two AOV renders:
+  fraction of pixels whose camera ray hits the same shape and primitive first;
+- ``build_ms``: native = Mitsuba's ``params.update()`` (its full rebuild), hlbvh = our
+  accelerator's update (build, rebuild or refit: ``decision``); ``build_speedup`` =
+  native / hlbvh; ``render_ms`` of each; ``frame_ms`` = build + render (an hlbvh frame
+  rendered through Mitsuba today also pays Mitsuba's own rebuild: not counted, it
+  measures the algorithm); ``sah_cost`` of our tree.
+
+The first frame of each render includes compiling the kernels Dr.Jit's disk cache did
+not hold. The four renders run one after the other, so their times see the machine
+load of their own moment: ``hlbvh bench frame`` alternates the accelerators frame by
+frame when the timing is the question.
+
+The report (``--out``)
+----------------------
+``report.md`` and ``report.html`` (settings, one row per frame, then per frame the
+native image, ours and the false-colour difference side by side, then the plot),
+``results.json`` and ``results.csv`` (the same rows), ``diff/frame_NNNN.png`` (the
+difference maps, all on one scale: the largest difference of any frame, so frames can
+be compared by eye; it is recorded as ``difference_scale``) and ``build_ms.png``
+(build time per frame, both accelerators).
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from dataclasses import replace
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+
+from hlbvh import images, scenes
+from hlbvh.cli import UserError
+from hlbvh.comparison import plots, report
+from hlbvh.comparison.metrics import hit_agreement, image_metrics
+from hlbvh.integrators.common import BUILD_OPTIONS
+from hlbvh.kernels.bvh import BuildConfig
+from hlbvh.render import (
+    DEFAULT_MAX_DEPTH,
+    UPDATES,
+    RenderSettings,
+    _choice,
+    _int_flag,
+    _option_value,
+    frame_name,
+    open_animation,
+    parse_resolution,
+    render_animation,
+)
+
+#: Largest absolute per-channel difference of a pixel still counted as equal to native:
+#: the absolute part of the tolerance tests/test_integrators.py::test11 justified from
+#: measurement (worst pixel over 40 seeds 7.7e-5; 5e-4 is 6x that).
+TOLERANCE = 5e-4
+
+#: The accelerators in the order they are rendered and shown: the reference first.
+ACCELS = ("native", "hlbvh")
+
+#: Image metrics shown per frame (all of them are in ``results.json`` under ``image``).
+_IMAGE_COLUMNS = ("max_abs_diff", "mean_abs_diff", "fraction_identical",
+                  "fraction_within_tolerance", "psnr_db", "nonfinite_mismatch_pixels")
+
+
+# ---------------------------------------------------------------------------------------
+# Command-line options shared with ``hlbvh sweep``
+# ---------------------------------------------------------------------------------------
+
+
+def add_scene_options(parser, *, builder_options: bool = True) -> None:
+    """The options of a scene and its renders, as ``hlbvh render`` spells them: SCENE,
+    ``--frames-dir``, ``--frames``, ``--resolution``, ``--spp``, ``--triangles``,
+    ``--max-depth``, ``--seed``, ``--out``, ``--quiet``; with ``builder_options`` also
+    the builder's options and ``--update``."""
+    add = parser.add_argument
+    add("scene", help=f"a procedural scene ({', '.join(scenes.names())}) or a Mitsuba XML "
+                      "file (with --frames-dir)")
+    add("--frames-dir", help="directory of per-frame meshes <dir>/<shape id>/frame_0001.ply "
+                             "(with an XML scene)")
+    add("--frames", help="A:B (frames A .. B-1) or N (the first N)")
+    add("--resolution", help="W (W×W) or WxH; default: the scene's")
+    add("--spp", help="samples per pixel; default: the scene's")
+    add("--triangles", help="size of a procedural scene (default 200000)")
+    add("--max-depth", default=str(DEFAULT_MAX_DEPTH),
+        help=f"longest path of the path integrator (default {DEFAULT_MAX_DEPTH}; -1: unbounded)")
+    if builder_options:
+        for name in BUILD_OPTIONS:
+            add(f"--{name.replace('_', '-')}", dest=name,
+                help=f"builder option {name} (hlbvh.build; default {getattr(BuildConfig, name)!r})")
+        add("--update", help="our accelerator's per-frame policy: rebuild, refit or auto "
+                             "(default: the accelerator's own)")
+    add("--seed", default="0", help="frame i is rendered with seed SEED + i (default 0)")
+    add("--out", help="report directory")
+    add("--quiet", action="store_true", help="no progress bars")
+
+
+def render_settings(args, spp=None) -> RenderSettings:
+    """The :class:`hlbvh.render.RenderSettings` of the parsed options of
+    :func:`add_scene_options` (``hlbvh_path``, accelerator native; ``spp`` given here
+    overrides ``--spp``).
+
+    Raises:
+        UserError: a malformed number or choice, naming the option.
+        ValueError: a builder option out of range, naming it.
+    """
+    build_options = {name: _option_value(getattr(args, name)) for name in BUILD_OPTIONS
+                     if getattr(args, name, None) is not None}
+    update = getattr(args, "update", None)
+    if spp is None and args.spp is not None:
+        spp = _int_flag("--spp", args.spp, least=1)
+    return RenderSettings(
+        resolution=None if args.resolution is None else parse_resolution(args.resolution),
+        spp=spp,
+        integrator="path",
+        max_depth=_int_flag("--max-depth", args.max_depth, least=-1),
+        accel="native",
+        build_options=build_options,
+        update=None if update is None else _choice("--update", update, UPDATES),
+        seed=_int_flag("--seed", args.seed, least=0),
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# The comparison
+# ---------------------------------------------------------------------------------------
+
+
+def compare_animation(animation, frames, out_dir, settings: RenderSettings,
+                      source: dict | None = None, tolerance: float = TOLERANCE,
+                      progress: bool = True) -> dict:
+    """Render ``frames`` of ``animation`` with both accelerators, compare them and write
+    the report (see the module docstring).
+
+    Args:
+        animation: the :class:`hlbvh.scenes.AnimatedScene`.
+        frames: the frame indices (e.g. ``range(0, 8)``).
+        out_dir: the report directory (created if needed).
+        settings: how to render; ``accel`` and ``integrator`` are set here per render.
+        source: what identifies the scene (JSON values), recorded with the settings.
+        tolerance: see :data:`TOLERANCE`.
+        progress: progress bars on stderr.
+    Returns:
+        ``{"rows": [one dict per frame], "files": {"md": ..., "html": ..., "json": ...,
+        "csv": ...}, "plots": [...]}``.
+    Raises:
+        UserError: a subdirectory holds frames rendered with other settings.
+        ValueError: a frame's geometry cannot be read or applied.
+    """
+    out = Path(out_dir)
+    frames = list(frames)
+    stats = {}
+    for accel in ACCELS:
+        colour = replace(settings, accel=accel, integrator="path")
+        rows, _ = render_animation(animation, frames, out / accel, colour, source, progress)
+        stats[accel] = {row["frame"]: row for row in rows}
+        hits = replace(settings, accel=accel, integrator="aov", spp=1)
+        render_animation(animation, frames, out / f"hits-{accel}", hits, source, progress)
+
+    # ---- Metrics per frame ----
+    rows, pairs = [], {}
+    for i in frames:
+        name = f"{frame_name(i)}.exr"
+        native, ours = (images.read_exr(out / accel / name, ["R", "G", "B"]) for accel in ACCELS)
+        pairs[i] = native, ours
+        hits = hit_agreement(*(images.read_exr(out / f"hits-{accel}" / name,
+                                               ["shape_index", "prim_index"])
+                               for accel in ACCELS))
+        rows.append(_frame_row(i, stats["native"][i], stats["hlbvh"][i],
+                               image_metrics(native, ours, tolerance), hits))
+
+    # ---- Difference maps, one scale for every frame ----
+    scale = max((row["image"]["max_abs_diff"] for row in rows), default=0.0) or 1.0
+    pictures = {}
+    for i, (native, ours) in pairs.items():
+        difference = images.write_difference_map(out / "diff" / f"{frame_name(i)}.png",
+                                                  native, ours, vmax=scale)
+        pictures[i] = {"native": out / "native" / f"{frame_name(i)}.png",
+                       "hlbvh": out / "hlbvh" / f"{frame_name(i)}.png", "diff": difference}
+
+    # ---- Plot and report ----
+    plot = plots.plot_build_times(
+        out / "build_ms.png", frames, [row["build_ms"]["native"] for row in rows],
+        [row["build_ms"]["hlbvh"] for row in rows],
+        title=f"{animation.name}: build time per frame",
+    )
+    recorded = {**(source or {}), **settings.as_dict(), "frames": f"{frames[0]}:{frames[-1] + 1}",
+                "tolerance": tolerance, "difference_scale": scale, "variant": mi.variant(),
+                "mitsuba": mi.__version__, "drjit": dr.__version__}
+    for key in ("accel", "integrator"):
+        recorded.pop(key)
+    files = report.write_report(out, f"hlbvh compare: {animation.name}", rows, pictures,
+                                recorded, plots=[plot])
+    return {"rows": rows, "files": files, "plots": [plot]}
+
+
+def _frame_row(i: int, native: dict, ours: dict, image: dict, hits: dict) -> dict:
+    """One frame's numbers: what both renders measured, and how they compare."""
+    build = {"native": native["build_ms"], "hlbvh": ours["build_ms"]}
+    render = {"native": native["render_ms"], "hlbvh": ours["render_ms"]}
+    return {
+        "frame": i,
+        "triangles": ours["triangles"],
+        "decision": ours["decision"],
+        "build_ms": build,
+        "build_speedup": build["native"] / build["hlbvh"] if build["hlbvh"] > 0 else math.inf,
+        "render_ms": render,
+        "frame_ms": {accel: build[accel] + render[accel] for accel in ACCELS},
+        "sah_cost": ours["sah_cost"],
+        "image": {key: image[key] for key in _IMAGE_COLUMNS},
+        "hits": {"fraction_agree": hits["fraction_agree"],
+                 "fraction_shape_agree": hits["fraction_shape_agree"],
+                 "differ_pixels": hits["pixels"] - hits["agree_pixels"]},
+    }
+
+
+def summary(rows: list[dict]) -> str:
+    """One line over all frames: median build speedup, worst image and hit agreement."""
+    image = [row["image"] for row in rows]
+    return (
+        f"median build speedup {statistics.median(r['build_speedup'] for r in rows):.2f}x "
+        f"(native params.update() / ours); largest pixel difference "
+        f"{max(m['max_abs_diff'] for m in image):.3g}, at least "
+        f"{100 * min(m['fraction_within_tolerance'] for m in image):.3f}% of pixels within "
+        f"tolerance and {100 * min(m['fraction_identical'] for m in image):.1f}% bit-identical; "
+        f"primary hits agree on at least "
+        f"{100 * min(r['hits']['fraction_agree'] for r in rows):.3f}% of pixels"
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# Command line
+# ---------------------------------------------------------------------------------------
+
+
+def configure(parser) -> None:
+    """Options of ``hlbvh compare``."""
+    parser.description = __doc__.split("\n\n")[0]
+    add_scene_options(parser)
+    parser.add_argument("--tolerance", default=repr(TOLERANCE),
+                        help=f"largest per-channel difference of a pixel counted as equal "
+                             f"(default {TOLERANCE}, measured in the plugin's tests)")
+
+
+def run(args) -> int:
+    """``hlbvh compare``: see the module docstring. Returns the exit status (0)."""
+    settings = render_settings(args)
+    tolerance = _tolerance(args.tolerance)
+    animation, source, frames = open_animation(args.scene, args.frames_dir, args.triangles,
+                                               args.frames)
+    out = Path(args.out) if args.out else Path("out/compare") / Path(args.scene).stem
+    result = compare_animation(animation, frames, out, settings, source, tolerance,
+                               progress=not args.quiet)
+    print(f"{result['files']['html']}: frames {frames.start}..{frames.stop - 1} of "
+          f"{animation.name}, native vs hlbvh; {summary(result['rows'])}")
+    return 0
+
+
+def _tolerance(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        raise UserError(f"--tolerance {text!r}: expected a finite number >= 0")
+    return value
