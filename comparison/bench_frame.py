@@ -28,10 +28,10 @@ frame by frame (both see the same machine load):
   ``path`` and as fast: every query goes to the scene's Embree BVH); frame =
   ``params.update()`` (Mitsuba's rebuild of its accelerator) + render.
 
-Mitsuba rebuilds its own accelerator in ``params.update()`` whatever the integrator, so
-hlbvh frames rendered through Mitsuba today pay that too: it is reported
-(``mitsuba_update_ms``) but not counted in the hlbvh frame, which measures the
-algorithm. ``cold`` is the first frame at that spp (for the first spp: the scene's
+hlbvh frames write the new geometry through each mesh's own parameters
+(``apply_frame(..., rebuild_native=False)``), so Mitsuba does not rebuild its unused
+Embree tree; what Mitsuba still spends refreshing the scene is reported
+(``mitsuba_update_ms``, 0 on hlbvh frames) and not counted in the hlbvh frame. ``cold`` is the first frame at that spp (for the first spp: the scene's
 first build and kernel compilation).
 
 The **crossover** is the spp from which native is faster per frame: a line

@@ -211,9 +211,11 @@ class FrameRenderer:
                 and the frame for sequences).
         """
         # ---- The frame's geometry into the scene; Mitsuba updates itself ----
+        # With our accelerator, Mitsuba's own (Embree) is never queried: skip its rebuild.
         start = _clock()
         parameters = _TimedUpdate(self.params)
-        scenes.apply_frame(self.scene, parameters, self.animation.frame(i))
+        scenes.apply_frame(self.scene, parameters, self.animation.frame(i),
+                           rebuild_native=self.settings.accel == "native")
         geometry_ms = _clock() - start - parameters.update_ms
 
         # ---- Our accelerator follows ----
