@@ -5,9 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-
-class UserError(Exception):
-    """A mistake in what the user asked for: printed as one line, exit status 2."""
+# One class whether this module runs as hlbvh.cli or as __main__ (python -m hlbvh.cli).
+from hlbvh.errors import UserError
 
 
 def _doctor(args) -> int:
