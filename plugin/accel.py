@@ -1,4 +1,4 @@
-"""The intersectors our integrators trace through: one HLBVH over a Mitsuba scene
+"""The intersectors our integrators trace through: HLBVHs over a Mitsuba scene
 (:class:`SceneAccel`) and the scene's own accelerator (:class:`NativeAccel`, Embree on
 the LLVM backend, OptiX on CUDA), behind the same three methods as ``mi.Scene``.
 
@@ -9,18 +9,47 @@ integrators goes to one of these objects, and a hit comes back as a
 ``prim_uv`` are exactly what Mitsuba's own query would have produced, so that
 ``compute_surface_interaction`` (Mitsuba's code) fills in the surface interaction.
 
-What :class:`SceneAccel` puts in its BVH, and what it does not:
+What :class:`SceneAccel` intersects, and what it does not:
 
 * meshes (``obj``, ``ply``, ``serialized``, ``rectangle``, ``cube``, ... anything with
-  ``is_mesh()``): their world-space triangles, all in one BVH;
+  ``is_mesh()``): their world-space triangles, in the BVHs of two :class:`MeshGroup`
+  (see "Per-frame update" below);
 * ``sphere``, ``disk``, ``cylinder``: the few analytic shapes, intersected by
   Mitsuba's own per-shape routine (``shape.ray_intersect_preliminary``, called once per
   analytic shape, not through a shape pointer: see DRJIT_NOTES pitfall 11) and merged
-  with the BVH's hit by nearest ``t``;
+  with the BVHs' hit by nearest ``t``;
 * instances, curves, SDF grids and ellipsoids: rejected with a ``ValueError`` naming
   the shape (never rendered wrong);
+* meshes without triangles: rejected with a ``ValueError`` naming the shape. Mitsuba's
+  own ``obj`` and ``ply`` loaders refuse a file without faces, so such a mesh only
+  comes from Python code (``mi.Mesh(name, 0, 0)``, or faces emptied through
+  ``mi.traverse``), where it is more likely a mistake than an intent: an object that
+  silently disappears renders a wrong image without any error;
 * a scene without any geometry (only an environment, say) is valid, as it is for
-  Mitsuba: every ray misses; so are meshes without triangles: nothing hits them.
+  Mitsuba: every ray misses.
+
+Per-frame update
+----------------
+:meth:`SceneAccel.update` (after ``params.update()``) rebuilds only what the scene
+requires. A mesh's change is seen from the Dr.Jit variable indices of its vertex and
+face buffers (a ``params[...]`` assignment gives the mesh new variables; the
+accelerator holds the old ones, so their indices cannot be reused meanwhile): no
+buffer is compared. The meshes live in two groups, each with its own BVH:
+
+* **static**: the meshes that never changed since the accelerator was built, built
+  once; a mesh whose buffers change for the first time leaves it, and the static BVH
+  is rebuilt once without it;
+* **dynamic**: the meshes that changed at least once, brought up to date on every
+  update in which one of them changed, as the :class:`UpdatePolicy` says: rebuilt
+  (``update="rebuild"``, the default; the CSD sort starts from last frame's primitive
+  order when the triangle count is unchanged), refit (``"refit"``), or refit while the
+  tree's SAH cost stays within ``refit_tolerance`` of its last build's (``"auto"``).
+  New faces, a changed vertex count or a change of its meshes always rebuild.
+
+Queries trace every group that has triangles, the smaller first: a closest-hit query
+traces the next group only up to the closest hit so far (``maxt``), an any-hit query
+only the rays not yet occluded. :attr:`SceneAccel.last_update` says what the last
+update did per group (for per-frame statistics).
 
 ``coherent`` is accepted everywhere for signature compatibility; it is a performance
 hint of Embree's and :class:`SceneAccel` traces coherent and incoherent rays alike.
@@ -28,6 +57,10 @@ hint of Embree's and :class:`SceneAccel` traces coherent and incoherent rays ali
 
 from __future__ import annotations
 
+import dataclasses
+import math
+import numbers
+import time
 from dataclasses import dataclass
 
 import drjit as dr
@@ -35,36 +68,106 @@ import mitsuba as mi
 
 from hlbvh.kernels.build import build
 from hlbvh.kernels.bvh import BuildConfig
-from hlbvh.kernels.traversal import any_hit, closest_hit
+from hlbvh.kernels.traversal import any_hit, closest_hit, packed_records
 
 ACCELS = ("hlbvh", "native")
+#: Per-frame policies of :meth:`SceneAccel.update` (option ``update``).
+UPDATES = ("rebuild", "refit", "auto")
+#: The options of :func:`hlbvh.build` an accelerator accepts.
+BUILD_OPTIONS = tuple(f.name for f in dataclasses.fields(BuildConfig))
+#: The accelerator's own options (:class:`UpdatePolicy`).
+UPDATE_OPTIONS = ("update", "refit_tolerance")
+#: What an update did to a group, from the least work to the most: ``kept`` (nothing
+#: changed), ``refit``, ``rebuild``, ``build`` (the accelerator's first build).
+DECISIONS = ("kept", "refit", "rebuild", "build")
 
 #: Analytic shape types intersected by Mitsuba's own per-shape routine.
 _ANALYTIC = ("Sphere", "Disk", "Cylinder")
 
 
+# ---------------------------------------------------------------------------------------
+# Options
+# ---------------------------------------------------------------------------------------
+
+
 @dataclass
-class SceneGeometry:
-    """What :class:`SceneAccel` collected from a scene, all on the scene's device.
+class UpdatePolicy:
+    """How :meth:`SceneAccel.update` brings the dynamic group up to date when only its
+    meshes' vertex positions changed (new faces or vertex counts always rebuild).
 
     Attributes:
-        vertices: Float (3·V): world-space positions of every mesh, concatenated.
-        faces: UInt32 (3·F): triangles of every mesh, indices into ``vertices``
-            (each mesh's indices offset by the vertices before it).
-        prim_shape: UInt32 (F): for each global triangle, the index of its mesh in
+        update: ``"rebuild"`` (default): a new BVH every update, its CSD sort seeded
+            with last frame's order; always the best tree. ``"refit"``: the tree of the
+            last build with new boxes (:meth:`hlbvh.BVH.refit`), much cheaper, never
+            wrong, but slower to trace as the geometry moves away from the pose it was
+            built for. ``"auto"``: refit, then rebuild if the refit tree's SAH cost
+            exceeds ``refit_tolerance`` times the SAH cost of the group's last build.
+        refit_tolerance: the drift ``"auto"`` accepts, a number >= 1 (default 1.3).
+    """
+
+    update: str = "rebuild"
+    refit_tolerance: float = 1.3
+
+    def validated(self) -> "UpdatePolicy":
+        """Self, after checking both fields; raises ValueError naming the bad one."""
+        if self.update not in UPDATES:
+            raise ValueError(f"update={self.update!r}: expected one of {UPDATES}")
+        tolerance = self.refit_tolerance
+        if (isinstance(tolerance, (bool, str)) or not isinstance(tolerance, numbers.Real)
+                or not math.isfinite(tolerance) or tolerance < 1):
+            raise ValueError(
+                f"refit_tolerance={tolerance!r}: expected a finite number >= 1 (the SAH "
+                "cost a refit tree may reach, relative to a fresh build's)"
+            )
+        self.refit_tolerance = float(tolerance)
+        return self
+
+
+def split_options(options: dict) -> tuple[UpdatePolicy, dict]:
+    """The update policy and the builder's options among an accelerator's options,
+    both validated.
+
+    Args:
+        options: keyword options: :data:`UPDATE_OPTIONS` and :data:`BUILD_OPTIONS`.
+    Returns:
+        ``(UpdatePolicy, build options dict)``.
+    Raises:
+        ValueError: an unknown option or a bad value, naming it.
+    """
+    known = BUILD_OPTIONS + UPDATE_OPTIONS
+    unknown = sorted(set(options) - set(known))
+    if unknown:
+        raise ValueError(
+            f"unknown accelerator option(s) {unknown}: expected some of {sorted(known)}"
+        )
+    policy = UpdatePolicy(**{k: v for k, v in options.items() if k in UPDATE_OPTIONS})
+    build_options = {k: v for k, v in options.items() if k not in UPDATE_OPTIONS}
+    BuildConfig.from_options(**build_options)
+    return policy.validated(), build_options
+
+
+# ---------------------------------------------------------------------------------------
+# The scene's geometry
+# ---------------------------------------------------------------------------------------
+
+
+@dataclass
+class SceneGeometry:
+    """The world-space triangles of some meshes of a scene, on the scene's device.
+
+    Attributes:
+        vertices: Float (3·V): the meshes' positions, concatenated.
+        faces: UInt32 (3·F): their triangles, indices into ``vertices`` (each mesh's
+            indices offset by the vertices before it).
+        prim_shape: UInt32 (F): for each triangle, the index of its mesh in
             ``scene.shapes()``.
-        prim_local: UInt32 (F): for each global triangle, its index inside its mesh.
-        analytic: ``(index into scene.shapes(), shape)`` of every analytic shape.
-        signature: the JIT variable indices of every mesh's buffers at collection
-            time; a ``params.update()`` that changed a mesh changes it.
+        prim_local: UInt32 (F): for each triangle, its index inside its mesh.
     """
 
     vertices: mi.Float
     faces: mi.UInt32
     prim_shape: mi.UInt32
     prim_local: mi.UInt32
-    analytic: list
-    signature: tuple
 
     @property
     def prim_count(self) -> int:
@@ -75,42 +178,24 @@ def _describe(shape) -> str:
     return f"shape {shape.id()!r} ({shape.class_name()})"
 
 
-def geometry_signature(shapes) -> tuple:
-    """The JIT variable indices of every mesh's vertex and face buffers, in the order
-    of ``shapes``: equal signatures mean the triangles did not change."""
-    return tuple(
-        (s.vertex_positions_buffer().index, s.faces_buffer().index) if s.is_mesh() else None
-        for s in shapes
-    )
-
-
-def collect_geometry(shapes) -> SceneGeometry:
-    """World-space triangles of every mesh among ``shapes`` in one vertex/face buffer,
-    and the list of the analytic shapes.
+def scene_shapes(shapes) -> tuple[list[int], list]:
+    """Sort a scene's shapes into meshes and analytic shapes.
 
     Args:
-        shapes: ``scene.shapes()``; the indices stored refer to this list.
-
-    A Python loop over the scene's shapes (a few), none over triangles.
-
+        shapes: ``scene.shapes()``.
+    Returns:
+        ``(mesh indices, analytic)``: the indices of the meshes in ``shapes``, and
+        ``(index, shape)`` of every analytic shape.
     Raises:
         ValueError: naming the shape, for an instance, a curve, an SDF grid, ellipsoids
             or any other shape type this accelerator does not intersect, and for a
-            mesh with non-finite vertex positions. Meshes without triangles are
-            skipped (nothing can hit them), as Mitsuba's own accelerator does.
+            mesh without triangles.
     """
-    vertices, faces, prim_shape, prim_local, analytic = [], [], [], [], []
-    vertex_base = 0
+    meshes, analytic = [], []
     for index, shape in enumerate(shapes):
         if shape.is_mesh():
-            face_count = shape.face_count()
-            if face_count == 0:
-                continue  # nothing to hit, as for Mitsuba's own accelerator
-            vertices.append(shape.vertex_positions_buffer())
-            faces.append(shape.faces_buffer() + dr.opaque(mi.UInt32, vertex_base))
-            prim_shape.append(dr.full(mi.UInt32, index, face_count))
-            prim_local.append(dr.arange(mi.UInt32, face_count))
-            vertex_base += shape.vertex_count()
+            _check_not_empty(shape)
+            meshes.append(index)
         elif shape.class_name() in _ANALYTIC:
             analytic.append((index, shape))
         else:
@@ -120,31 +205,86 @@ def collect_geometry(shapes) -> SceneGeometry:
                 "curves, SDF grids and ellipsoids are not supported yet. Use "
                 "accel='native' for this scene."
             )
-    if vertices:
-        geometry = SceneGeometry(
-            dr.concat(vertices), dr.concat(faces), dr.concat(prim_shape),
-            dr.concat(prim_local), analytic, geometry_signature(shapes),
+    return meshes, analytic
+
+
+def _check_not_empty(mesh):
+    if mesh.face_count() == 0:
+        raise ValueError(
+            f"{_describe(mesh)} has no triangles: it would silently be missing from the "
+            "image; give it faces or remove it from the scene"
         )
-        _check_finite(shapes, geometry)
-    else:
-        geometry = SceneGeometry(
-            mi.Float(), mi.UInt32(), mi.UInt32(), mi.UInt32(), analytic,
-            geometry_signature(shapes),
-        )
+
+
+def collect_geometry(shapes, indices=None) -> SceneGeometry:
+    """World-space triangles of meshes among ``shapes`` in one vertex/face buffer.
+
+    Args:
+        shapes: ``scene.shapes()``; the indices stored refer to this list.
+        indices: which meshes (indices into ``shapes``); by default every mesh, after
+            :func:`scene_shapes` checked the scene.
+
+    A Python loop over the meshes (a few), none over triangles.
+    """
+    if indices is None:
+        indices = scene_shapes(shapes)[0]
+    vertices, faces, prim_shape, prim_local = [], [], [], []
+    vertex_base = 0
+    for index in indices:
+        mesh = shapes[index]
+        face_count = mesh.face_count()
+        vertices.append(mesh.vertex_positions_buffer())
+        faces.append(mesh.faces_buffer() + dr.opaque(mi.UInt32, vertex_base))
+        prim_shape.append(dr.full(mi.UInt32, index, face_count))
+        prim_local.append(dr.arange(mi.UInt32, face_count))
+        vertex_base += mesh.vertex_count()
+    if not indices:
+        return SceneGeometry(mi.Float(), mi.UInt32(), mi.UInt32(), mi.UInt32())
+    geometry = SceneGeometry(_concat(vertices), dr.concat(faces), dr.concat(prim_shape),
+                             dr.concat(prim_local))
     dr.eval(geometry.vertices, geometry.faces, geometry.prim_shape, geometry.prim_local)
     return geometry
 
 
-def _check_finite(shapes, geometry: SceneGeometry):
-    """One reduction over all vertices; on failure, find and name the culprit mesh."""
-    if dr.all(dr.isfinite(geometry.vertices)):
-        return
-    for shape in shapes:
-        if shape.is_mesh() and not dr.all(dr.isfinite(shape.vertex_positions_buffer())):
-            raise ValueError(
-                f"{_describe(shape)} has non-finite (NaN or infinite) vertex positions: "
+def _concat(arrays):
+    """The arrays end to end (one array is returned as it is: no copy)."""
+    return arrays[0] if len(arrays) == 1 else dr.concat(arrays)
+
+
+def mesh_buffers(shapes, indices) -> dict:
+    """``{index: (vertex buffer, face buffer)}`` of the meshes ``shapes[i]``: the arrays
+    themselves, whose JIT variable indices tell whether a mesh got new buffers. Held,
+    they keep their indices from being given to other arrays.
+
+    Raises:
+        ValueError: naming a mesh that has no triangles (any more).
+    """
+    buffers = {}
+    for index in indices:
+        mesh = shapes[index]
+        _check_not_empty(mesh)
+        buffers[index] = (mesh.vertex_positions_buffer(), mesh.faces_buffer())
+    return buffers
+
+
+def _named_error(shapes, indices, error: ValueError) -> ValueError:
+    """A build or refit of the meshes ``indices`` failed with ``error``: the same
+    error, naming the mesh with non-finite positions when there is one."""
+    for index in indices:
+        mesh = shapes[index]
+        if not dr.all(dr.isfinite(mesh.vertex_positions_buffer()), axis=None):
+            return ValueError(
+                f"{_describe(mesh)} has non-finite (NaN or infinite) vertex positions: "
                 "fix the mesh or the parameters written into it"
             )
+    names = ", ".join(repr(shapes[i].id()) for i in indices)
+    return ValueError(f"building the HLBVH of the meshes {names} failed: {error}")
+
+
+def _clock() -> float:
+    """Milliseconds since an arbitrary origin, after the device finished its work."""
+    dr.sync_thread()
+    return time.perf_counter() * 1e3
 
 
 def _bind_overloads(args: tuple, long_names: tuple, given: dict) -> dict:
@@ -261,14 +401,148 @@ class NativeAccel(_Accel):
         return self.scene.ray_test(ray, coherent, active)
 
 
+# ---------------------------------------------------------------------------------------
+# Groups of meshes sharing one BVH
+# ---------------------------------------------------------------------------------------
+
+
+class MeshGroup:
+    """Meshes of a scene that share one BVH, and what the last update did to it.
+
+    Args:
+        name: what the group is called in statistics (``"static"``, ``"dynamic"``).
+
+    Attributes:
+        name: as given.
+        indices: indices into ``scene.shapes()`` of the group's meshes, ascending.
+        geometry: the :class:`SceneGeometry` of the meshes as last built or refit.
+        bvh: the group's :class:`hlbvh.BVH`; None while the group has no triangles.
+        built_sah: SAH cost of the group's last build, against which ``"auto"``
+            measures a refit tree's drift.
+        builds, refits: how often the group was built and refit so far.
+        last: what the group's last update did: ``decision`` (one of
+            :data:`DECISIONS`), ``ms`` (wall time, device synchronised, including the
+            packing of the traversal records), ``triangles``, ``sah_cost`` (of the tree
+            now; None without triangles), ``seeded`` (a build whose CSD sort started
+            from the previous tree's order), ``drift`` (a refit tree's SAH cost over
+            ``built_sah``; None when the update did not refit).
+    """
+
+    def __init__(self, name: str):
+        self.name = name
+        self.indices: tuple = ()
+        self.geometry = None
+        self.bvh = None
+        self.built_sah = None
+        self.builds = 0
+        self.refits = 0
+        self.last = None
+        self._built_indices = None  # the meshes the tree was built over
+        self.keep()
+
+    @property
+    def triangles(self) -> int:
+        return 0 if self.geometry is None else self.geometry.prim_count
+
+    def update(self, shapes, build_options: dict, policy: UpdatePolicy, reshaped: bool,
+               decision: str = "rebuild"):
+        """Bring the BVH up to date with the meshes' current buffers.
+
+        Args:
+            shapes: ``scene.shapes()``.
+            build_options: options of :func:`hlbvh.build`.
+            policy: the :class:`UpdatePolicy`.
+            reshaped: the meshes' faces or vertex counts changed (forces a rebuild; so
+                does a change of :attr:`indices` since the last build).
+            decision: what to call a rebuild in :attr:`last` (``"build"`` for the
+                accelerator's first one).
+        """
+        start = _clock()
+        seeded, drift = False, None
+        reshaped = reshaped or self.bvh is None or self.indices != self._built_indices
+        if reshaped or policy.update == "rebuild":
+            seeded = self._build(shapes, build_options)
+        else:
+            drift = self._refit(shapes)
+            decision = "refit"
+            if policy.update == "auto" and drift > policy.refit_tolerance:
+                seeded = self._build(shapes, build_options)
+                decision = "rebuild"
+        self.last = dict(
+            decision=decision, ms=_clock() - start, triangles=self.triangles,
+            sah_cost=None if self.bvh is None else float(self.bvh.stats.sah_cost),
+            seeded=seeded, drift=drift,
+        )
+
+    def keep(self):
+        """Record that the last update left the group as it was."""
+        self.last = dict(
+            decision="kept", ms=0.0, triangles=self.triangles,
+            sah_cost=None if self.bvh is None else float(self.bvh.stats.sah_cost),
+            seeded=False, drift=None,
+        )
+
+    def root_area(self) -> float:
+        """Surface area of the BVH's root box (half of it, as the SAH cost's areas),
+        in double precision; 0 without triangles."""
+        if self.bvh is None:
+            return 0.0
+        lo, hi = self.root_box()
+        e = [max(h - l, 0.0) for l, h in zip(lo, hi)]
+        return e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
+
+    def root_box(self) -> tuple[list, list]:
+        """Lower and upper corner of the BVH's root box, as Python floats."""
+        return ([float(c[0]) for c in self.bvh.node_min],
+                [float(c[0]) for c in self.bvh.node_max])
+
+    def _build(self, shapes, build_options) -> bool:
+        """A new BVH over the meshes' current triangles, its CSD sort seeded with the
+        previous tree's order when the triangle count is unchanged; whether it was."""
+        previous = self.bvh
+        self.geometry = collect_geometry(shapes, self.indices)
+        self._built_indices = self.indices
+        self.builds += 1
+        if self.geometry.prim_count == 0:
+            self.bvh = self.built_sah = None
+            return False
+        try:
+            self.bvh = build(self.geometry.vertices, self.geometry.faces, previous=previous,
+                             **build_options)
+        except ValueError as error:
+            raise _named_error(shapes, self.indices, error) from error
+        packed_records(self.bvh)  # now, not inside some integrator's symbolic loop
+        self.built_sah = self.bvh.stats.sah_cost
+        return previous is not None and previous.prim_count == self.bvh.prim_count
+
+    def _refit(self, shapes) -> float:
+        """The same tree with boxes for the meshes' new positions; its SAH drift."""
+        vertices = _concat([shapes[i].vertex_positions_buffer() for i in self.indices])
+        try:
+            self.bvh.refit(vertices)
+        except ValueError as error:
+            raise _named_error(shapes, self.indices, error) from error
+        packed_records(self.bvh)
+        self.geometry.vertices = vertices
+        self.refits += 1
+        return self.bvh.stats.sah_cost / self.built_sah
+
+
+# ---------------------------------------------------------------------------------------
+# Our accelerator
+# ---------------------------------------------------------------------------------------
+
+
 class SceneAccel(_Accel):
-    """One HLBVH over the triangles of every mesh of a Mitsuba scene, plus the scene's
-    analytic shapes, queried with ``mi.Scene``'s own signatures.
+    """HLBVHs over the triangles of every mesh of a Mitsuba scene, plus the scene's
+    analytic shapes, queried with ``mi.Scene``'s own signatures and updated per frame
+    as the module docstring says.
 
     Args:
         scene: the ``mi.Scene`` (JIT variant: LLVM or CUDA).
         **options: options of :func:`hlbvh.build` (``builder``, ``leaf_size``,
-            ``morton_bits``, ``quantization``, ``coarse_bits``, ``p``, ``sah_bins``).
+            ``morton_bits``, ``quantization``, ``coarse_bits``, ``p``, ``sah_bins``) and
+            of the :class:`UpdatePolicy` (``update``, ``refit_tolerance``).
     Raises:
         ValueError: for an unknown or invalid option (naming it), or for a shape this
             accelerator cannot intersect (see the module docstring), naming the shape.
@@ -279,19 +553,33 @@ class SceneAccel(_Accel):
             reference cycle keeping the scene alive.
         shapes_dr: ``scene.shapes_dr()``, where hits find their shape pointer.
         config: the validated :class:`hlbvh.BuildConfig`.
-        geometry: the :class:`SceneGeometry` the BVH was built over.
-        bvh: the :class:`hlbvh.BVH`, or None when the scene has no triangles.
+        policy: the validated :class:`UpdatePolicy`.
+        meshes: indices of the meshes in ``shapes``.
+        analytic: ``(index into shapes, shape)`` of every analytic shape.
+        static, dynamic: the two :class:`MeshGroup`.
+        last_update: what the last :meth:`update` (or the construction) did:
+            ``decision`` (the most work any group did, one of :data:`DECISIONS`),
+            ``ms`` (wall time of the whole update), ``triangles``, ``sah_cost`` (of
+            both groups together: each group's SAH cost weighted by its root box's
+            area over the area of the box around both, the cost of a ray through that
+            box when each group is entered through its root box; None without
+            triangles), and ``groups``: ``{"static": ..., "dynamic": ...}``, each
+            group's :attr:`MeshGroup.last`.
     """
 
     name = "hlbvh"
 
     def __init__(self, scene, **options):
-        self.config = BuildConfig.from_options(**options)
-        self.options = options
+        self.policy, self._build_options = split_options(options)
+        self.config = BuildConfig.from_options(**self._build_options)
         self.shapes = list(scene.shapes())
         self.shapes_dr = scene.shapes_dr()
-        self.geometry = None
-        self.bvh = None
+        self.meshes, self.analytic = scene_shapes(self.shapes)
+        self.static = MeshGroup("static")
+        self.dynamic = MeshGroup("dynamic")
+        self.last_update = None
+        self._buffers = None  # each mesh's buffers at the last update
+        self._traced = []  # the groups with triangles, smallest first
         self.update()
 
     def is_for(self, scene) -> bool:
@@ -301,33 +589,77 @@ class SceneAccel(_Accel):
 
     def changed(self) -> bool:
         """Whether a mesh got new vertex or face buffers (a ``params.update()`` with
-        new values) since the last build."""
-        return geometry_signature(self.shapes) != self.geometry.signature
+        new values) since the last update."""
+        buffers = mesh_buffers(self.shapes, self.meshes)
+        return any(_new_buffers(buffers[i], self._buffers[i]) for i in self.meshes)
 
     def update(self):
-        """Re-collect the meshes' triangles and rebuild the BVH; call it after
-        ``params.update()`` changed the scene.
+        """Bring the BVHs up to date with the meshes' buffers; call it after
+        ``params.update()`` changed the scene (a call when nothing changed costs a look
+        at each mesh's buffers and records ``"kept"``).
 
         Returns:
             self.
+        Raises:
+            ValueError: naming a mesh whose positions became non-finite or whose
+                triangles are gone.
         """
-        self.geometry = collect_geometry(self.shapes)
-        if self.geometry.prim_count == 0:
-            self.bvh = None
+        start = _clock()
+        buffers = mesh_buffers(self.shapes, self.meshes)
+        options, policy = self._build_options, self.policy
+        if self._buffers is None:
+            # ---- First build: every mesh is static until it changes ----
+            self.static.indices = tuple(self.meshes)
+            self.static.update(self.shapes, options, policy, reshaped=True, decision="build")
         else:
-            try:
-                self.bvh = build(self.geometry.vertices, self.geometry.faces, **self.options)
-            except ValueError as e:
-                raise ValueError(f"building the HLBVH of the scene's meshes failed: {e}") from e
+            changed = [i for i in self.meshes if _new_buffers(buffers[i], self._buffers[i])]
+            # ---- Meshes changing for the first time leave the static group ----
+            moved = [i for i in changed if i in self.static.indices]
+            if moved:
+                self.static.indices = tuple(i for i in self.static.indices if i not in moved)
+                self.dynamic.indices = tuple(sorted(self.dynamic.indices + tuple(moved)))
+                self.static.update(self.shapes, options, policy, reshaped=True)
+            else:
+                self.static.keep()
+            # ---- The dynamic group follows its meshes ----
+            if changed:
+                reshaped = any(_reshaped(buffers[i], self._buffers[i]) for i in changed)
+                self.dynamic.update(self.shapes, options, policy, reshaped)
+            else:
+                self.dynamic.keep()
+        self._buffers = buffers
+        self._traced = sorted((g for g in (self.static, self.dynamic) if g.bvh is not None),
+                              key=lambda g: g.triangles)
+        self.last_update = dict(
+            decision=max((g.last["decision"] for g in (self.static, self.dynamic)),
+                         key=DECISIONS.index),
+            ms=_clock() - start,
+            triangles=self.static.triangles + self.dynamic.triangles,
+            sah_cost=self._sah_cost(),
+            groups={g.name: dict(g.last) for g in (self.static, self.dynamic)},
+        )
         return self
 
+    def _sah_cost(self):
+        """SAH cost of both groups together (see :attr:`last_update`)."""
+        if not self._traced:
+            return None
+        if len(self._traced) == 1:
+            return float(self._traced[0].bvh.stats.sah_cost)
+        boxes = [g.root_box() for g in self._traced]
+        e = [max(max(hi[k] for _, hi in boxes) - min(lo[k] for lo, _ in boxes), 0.0)
+             for k in range(3)]
+        area = e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
+        return sum((g.root_area() / area if area > 0 else 1.0) * g.bvh.stats.sah_cost
+                   for g in self._traced)
+
     def _preliminary(self, ray, coherent, active, reorder):
-        """The BVH's closest triangle hit, then each analytic shape's own routine,
+        """The groups' closest triangle hit, then each analytic shape's own routine,
         merged by nearest ``t``; ``coherent`` and ``reorder`` change nothing here."""
         n = dr.width(ray)
         active = mi.Bool(active) & dr.full(mi.Bool, True, n)
         t, prim_uv, prim_index, shape_index = self._closest_mesh_hit(ray, active)
-        for index, shape in self.geometry.analytic:
+        for index, shape in self.analytic:
             pi_s = shape.ray_intersect_preliminary(ray, 0, active)
             closer = pi_s.is_valid() & (pi_s.t < t)
             t = dr.select(closer, pi_s.t, t)
@@ -345,31 +677,47 @@ class SceneAccel(_Accel):
         return pi
 
     def _closest_mesh_hit(self, ray, active):
-        """(t, prim_uv, prim_index, shape_index) of the BVH's closest hit; t infinite
-        where there is none."""
+        """(t, prim_uv, prim_index, shape_index) of the closest triangle hit over all
+        groups; t infinite where there is none. Each group after the first is traced
+        only up to the closest hit so far; on a tie the earlier group's hit stays."""
         n = dr.width(ray)
-        if self.bvh is None:
-            return (dr.full(mi.Float, dr.inf, n), dr.zeros(mi.Point2f, n),
-                    dr.zeros(mi.UInt32, n), dr.zeros(mi.UInt32, n))
-        t, u, v, prim, valid = closest_hit(self.bvh, ray.o, ray.d, ray.maxt, active)
-        valid = mi.Bool(valid)
-        prim = mi.UInt32(prim)
-        return (
-            dr.select(valid, mi.Float(t), dr.inf),
-            mi.Point2f(mi.Float(u), mi.Float(v)),
-            dr.gather(mi.UInt32, self.geometry.prim_local, prim, valid),
-            dr.gather(mi.UInt32, self.geometry.prim_shape, prim, valid),
-        )
+        t = dr.full(mi.Float, dr.inf, n)
+        prim_uv = dr.zeros(mi.Point2f, n)
+        prim_index = dr.zeros(mi.UInt32, n)
+        shape_index = dr.zeros(mi.UInt32, n)
+        maxt = mi.Float(ray.maxt)
+        for group in self._traced:
+            g_t, g_u, g_v, g_prim, g_valid = closest_hit(group.bvh, ray.o, ray.d, maxt, active)
+            g_t, g_prim = mi.Float(g_t), mi.UInt32(g_prim)
+            closer = mi.Bool(g_valid) & (g_t < t)
+            t = dr.select(closer, g_t, t)
+            prim_uv = dr.select(closer, mi.Point2f(mi.Float(g_u), mi.Float(g_v)), prim_uv)
+            geometry = group.geometry
+            prim_index = dr.select(
+                closer, dr.gather(mi.UInt32, geometry.prim_local, g_prim, closer), prim_index)
+            shape_index = dr.select(
+                closer, dr.gather(mi.UInt32, geometry.prim_shape, g_prim, closer), shape_index)
+            maxt = dr.select(closer, t, maxt)
+        return t, prim_uv, prim_index, shape_index
 
     def _test(self, ray, coherent, active):
         active = mi.Bool(active) & dr.full(mi.Bool, True, dr.width(ray))
-        if self.bvh is None:
-            hit = dr.zeros(mi.Bool, dr.width(ray))
-        else:
-            hit = mi.Bool(any_hit(self.bvh, ray.o, ray.d, ray.maxt, active))
-        for _, shape in self.geometry.analytic:
+        hit = dr.zeros(mi.Bool, dr.width(ray))
+        for group in self._traced:
+            hit |= mi.Bool(any_hit(group.bvh, ray.o, ray.d, ray.maxt, active & ~hit))
+        for _, shape in self.analytic:
             hit |= shape.ray_test(ray, active & ~hit)
         return hit & active
+
+
+def _new_buffers(now: tuple, before: tuple) -> bool:
+    """Whether a mesh's (vertex, face) buffers are other variables than before."""
+    return now[0].index != before[0].index or now[1].index != before[1].index
+
+
+def _reshaped(now: tuple, before: tuple) -> bool:
+    """Whether a mesh's faces or vertex count changed (a refit cannot follow)."""
+    return now[1].index != before[1].index or dr.width(now[0]) != dr.width(before[0])
 
 
 def make_accel(scene, accel: str = "hlbvh", **options):
@@ -378,14 +726,15 @@ def make_accel(scene, accel: str = "hlbvh", **options):
     Args:
         scene: the ``mi.Scene``.
         accel: ``"hlbvh"`` (:class:`SceneAccel`) or ``"native"`` (:class:`NativeAccel`).
-        **options: :func:`hlbvh.build` options, validated in both cases (so a typo is
-            caught even while rendering natively) and used by ``"hlbvh"``.
+        **options: :func:`hlbvh.build` and :class:`UpdatePolicy` options, validated in
+            both cases (so a typo is caught even while rendering natively) and used by
+            ``"hlbvh"``.
     Raises:
         ValueError: for any other ``accel``, or an unknown or invalid option.
     """
     if accel == "hlbvh":
         return SceneAccel(scene, **options)
     if accel == "native":
-        BuildConfig.from_options(**options)
+        split_options(options)
         return NativeAccel(scene)
     raise ValueError(f"accel={accel!r}: expected one of {ACCELS}")

@@ -195,7 +195,6 @@ class FrameRenderer:
             resolution=settings.resolution, spp=settings.spp, integrator=description))
         self.params = mi.traverse(self.scene)
         self.integrator = self.scene.integrator()
-        self._accel = None  # our accelerator as the last frame left it
 
     def render(self, i: int, spp: int | None = None) -> tuple[mi.TensorXf, dict]:
         """Apply frame ``i`` and render it.
@@ -240,24 +239,11 @@ class FrameRenderer:
         return image, row
 
     def _follow(self) -> tuple[float, float | None, str]:
-        """Bring our accelerator up to date with the scene: (ms, SAH cost, decision)."""
-        previous = self._accel
-        previous_bvh = None if previous is None else previous.bvh
-        previous_refit = None if previous_bvh is None else previous_bvh.stats.stage_ms.get("refit")
+        """Bring our accelerator up to date with the scene: (ms, SAH cost, decision),
+        the decision and SAH cost as the accelerator reports them (``last_update``)."""
         start = _clock()
-        accel = self.integrator.accel(self.scene)
-        build_ms = _clock() - start
-        self._accel = accel
-        bvh = accel.bvh
-        if accel is not previous:
-            decision = "build"
-        elif bvh is not previous_bvh:
-            decision = "rebuild"
-        elif bvh is not None and bvh.stats.stage_ms.get("refit") is not previous_refit:
-            decision = "refit"
-        else:
-            decision = "kept"
-        return build_ms, None if bvh is None else float(bvh.stats.sah_cost), decision
+        update = self.integrator.accel(self.scene).last_update
+        return _clock() - start, update["sah_cost"], update["decision"]
 
     def triangle_count(self) -> int:
         """Triangles of every mesh of the scene as it is now."""

@@ -8,6 +8,7 @@ import hlbvh
 import mitsuba as mi
 import numpy as np
 import pytest
+from hlbvh.accel import collect_geometry
 
 T = mi.ScalarTransform4f
 
@@ -147,14 +148,13 @@ def test06_scene_without_geometry_misses_everywhere():
     assert not dr.any(accel.ray_intersect(ray).is_valid())
 
 
-def test07_meshes_without_triangles_are_skipped():
-    """Mitsuba accepts an empty mesh; nothing can hit it, in either accelerator."""
+def test07_meshes_without_triangles_name_the_shape():
+    """Mitsuba's obj/ply loaders refuse a mesh without faces; one built in Python would
+    silently vanish from the image, so the accelerator names it instead."""
     scene = mi.load_dict({"type": "scene", "empty": mi.Mesh("empty", 0, 0),
                           "ball": {"type": "sphere"}})
-    accel = hlbvh.SceneAccel(scene)
-    assert accel.geometry.prim_count == 0 and len(accel.geometry.analytic) == 1
-    ray = mi.Ray3f(mi.Point3f(0, 0, -5), mi.Vector3f(0, 0, 1))
-    assert dr.all(accel.ray_intersect_preliminary(ray).t == 4)
+    with pytest.raises(ValueError, match="'empty' \\(Mesh\\) has no triangles"):
+        hlbvh.SceneAccel(scene)
 
 
 # ---------------------------------------------------------------------------------------
@@ -213,15 +213,16 @@ def test10_collected_triangles_are_the_meshes_world_space_triangles():
     """Every global triangle maps back to (shape index, local index) and has exactly
     that mesh's world-space vertices (numpy reference built shape by shape)."""
     scene = mi.load_dict(analytic_scene())
-    geometry = hlbvh.SceneAccel(scene).geometry
+    accel = hlbvh.SceneAccel(scene)
+    geometry = collect_geometry(scene.shapes())
     vertices = np.array(geometry.vertices).reshape(-1, 3)
     faces = np.array(geometry.faces).reshape(-1, 3)
     prim_shape, prim_local = np.array(geometry.prim_shape), np.array(geometry.prim_local)
     shapes = scene.shapes()
     meshes = [i for i, s in enumerate(shapes) if s.is_mesh()]
     assert sorted(set(prim_shape)) == meshes
-    assert sorted(i for i, _ in geometry.analytic) == [i for i, s in enumerate(shapes)
-                                                       if not s.is_mesh()]
+    assert sorted(i for i, _ in accel.analytic) == [i for i, s in enumerate(shapes)
+                                                    if not s.is_mesh()]
     for i in meshes:
         mesh = shapes[i]
         mv = np.array(mesh.vertex_positions_buffer()).reshape(-1, 3)
@@ -285,7 +286,7 @@ def test12_analytic_hits_equal_native():
     ours, theirs = accel.ray_intersect(ray), scene.ray_intersect(ray)
     shape_index = np.array(accel.ray_intersect_preliminary(ray).shape_index)
     hit = np.array(ours.is_valid())
-    for index, shape in accel.geometry.analytic:
+    for index, shape in accel.analytic:
         on_shape = hit & (shape_index == index)
         assert on_shape.sum() > 50
         np.testing.assert_array_equal(np.array(theirs.is_valid())[on_shape], True)

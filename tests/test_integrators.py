@@ -239,16 +239,17 @@ def test13_accel_is_cached_per_scene_and_follows_updates():
     integrator = scene.integrator()
     mi.render(scene)
     first = integrator.accel(scene)
-    bvh = first.bvh
+    bvh = first.static.bvh
     mi.render(scene)
-    assert integrator.accel(scene) is first and first.bvh is bvh
+    assert integrator.accel(scene) is first and first.static.bvh is bvh
+    assert first.last_update["decision"] == "kept"
 
     params = mi.traverse(scene)
     key = next(k for k in params.keys() if k.endswith("vertex_positions"))
     params[key] = params[key] * 0.9
     params.update()
     mi.render(scene)
-    assert integrator.accel(scene) is first and first.bvh is not bvh
+    assert integrator.accel(scene) is first and first.dynamic.builds == 1
 
     other = mi.load_dict(cornell_box(res=8, spp=1))
     mi.render(other, integrator=integrator)
@@ -268,7 +269,7 @@ def test14_builder_options_reach_the_build(builder):
     desc["integrator"] = dict(type="hlbvh_path", max_depth=4, builder=builder, leaf_size=2)
     scene = mi.load_dict(desc)
     ours = np.array(mi.render(scene, seed=8))
-    config = scene.integrator().accel(scene).bvh.config
+    config = scene.integrator().accel(scene).static.bvh.config
     assert (config.builder, config.leaf_size) == (builder, 2)
     native = render(scene, dict(type="hlbvh_path", accel="native", max_depth=4), seed=8)
     np.testing.assert_allclose(ours, native, atol=5e-4, rtol=1e-4)

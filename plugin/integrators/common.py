@@ -9,16 +9,11 @@ The module is reloaded by :func:`hlbvh.register` after a variant change, so that
 
 from __future__ import annotations
 
-import dataclasses
-
 import drjit as dr
 import mitsuba as mi
 
-from hlbvh.accel import ACCELS, NativeAccel, SceneAccel
-from hlbvh.kernels.bvh import BuildConfig
-
-#: The builder options an integrator accepts as properties (``hlbvh.build``'s).
-BUILD_OPTIONS = tuple(f.name for f in dataclasses.fields(BuildConfig))
+from hlbvh.accel import (ACCELS, BUILD_OPTIONS, UPDATE_OPTIONS, NativeAccel, SceneAccel,
+                         split_options)
 
 
 class AccelIntegrator(mi.SamplingIntegrator):
@@ -28,10 +23,14 @@ class AccelIntegrator(mi.SamplingIntegrator):
         accel: ``"hlbvh"`` (default) or ``"native"``.
         builder, leaf_size, morton_bits, quantization, coarse_bits, p, sah_bins:
             options of :func:`hlbvh.build` (see :class:`hlbvh.BuildConfig`).
+        update, refit_tolerance: the per-frame policy of the accelerator
+            (``"rebuild"``, ``"refit"`` or ``"auto"``, and the SAH drift ``"auto"``
+            accepts; see :class:`hlbvh.accel.UpdatePolicy`).
 
-    The HLBVH is built on the first render of a scene and kept for the next renders
-    of that scene; it is rebuilt when another scene is rendered, and updated when a
-    mesh of the scene got new buffers (``params.update()``).
+    The accelerator is built on the first render of a scene and kept for the next
+    renders of that scene; it is built anew when another scene is rendered, and
+    updated (only the meshes that changed) when a mesh of the scene got new buffers
+    (``params.update()``).
     """
 
     def __init__(self, props):
@@ -46,8 +45,9 @@ class AccelIntegrator(mi.SamplingIntegrator):
             raise ValueError(
                 f"integrator property accel={self.accel_name!r}: expected one of {ACCELS}"
             )
-        self.build_options = {name: props[name] for name in BUILD_OPTIONS if name in props}
-        BuildConfig.from_options(**self.build_options)
+        self.accel_options = {name: props[name] for name in BUILD_OPTIONS + UPDATE_OPTIONS
+                              if name in props}
+        split_options(self.accel_options)
         self._accel = None
 
     def accel(self, scene):
@@ -56,19 +56,20 @@ class AccelIntegrator(mi.SamplingIntegrator):
         ``"native"``: a :class:`~hlbvh.NativeAccel`, made per call (it costs nothing,
         and a cached one would keep the scene alive through the scene's reference to
         this integrator). ``"hlbvh"``: a :class:`~hlbvh.SceneAccel`, built on first
-        use, kept while the same scene is rendered, rebuilt for another scene, updated
-        when the scene's meshes got new buffers.
+        use, kept while the same scene is rendered, built anew for another scene, and
+        updated on every call (which costs a look at each mesh's buffers when nothing
+        changed), so its ``last_update`` says what this call did.
         """
         if self.accel_name == "native":
             return NativeAccel(scene)
         if self._accel is None or not self._accel.is_for(scene):
-            self._accel = SceneAccel(scene, **self.build_options)
-        elif self._accel.changed():
+            self._accel = SceneAccel(scene, **self.accel_options)
+        else:
             self._accel.update()
         return self._accel
 
     def _options_string(self) -> str:
-        options = "".join(f", {k}={v!r}" for k, v in self.build_options.items())
+        options = "".join(f", {k}={v!r}" for k, v in self.accel_options.items())
         return f"accel={self.accel_name!r}{options}"
 
 
