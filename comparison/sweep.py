@@ -1,0 +1,409 @@
+"""``hlbvh sweep``: the trade between build speed and tree quality, measured on one
+animated scene, setting by setting, against Mitsuba's native accelerator; it ends by
+naming the fastest setting per frame at the chosen samples per pixel.
+
+Usage::
+
+    hlbvh sweep cloth --spp 4 --resolution 320x180 --out out/sweep/cloth
+    hlbvh sweep fracture --triangles 1000000 --frames 0:6 --spp 16 --spp-curve 1,4,16,64
+    hlbvh sweep cloth --settings hlbvh,lbvh,refit,builder=lbvh+leaf_size=8
+
+Settings (``--settings``, comma separated; default: every name of :data:`SETTINGS`)
+-----------------------------------------------------------------------------------
+A *setting* is a set of builder options (:class:`hlbvh.BuildConfig`) plus our
+accelerator's per-frame ``update`` policy, each varying one knob from the defaults:
+``hlbvh`` (the defaults), ``lbvh``, ``sah`` (the builder); ``morton60``, ``axis``
+(Morton key width, quantisation per axis instead of in a cube); ``coarse6``,
+``coarse18`` (``coarse_bits``); ``p1``, ``p5`` (bit planes per emission pass);
+``leaf1``, ``leaf8`` (``leaf_size``); ``refit``, ``auto`` (the update policy: refit
+every frame, or refit while the SAH cost stays near a fresh build's), ``rebuild``
+(a full build every frame). A setting may also be spelled out:
+``builder=lbvh+leaf_size=8+update=refit`` (its label is that text). ``native``
+(Mitsuba's own accelerator) is always measured, as the reference.
+
+What is measured
+----------------
+Every setting gets its own loaded scene and :class:`hlbvh.render.FrameRenderer`
+(``hlbvh_path``, the same seed per frame for all). First a cold start: every setting
+renders the first two frames of ``--frames`` once, untimed (the first compiles the
+kernels Dr.Jit's disk cache does not hold, the second is the first update, which
+compiles its own); its first build is kept as ``build_cold_ms``. Then the timed pass:
+for each frame of ``--frames``, the settings take turns (all see the same machine
+load): the frame's geometry is applied, the accelerator updated (native:
+``params.update()``, Mitsuba's rebuild; ours: build, rebuild or refit as its policy
+decides, timed on its own), and the frame rendered at every spp of ``--spp-curve``.
+Per setting, over the timed frames:
+
+- ``build_ms``: median time of the accelerator's update; ``decisions``: what the
+  updates did (``rebuild``, ``refit``; native: ``native``);
+- ``sah_cost``: median SAH cost of our tree (a refit tree drifts);
+- ``mrays_primary``, ``mrays_secondary``: closest-hit queries per second (millions)
+  after the last frame, on its camera rays (one per pixel centre) and on one cosine
+  bounce from each of their hits, traced through the setting's accelerator (best of 3,
+  the settings taking turns);
+- ``render_ms`` and ``frame_ms`` (= build + render) at ``--spp``, and
+  ``frame_ms_spp<N>`` at each spp of the curve: medians;
+- ``image.*``: the setting's render at ``--spp`` against native's, frame by frame: the
+  largest difference over the frames, the mean, the smallest fraction of pixels within
+  :data:`hlbvh.comparison.compare.TOLERANCE` and the lowest PSNR.
+
+The report (``--out``, default ``out/sweep/<scene>``)
+-----------------------------------------------------
+``report.md``, ``report.html``, ``results.json``, ``results.csv`` (one row per setting,
+native first; the winner marked), ``build_vs_sah.png`` (build ms against SAH cost, the
+Pareto front marked) and ``frame_vs_spp.png`` (frame ms against spp for every setting
+and native, the spp where native becomes faster marked).
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import sys
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+
+from hlbvh.cli import UserError
+from hlbvh.comparison import plots, report
+from hlbvh.comparison.bench_trace import primary_rays, secondary_rays
+from hlbvh.comparison.compare import TOLERANCE, add_scene_options, render_settings
+from hlbvh.comparison.metrics import image_metrics
+from hlbvh.images import as_image
+from hlbvh.integrators.common import BUILD_OPTIONS
+from hlbvh.render import UPDATES, FrameRenderer, RenderSettings, _int_flag, _option_value
+from hlbvh.render import open_animation
+
+#: The default grid: each setting varies one knob of the defaults (builder options, and
+#: ``update``: our accelerator's per-frame policy).
+SETTINGS = {
+    "hlbvh": {},
+    "lbvh": {"builder": "lbvh"},
+    "sah": {"builder": "sah"},
+    "morton60": {"morton_bits": 60},
+    "axis": {"quantization": "axis"},
+    "coarse6": {"coarse_bits": 6},
+    "coarse18": {"coarse_bits": 18},
+    "p1": {"p": 1},
+    "p5": {"p": 5},
+    "leaf1": {"leaf_size": 1},
+    "leaf8": {"leaf_size": 8},
+    "rebuild": {"update": "rebuild"},
+    "refit": {"update": "refit"},
+    "auto": {"update": "auto"},
+}
+
+#: The label of Mitsuba's own accelerator among the rows.
+NATIVE = "native"
+
+#: Samples per pixel of the frame-time curve unless ``--spp-curve`` says otherwise.
+SPP_CURVE = (1, 4, 16)
+
+#: Frames unless ``--frames`` says otherwise.
+DEFAULT_FRAMES = "0:4"
+
+_TRACE_REPEATS = 3
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One point of the sweep.
+
+    Attributes:
+        label: its name in tables and plots.
+        build_options: options of :func:`hlbvh.build`.
+        update: our accelerator's per-frame policy, or ``None`` for its default.
+        accel: ``"hlbvh"``, or ``"native"`` for Mitsuba's accelerator.
+    """
+
+    label: str
+    build_options: dict = field(default_factory=dict)
+    update: str | None = None
+    accel: str = "hlbvh"
+
+    def render_settings(self, base: RenderSettings) -> RenderSettings:
+        """``base`` with this setting's accelerator, builder options and policy."""
+        return replace(base, accel=self.accel, build_options=dict(self.build_options),
+                       update=self.update)
+
+    def description(self) -> str:
+        """The options as ``key=value`` joined by ``+`` (``defaults`` when none)."""
+        options = {**self.build_options, **({"update": self.update} if self.update else {})}
+        return "+".join(f"{k}={v}" for k, v in options.items()) or (
+            "Mitsuba's accelerator" if self.accel == NATIVE else "defaults")
+
+
+def parse_settings(text: str | None) -> list[Setting]:
+    """``--settings``: names of :data:`SETTINGS` and spelled-out settings
+    (``key=value+key=value``), comma separated; ``None`` for every name of the grid.
+
+    Raises:
+        UserError: an unknown name, a malformed or invalid option (naming it), or a
+            label given twice.
+    """
+    if text is None:
+        words = list(SETTINGS)
+    else:
+        words = [word.strip() for word in text.split(",")]
+        if not all(words):
+            raise UserError(f"--settings {text!r}: expected names or key=value+... separated "
+                            "by single commas")
+    settings = []
+    for word in words:
+        if word in SETTINGS:
+            options = dict(SETTINGS[word])
+        elif "=" in word:
+            options = _spelled_out(word)
+        else:
+            raise UserError(f"--settings: unknown setting {word!r}; expected one of "
+                            f"{', '.join(SETTINGS)} or key=value+key=value")
+        update = options.pop("update", None)
+        if update is not None and update not in UPDATES:
+            raise UserError(f"--settings {word!r}: update={update!r}: expected one of "
+                            f"{', '.join(UPDATES)}")
+        try:
+            RenderSettings(build_options=options)
+        except ValueError as error:
+            raise UserError(f"--settings {word!r}: {error}") from None
+        settings.append(Setting(word, options, update))
+    labels = [s.label for s in settings]
+    twice = sorted({label for label in labels if labels.count(label) > 1})
+    if twice:
+        raise UserError(f"--settings: {', '.join(twice)} given more than once")
+    return settings
+
+
+def _spelled_out(word: str) -> dict:
+    options = {}
+    for part in word.split("+"):
+        key, _, value = part.partition("=")
+        key = key.strip().replace("-", "_")
+        if key not in (*BUILD_OPTIONS, "update") or not value.strip():
+            raise UserError(f"--settings {word!r}: {part!r} is not key=value with a key among "
+                            f"{', '.join((*BUILD_OPTIONS, 'update'))}")
+        options[key] = _option_value(value)
+    return options
+
+
+# ---------------------------------------------------------------------------------------
+# Measuring
+# ---------------------------------------------------------------------------------------
+
+
+def sweep(animation, frames, settings: list[Setting], base: RenderSettings, spp: int,
+          spp_curve=SPP_CURVE, progress: bool = True) -> list[dict]:
+    """Measure every setting, and native, on ``frames`` of ``animation`` (see the module
+    docstring).
+
+    Args:
+        animation: the :class:`hlbvh.scenes.AnimatedScene`.
+        frames: frame indices, at least two (the first two are the cold start).
+        settings: the settings to measure.
+        base: resolution, max depth and seed of every render.
+        spp: the samples per pixel the table, the error and the winner are at.
+        spp_curve: samples per pixel of the frame-time curve (``spp`` is added).
+    Returns:
+        One row per setting, native first (keys in the module docstring, plus
+        ``setting``, ``options``, ``decisions``).
+    Raises:
+        ValueError: fewer than two frames, or a frame that cannot be applied.
+    """
+    from tqdm import tqdm
+
+    frames = list(frames)
+    if len(frames) < 2:
+        raise ValueError(f"frames {frames}: a sweep needs at least two (the first two are "
+                         "also rendered once untimed, to compile every kernel)")
+    curve = sorted({*spp_curve, spp})
+    everyone = [Setting(NATIVE, accel=NATIVE), *settings]
+    renderers = {s.label: FrameRenderer(animation, s.render_settings(base)) for s in everyone}
+    cold, runs, reference = {}, {s.label: [] for s in everyone}, {}
+    with tqdm(total=(len(frames) + 2) * len(everyone), desc=f"sweep {animation.name}",
+              unit="render", file=sys.stderr, disable=not progress,
+              dynamic_ncols=True) as bar:
+        # ---- Cold start: the first two frames once, untimed but for the first build ----
+        # (the second frame is the first update: it compiles kernels of its own)
+        for setting in everyone:
+            bar.set_postfix_str(setting.label)
+            for i in frames[:2]:
+                run, _ = _frame(renderers[setting.label], i, curve[:1], curve[0])
+                cold.setdefault(setting.label, run["build_ms"])
+                bar.update()
+        # ---- Every frame, the settings taking turns ----
+        for i in frames:
+            for setting in everyone:
+                bar.set_postfix_str(setting.label)
+                run, image = _frame(renderers[setting.label], i, curve, spp)
+                if setting.label == NATIVE:
+                    reference[i] = image
+                run["image"] = image_metrics(reference[i], image, TOLERANCE)
+                runs[setting.label].append(run)
+                bar.update()
+    throughput = _throughput(renderers)
+    return [_row(setting, runs[setting.label], cold[setting.label], throughput[setting.label],
+                 spp, curve) for setting in everyone]
+
+
+def _frame(renderer: FrameRenderer, i: int, curve: list[int], spp: int) -> tuple[dict, object]:
+    """Frame ``i`` applied, the accelerator updated and the frame rendered at every spp
+    of ``curve``: (its numbers, the image at ``spp`` as numpy)."""
+    image, row = renderer.render(i, spp=curve[0])
+    render_ms = {curve[0]: row["render_ms"]}
+    kept = image
+    for samples in curve[1:]:
+        dr.sync_thread()
+        start = time.perf_counter()
+        image = mi.render(renderer.scene, seed=row["seed"], spp=samples)
+        dr.eval(image)
+        dr.sync_thread()
+        render_ms[samples] = (time.perf_counter() - start) * 1e3
+        if samples == spp:
+            kept = image
+    run = {"build_ms": row["build_ms"], "sah_cost": row["sah_cost"],
+           "decision": row["decision"], "render_ms": render_ms}
+    return run, as_image(kept)[..., :3]
+
+
+def _throughput(renderers: dict) -> dict:
+    """Per setting: millions of closest-hit queries per second on the current frame's
+    camera rays (``primary``) and on one bounce from their hits (``secondary``), the
+    best of a few runs after a first that may compile, the settings taking turns."""
+    first = next(iter(renderers.values())).scene
+    primary = primary_rays(first)
+    rays = {"primary": (primary, True), "secondary": (secondary_rays(first, primary), False)}
+    dr.eval(rays)
+    times = {label: {kind: [] for kind in rays} for label in renderers}
+    for _ in range(_TRACE_REPEATS + 1):
+        for label, renderer in renderers.items():
+            accel = renderer.integrator.accel(renderer.scene)
+            for kind, (ray, coherent) in rays.items():
+                dr.sync_thread()
+                start = time.perf_counter()
+                pi = accel.ray_intersect_preliminary(ray, coherent)
+                dr.eval(pi.t, pi.prim_uv, pi.prim_index, pi.shape_index)
+                dr.sync_thread()
+                times[label][kind].append(time.perf_counter() - start)
+    return {label: {kind: dr.width(rays[kind][0]) / min(seconds[1:]) / 1e6
+                    for kind, seconds in per_kind.items()}
+            for label, per_kind in times.items()}
+
+
+def _row(setting: Setting, runs: list[dict], cold_ms: float, throughput: dict, spp: int,
+         curve) -> dict:
+    """One setting's row: medians and image error over the timed frames."""
+    sah = [run["sah_cost"] for run in runs if run["sah_cost"] is not None]
+    build = statistics.median(run["build_ms"] for run in runs)
+    frame_ms = {samples: statistics.median(run["build_ms"] + run["render_ms"][samples]
+                                           for run in runs) for samples in curve}
+    errors = [run["image"] for run in runs]
+    decisions = [run["decision"] for run in runs]
+    return {
+        "setting": setting.label,
+        "options": setting.description(),
+        "decisions": ", ".join(f"{d} x{decisions.count(d)}" for d in dict.fromkeys(decisions)),
+        "build_ms": build,
+        "build_cold_ms": cold_ms,
+        "sah_cost": statistics.median(sah) if sah else None,
+        "mrays_primary": throughput["primary"],
+        "mrays_secondary": throughput["secondary"],
+        "render_ms": statistics.median(run["render_ms"][spp] for run in runs),
+        "frame_ms": frame_ms[spp],
+        **{f"frame_ms_spp{samples}": frame_ms[samples] for samples in curve},
+        "image": {
+            "max_abs_diff": max(e["max_abs_diff"] for e in errors),
+            "mean_abs_diff": statistics.fmean(e["mean_abs_diff"] for e in errors),
+            "fraction_within_tolerance": min(e["fraction_within_tolerance"] for e in errors),
+            "psnr_db": min(e["psnr_db"] for e in errors),
+        },
+    }
+
+
+# ---------------------------------------------------------------------------------------
+# Report
+# ---------------------------------------------------------------------------------------
+
+
+def write_sweep(out_dir, rows: list[dict], recorded: dict, spp: int, curve) -> dict:
+    """The two plots and the report of a sweep (see the module docstring).
+
+    Returns:
+        ``{"files": {...}, "plots": [...], "winner": row, "fastest_hlbvh": row}``.
+    """
+    out = Path(out_dir)
+    ours = [row for row in rows if row["setting"] != NATIVE]
+    pareto = plots.plot_build_vs_sah(
+        out / "build_vs_sah.png", [row["setting"] for row in ours],
+        [row["build_ms"] for row in ours], [row["sah_cost"] for row in ours],
+        title=f"{recorded['scene_name']}: build time vs SAH cost (medians)",
+    )
+    curve = sorted({*curve, spp})
+    by_spp = plots.plot_frame_time_vs_spp(
+        out / "frame_vs_spp.png", curve,
+        {row["setting"]: [row[f"frame_ms_spp{s}"] for s in curve] for row in rows},
+        native=NATIVE, title=f"{recorded['scene_name']}: frame time (build + render) vs spp",
+    )
+    files = report.write_sweep_report(
+        out, f"hlbvh sweep: {recorded['scene_name']} at {spp} spp", rows, recorded,
+        plots=[pareto, by_spp], objective="frame_ms", label="setting",
+    )
+    return {"files": files, "plots": [pareto, by_spp], "winner": report.winner(rows),
+            "fastest_hlbvh": report.winner(ours)}
+
+
+def verdict(result: dict, scene: str, spp: int) -> str:
+    """The closing sentence: the fastest setting per frame, with its numbers."""
+    best, ours = result["winner"], result["fastest_hlbvh"]
+    text = (f"fastest per frame on {scene} at {spp} spp: {best['setting']} "
+            f"({best['frame_ms']:.1f} ms per frame")
+    if best is ours:
+        return text + ")"
+    return text + f"); fastest hlbvh setting: {ours['setting']} ({ours['frame_ms']:.1f} ms)"
+
+
+# ---------------------------------------------------------------------------------------
+# Command line
+# ---------------------------------------------------------------------------------------
+
+
+def configure(parser) -> None:
+    """Options of ``hlbvh sweep``."""
+    parser.description = __doc__.split("\n\n")[0]
+    add_scene_options(parser, builder_options=False)
+    parser.add_argument("--settings", help=f"comma separated: names ({', '.join(SETTINGS)}) "
+                                           "or key=value+key=value; default: all names")
+    parser.add_argument("--spp-curve", default=",".join(map(str, SPP_CURVE)),
+                        help="samples per pixel of the frame-time plot, comma separated "
+                             f"(default {','.join(map(str, SPP_CURVE))}; --spp is added)")
+
+
+def run(args) -> int:
+    """``hlbvh sweep``: see the module docstring. Returns the exit status (0)."""
+    settings = parse_settings(args.settings)
+    spp = 4 if args.spp is None else _int_flag("--spp", args.spp, least=1)
+    curve = [_int_flag("--spp-curve", s, least=1) for s in args.spp_curve.split(",")]
+    base = render_settings(args, spp=spp)
+    animation, source, frames = open_animation(
+        args.scene, args.frames_dir, args.triangles,
+        DEFAULT_FRAMES if args.frames is None else args.frames)
+    if len(frames) < 2:
+        raise UserError(f"--frames {args.frames}: a sweep needs at least two frames")
+    out = Path(args.out) if args.out else Path("out/sweep") / Path(args.scene).stem
+    rows = sweep(animation, frames, settings, base, spp, curve, progress=not args.quiet)
+    recorded = {"scene_name": animation.name, **source, **_recorded(base),
+                "frames": f"{frames.start}:{frames.stop}", "spp_curve": sorted({*curve, spp}),
+                "tolerance": TOLERANCE, "variant": mi.variant(), "mitsuba": mi.__version__,
+                "drjit": dr.__version__}
+    result = write_sweep(out, rows, recorded, spp, curve)
+    print(f"{result['files']['html']}: {len(settings)} settings and native on "
+          f"{animation.name}; {verdict(result, animation.name, spp)}")
+    return 0
+
+
+def _recorded(base: RenderSettings) -> dict:
+    record = base.as_dict()
+    for key in ("accel", "build_options", "update", "integrator"):
+        record.pop(key)
+    return record

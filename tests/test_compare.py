@@ -1,0 +1,191 @@
+"""``hlbvh compare``: on a tiny animated scene it writes every file it promises, the
+numbers on its pages are those of its JSON and CSV, and those numbers are the ones the
+image files give; re-running resumes; user errors exit 2 with one line."""
+
+import csv
+import html.parser
+import json
+import math
+
+import OpenImageIO as oiio
+import pytest
+
+from hlbvh import cli, images
+from hlbvh.comparison import compare
+from hlbvh.comparison.metrics import hit_agreement, image_metrics
+from hlbvh.comparison.report import format_value, read_results
+
+FRAMES = (0, 1)
+SIZE = 24
+TINY = ["--triangles", "2000", "--resolution", str(SIZE), "--spp", "2", "--frames", "0:2",
+        "--quiet"]
+
+
+def hlbvh(capsys, *argv):
+    """``hlbvh argv`` in this process: (exit status, stdout, non-empty stderr lines)."""
+    status = cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return status, out, [line for line in err.splitlines() if line.strip()]
+
+
+@pytest.fixture(scope="module")
+def compared(tmp_path_factory):
+    """A compare of frames 0 and 1 of a small cloth: (exit status, its directory)."""
+    out = tmp_path_factory.mktemp("compare") / "cloth"
+    return cli.main(["compare", "cloth", *TINY, "--out", str(out)]), out
+
+
+def markdown_table(text: str, heading: str) -> list[dict]:
+    """The rows of the Markdown table under ``## heading`` as dicts of cell text."""
+    lines = text.split(f"## {heading}\n", 1)[1].strip().splitlines()
+    table = [line for line in lines[: next((k for k, line in enumerate(lines)
+                                            if not line.startswith("|")), len(lines))]]
+    cells = [[cell.strip() for cell in line.strip("|").split(" | ")] for line in table]
+    return [dict(zip(cells[0], row)) for row in cells[2:]]
+
+
+class _Sources(html.parser.HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.sources = []
+
+    def handle_starttag(self, tag, attrs):
+        if tag == "img":
+            self.sources.append(dict(attrs)["src"])
+
+
+def png_size(path) -> tuple:
+    source = oiio.ImageInput.open(str(path))
+    assert source is not None, f"{path} is not an image"
+    spec = source.spec()
+    source.close()
+    return spec.width, spec.height
+
+
+def test01_compare_writes_every_file_it_promises(compared):
+    status, out = compared
+    assert status == 0
+    for name in ("report.md", "report.html", "results.json", "results.csv", "build_ms.png"):
+        assert (out / name).is_file(), name
+    for i in FRAMES:
+        frame = f"frame_{i:04d}"
+        for directory in ("native", "hlbvh", "hits-native", "hits-hlbvh"):
+            assert (out / directory / f"{frame}.exr").is_file()
+            assert (out / directory / f"{frame}.png").is_file()
+            assert (out / directory / "stats.json").is_file()
+        assert png_size(out / "diff" / f"{frame}.png") == (SIZE, SIZE)
+    assert png_size(out / "build_ms.png")[0] > 100
+    assert not list(out.rglob(".*.tmp"))
+
+    # The page shows, per frame, native, ours and the difference, and the plot: every
+    # image it links exists inside the directory.
+    parser = _Sources()
+    parser.feed((out / "report.html").read_text())
+    for i in FRAMES:
+        frame = f"frame_{i:04d}.png"
+        assert [f"native/{frame}", f"hlbvh/{frame}", f"diff/{frame}"] == [
+            s for s in parser.sources if s.endswith(frame)]
+    assert "build_ms.png" in parser.sources
+    for source in parser.sources:
+        assert (out / source).resolve().is_file() and (out / source).resolve().is_relative_to(
+            out.resolve()), source
+
+
+def test02_report_numbers_equal_the_json_and_csv(compared):
+    _, out = compared
+    results = read_results(out / "results.json")
+    rows = results["rows"]
+    assert [row["frame"] for row in rows] == list(FRAMES)
+    table = markdown_table((out / "report.md").read_text(), "Frames")
+    assert len(table) == len(rows)
+    for row, cells in zip(rows, table):
+        assert list(cells) == list(row)
+        for key, value in row.items():
+            assert cells[key] == format_value(value), key
+            if isinstance(value, float) and math.isfinite(value):
+                assert float(cells[key]) == pytest.approx(value, rel=1e-5), key
+    with open(out / "results.csv", newline="") as f:
+        for row, line in zip(rows, csv.DictReader(f)):
+            for key, value in row.items():
+                if isinstance(value, (int, float)) and not isinstance(value, bool):
+                    assert float(line[key]) == value, key
+    settings = {r["setting"]: r["value"] for r in markdown_table((out / "report.md").read_text(),
+                                                                 "Settings")}
+    assert settings["tolerance"] == format_value(compare.TOLERANCE)
+    assert settings["spp"] == "2" and settings["scene"] == "cloth"
+    assert json.loads((out / "results.json").read_text())  # strict JSON
+
+
+def test03_numbers_are_those_of_the_rendered_files(compared):
+    """Metrics recomputed from the EXRs equal the report's; timings equal the renders'
+    statistics; hlbvh agrees with native as the plugin's tests require."""
+    _, out = compared
+    rows = read_results(out / "results.json")["rows"]
+    stats = {accel: {r["frame"]: r for r in json.loads(
+        (out / accel / "stats.json").read_text())["frames"]} for accel in ("native", "hlbvh")}
+    for row in rows:
+        i, name = row["frame"], f"frame_{row['frame']:04d}.exr"
+        native, ours = (images.read_exr(out / a / name, ["R", "G", "B"]) for a in ("native", "hlbvh"))
+        expected = image_metrics(native, ours, compare.TOLERANCE)
+        for key in ("max_abs_diff", "mean_abs_diff", "fraction_identical",
+                    "fraction_within_tolerance", "psnr_db"):
+            assert row[f"image.{key}"] == expected[key], key
+        hits = hit_agreement(*(images.read_exr(out / f"hits-{a}" / name,
+                                               ["shape_index", "prim_index"])
+                               for a in ("native", "hlbvh")))
+        assert row["hits.fraction_agree"] == hits["fraction_agree"]
+        for accel in ("native", "hlbvh"):
+            assert row[f"build_ms.{accel}"] == stats[accel][i]["build_ms"]
+            assert row[f"render_ms.{accel}"] == stats[accel][i]["render_ms"]
+            assert row[f"frame_ms.{accel}"] == pytest.approx(
+                stats[accel][i]["build_ms"] + stats[accel][i]["render_ms"])
+        assert row["build_speedup"] == pytest.approx(
+            stats["native"][i]["build_ms"] / stats["hlbvh"][i]["build_ms"])
+        assert row["sah_cost"] == stats["hlbvh"][i]["sah_cost"] >= 1
+        # Same seed, box filter: ours equals native within the plugin's tolerance (one
+        # pixel may branch differently), and the camera rays hit the same primitives
+        # but for an edge tie or two.
+        pixels = SIZE * SIZE
+        assert row["image.fraction_within_tolerance"] >= 1 - 1 / pixels
+        assert row["image.fraction_identical"] > 0.05
+        assert row["hits.fraction_agree"] >= 1 - 2 / pixels
+    # The difference maps share one scale: the largest difference of any frame.
+    scale = read_results(out / "results.json")["settings"]["difference_scale"]
+    assert scale == max(row["image.max_abs_diff"] for row in rows) or scale == 1.0
+
+
+def test04_running_again_resumes_without_rendering(compared, capsys):
+    _, out = compared
+    before = {p: p.stat().st_mtime_ns for p in out.glob("*/frame_*.exr")}
+    rows = read_results(out / "results.json")["rows"]
+    status, printed, errors = hlbvh(capsys, "compare", "cloth", *TINY, "--out", out)
+    assert status == 0 and not errors
+    assert "report.html" in printed and "build speedup" in printed
+    assert {p: p.stat().st_mtime_ns for p in out.glob("*/frame_*.exr")} == before
+    assert read_results(out / "results.json")["rows"] == rows
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["nonsense"], "not a procedural scene"),
+    (["cloth", "--tolerance", "-1"], "--tolerance"),
+    (["cloth", "--frames", "3:1"], "--frames"),
+    (["cloth", "--leaf-size", "99"], "leaf_size"),
+    (["cloth", "--update", "sometimes"], "--update"),
+    (["cloth", "--spp", "zero"], "--spp"),
+])
+def test05_user_errors_exit_2_with_one_line(tmp_path, capsys, argv, message):
+    status, _, errors = hlbvh(capsys, "compare", *argv, "--quiet", "--out", tmp_path / "x")
+    assert status == 2
+    assert len(errors) == 1 and message in errors[0] and errors[0].startswith("hlbvh compare:")
+    assert not (tmp_path / "x").exists()
+
+
+def test06_other_settings_in_the_directory_are_refused(compared, capsys):
+    """A report directory holds one comparison: rendering other settings into it is a
+    user error, and the files already there are untouched."""
+    _, out = compared
+    before = (out / "results.json").read_bytes()
+    status, _, errors = hlbvh(capsys, "compare", "cloth", *TINY, "--seed", "3", "--out", out)
+    assert status == 2 and len(errors) == 1 and "other settings" in errors[0]
+    assert (out / "results.json").read_bytes() == before
+
