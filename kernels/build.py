@@ -24,10 +24,7 @@ from .bounds import internal_levels, leaf_histogram, node_bounds, sah_cost, tria
 from .bvh import BVH, BuildConfig, BuildStats
 from .csd import csd_sort
 from .emission import NodeRecords, emit_hierarchy
-from .geometry import (
-    checked_faces, checked_vertices, gather_triangles, pack_triangles, unpack_triangles,
-    warn_if_out_of_range,
-)
+from .geometry import checked_faces, checked_vertices, gather_triangles, warn_if_out_of_range
 from .morton import choose_morton_bits, morton_codes, point_bounds
 from .arrays import namespace_of
 from .sah import binned_sah
@@ -83,10 +80,8 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
         ns = namespace_of(faces)
         UInt32 = ns.UInt32
         prim_count = len(faces) // 3
-        tri = gather_triangles(points, faces, dr.arange(UInt32, prim_count))
-        tri_lo, tri_hi = triangle_boxes(tri)
-        packed = pack_triangles(tri)
-        dr.eval(tri_lo, tri_hi, packed)
+        tri_lo, tri_hi = triangle_boxes(gather_triangles(points, faces, dr.arange(UInt32, prim_count)))
+        dr.eval(tri_lo, tri_hi)
         warn_if_out_of_range(tri_lo, tri_hi)
     stats.prim_count = prim_count
 
@@ -96,7 +91,7 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
                 tri_lo, tri_hi, dr.full(UInt32, 1, prim_count), config.leaf_size, config.sah_bins
             )
             prim_ids = tree.item_order
-            tri = unpack_triangles(packed, prim_ids)
+            tri = gather_triangles(points, faces, prim_ids)
             dr.eval(tri)
         node_first, node_count = tree.node_first, tree.node_count
         node_min, node_max, levels = tree.node_min, tree.node_max, tree.levels
@@ -104,7 +99,7 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
         stats.morton_bits = 0
     else:
         node_first, node_count, node_depth, prim_ids, tri, slot_lo, slot_hi = _morton_build(
-            config, stats, clock, previous, tri_lo, tri_hi, packed
+            config, stats, clock, previous, tri_lo, tri_hi, points, faces
         )
         with clock("bounds"):
             levels = internal_levels(node_count, node_depth)
@@ -137,7 +132,7 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
     )
 
 
-def _morton_build(config: BuildConfig, stats: BuildStats, clock, previous, tri_lo, tri_hi, packed):
+def _morton_build(config: BuildConfig, stats: BuildStats, clock, previous, tri_lo, tri_hi, points, faces):
     """The "lbvh" and "hlbvh" builders up to the node records (no boxes yet).
 
     Returns (node_first, node_count, node_depth, prim_ids, slot triangles (Matrix3f),
@@ -168,9 +163,9 @@ def _morton_build(config: BuildConfig, stats: BuildStats, clock, previous, tri_l
     stats.csd_runs = csd.runs
     stats.coarse_clusters = csd.coarse_clusters
 
-    # ---- Triangles in slot order (one contiguous gather each) ----
+    # ---- Triangles in slot order (mesh vertices are shared and local: mostly cached) ----
     with clock("triangles"):
-        tri = unpack_triangles(packed, prim_ids)
+        tri = gather_triangles(points, faces, prim_ids)
         slot_lo, slot_hi = triangle_boxes(tri)
         dr.eval(tri, slot_lo, slot_hi)
 

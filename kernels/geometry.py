@@ -144,17 +144,3 @@ def gather_triangles(points, faces, prims):
     ns = namespace_of(faces)
     face = dr.gather(ns.Array3u, faces, prims)
     return ns.Matrix3f(*(dr.gather(ns.Array3f, points, face[k]) for k in range(3)))
-
-
-def pack_triangles(tri):
-    """Flat Float[9·F] holding the rows of Matrix3f ``tri`` triangle after triangle, so
-    that :func:`unpack_triangles` reads one triangle with one contiguous gather."""
-    ns = namespace_of(tri[0].x)
-    packed = dr.zeros(ns.Float, 9 * dr.width(tri))
-    dr.scatter(packed, tri, dr.arange(ns.UInt32, dr.width(tri)))
-    return packed
-
-
-def unpack_triangles(packed, prims):
-    """Matrix3f[len(prims)]: the triangles ``prims`` of a :func:`pack_triangles` array."""
-    return dr.gather(namespace_of(packed).Matrix3f, packed, prims)
