@@ -25,7 +25,7 @@ from .bvh import BVH, BuildConfig, BuildStats
 from .csd import csd_sort
 from .emission import NodeRecords, emit_hierarchy
 from .geometry import checked_faces, checked_vertices, gather_triangles, warn_if_out_of_range
-from .morton import choose_morton_bits, morton_codes, point_bounds
+from .morton import choose_key, morton_codes, point_bounds
 from .arrays import namespace_of
 from .sah import binned_sah
 
@@ -146,11 +146,11 @@ def _morton_build(config: BuildConfig, stats: BuildStats, clock, previous, tri_l
     with clock("morton"):
         centroid = (tri_lo + tri_hi) * 0.5
         lo, hi = point_bounds(centroid)
-        bits = config.morton_bits
+        bits, quantization = config.morton_bits, config.quantization
         if bits == "auto":
-            bits = choose_morton_bits(tri_lo, tri_hi, lo, hi)
-        keys = morton_codes(centroid, lo, hi, bits, config.quantization)
-    stats.morton_bits = bits
+            bits, quantization = choose_key(tri_lo, tri_hi, lo, hi, quantization)
+        keys = morton_codes(centroid, lo, hi, bits, quantization)
+    stats.morton_bits, stats.quantization = bits, quantization
     coarse_bits = config.coarse_bits  # the same coarse voxels for 30- and 60-bit keys
 
     # ---- CSD sort, from last frame's order when there is one ----

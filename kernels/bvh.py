@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 BUILDERS = ("hlbvh", "lbvh", "sah")
-QUANTIZATIONS = ("cube", "axis")
+QUANTIZATIONS = ("cube", "axis", "rank")
 
 
 @dataclass
@@ -48,9 +48,12 @@ class BuildConfig:
             identical keys is split at its middle index.
         morton_bits: 30 (10 bits per axis, UInt32 keys), 60 (20 bits per axis, UInt64
             keys) or ``"auto"`` (60 when the scene's primitives are too small for its
-            bounds to be told apart at 30 bits).
+            bounds to be told apart at 30 bits; and ``"rank"`` quantisation when not
+            even at 60 bits: see :func:`hlbvh.kernels.morton.choose_key`).
         quantization: ``"cube"`` quantises centroids in the cube over the largest extent
-            (keeps cells square on flat scenes), ``"axis"`` per axis.
+            (keeps cells square on flat scenes), ``"axis"`` per axis, ``"rank"`` by each
+            centroid's rank along each axis (cells adapt to where the primitives are;
+            slowest).
         coarse_bits: the top ``3m`` key bits that define the coarse clusters of the CSD
             sort and of the SAH top level (a multiple of 3).
         p: bit planes emitted per pass of the hierarchy emission (1..5).
@@ -116,7 +119,9 @@ class BuildStats:
     """What a build measured about itself.
 
     ``sah_cost`` uses C_trav = C_isect = 1: sum over internal nodes of area/root area,
-    plus sum over leaves of count * area/root area. ``stage_ms`` holds the wall time of
+    plus sum over leaves of count * area/root area. ``morton_bits`` and
+    ``quantization`` are the key the build used (what ``"auto"`` chose; 0 and ``""``
+    for the ``"sah"`` builder, which uses no keys). ``stage_ms`` holds the wall time of
     each stage, synchronised (the device finished before the clock stopped).
     """
 
@@ -129,6 +134,7 @@ class BuildStats:
     csd_runs: int = 0
     coarse_clusters: int = 0
     morton_bits: int = 30
+    quantization: str = ""
     leaf_histogram: list[int] = field(default_factory=list)
     stage_ms: dict[str, float] = field(default_factory=dict)
     total_ms: float = 0.0
