@@ -21,10 +21,10 @@ What :class:`SceneAccel` intersects, and what it does not:
 * instances, curves, SDF grids and ellipsoids: rejected with a ``ValueError`` naming
   the shape (never rendered wrong);
 * meshes without triangles: rejected with a ``ValueError`` naming the shape. Mitsuba's
-  own ``obj`` and ``ply`` loaders refuse a file without faces, so such a mesh only
-  comes from Python code (``mi.Mesh(name, 0, 0)``, or faces emptied through
-  ``mi.traverse``), where it is more likely a mistake than an intent: an object that
-  silently disappears renders a wrong image without any error;
+  own ``obj`` and ``ply`` loaders refuse a file without faces, and so does a
+  ``params.update()`` that empties a mesh's faces, so such a mesh only comes from
+  Python code (``mi.Mesh(name, 0, 0)``), where it is more likely a mistake than an
+  intent: an object that silently disappears renders a wrong image without any error;
 * a scene without any geometry (only an environment, say) is valid, as it is for
   Mitsuba: every ray misses.
 
@@ -178,7 +178,7 @@ def _describe(shape) -> str:
     return f"shape {shape.id()!r} ({shape.class_name()})"
 
 
-def scene_shapes(shapes) -> tuple[list[int], list]:
+def scene_shapes(shapes) -> tuple[tuple, list]:
     """Sort a scene's shapes into meshes and analytic shapes.
 
     Args:
@@ -194,7 +194,11 @@ def scene_shapes(shapes) -> tuple[list[int], list]:
     meshes, analytic = [], []
     for index, shape in enumerate(shapes):
         if shape.is_mesh():
-            _check_not_empty(shape)
+            if shape.face_count() == 0:
+                raise ValueError(
+                    f"{_describe(shape)} has no triangles: it would silently be missing "
+                    "from the image; give it faces or remove it from the scene"
+                )
             meshes.append(index)
         elif shape.class_name() in _ANALYTIC:
             analytic.append((index, shape))
@@ -205,15 +209,7 @@ def scene_shapes(shapes) -> tuple[list[int], list]:
                 "curves, SDF grids and ellipsoids are not supported yet. Use "
                 "accel='native' for this scene."
             )
-    return meshes, analytic
-
-
-def _check_not_empty(mesh):
-    if mesh.face_count() == 0:
-        raise ValueError(
-            f"{_describe(mesh)} has no triangles: it would silently be missing from the "
-            "image; give it faces or remove it from the scene"
-        )
+    return tuple(meshes), analytic
 
 
 def collect_geometry(shapes, indices=None) -> SceneGeometry:
@@ -254,17 +250,8 @@ def _concat(arrays):
 def mesh_buffers(shapes, indices) -> dict:
     """``{index: (vertex buffer, face buffer)}`` of the meshes ``shapes[i]``: the arrays
     themselves, whose JIT variable indices tell whether a mesh got new buffers. Held,
-    they keep their indices from being given to other arrays.
-
-    Raises:
-        ValueError: naming a mesh that has no triangles (any more).
-    """
-    buffers = {}
-    for index in indices:
-        mesh = shapes[index]
-        _check_not_empty(mesh)
-        buffers[index] = (mesh.vertex_positions_buffer(), mesh.faces_buffer())
-    return buffers
+    they keep their indices from being given to other arrays."""
+    return {i: (shapes[i].vertex_positions_buffer(), shapes[i].faces_buffer()) for i in indices}
 
 
 def _named_error(shapes, indices, error: ValueError) -> ValueError:
@@ -498,22 +485,21 @@ class MeshGroup:
 
     def _build(self, shapes, build_options) -> bool:
         """A new BVH over the meshes' current triangles, its CSD sort seeded with the
-        previous tree's order when the triangle count is unchanged; whether it was."""
+        previous tree's order when the triangle count is unchanged; whether it was.
+        On failure the group is left as it was (and rebuilds on its next update)."""
         previous = self.bvh
-        self.geometry = collect_geometry(shapes, self.indices)
-        self._built_indices = self.indices
+        geometry = collect_geometry(shapes, self.indices)
+        bvh = None
+        if geometry.prim_count:
+            try:
+                bvh = build(geometry.vertices, geometry.faces, previous=previous, **build_options)
+            except ValueError as error:
+                raise _named_error(shapes, self.indices, error) from error
+            packed_records(bvh)  # now, not inside some integrator's symbolic loop
+        self.geometry, self.bvh, self._built_indices = geometry, bvh, self.indices
+        self.built_sah = None if bvh is None else bvh.stats.sah_cost
         self.builds += 1
-        if self.geometry.prim_count == 0:
-            self.bvh = self.built_sah = None
-            return False
-        try:
-            self.bvh = build(self.geometry.vertices, self.geometry.faces, previous=previous,
-                             **build_options)
-        except ValueError as error:
-            raise _named_error(shapes, self.indices, error) from error
-        packed_records(self.bvh)  # now, not inside some integrator's symbolic loop
-        self.built_sah = self.bvh.stats.sah_cost
-        return previous is not None and previous.prim_count == self.bvh.prim_count
+        return bvh is not None and previous is not None and previous.prim_count == bvh.prim_count
 
     def _refit(self, shapes) -> float:
         """The same tree with boxes for the meshes' new positions; its SAH drift."""
@@ -601,15 +587,14 @@ class SceneAccel(_Accel):
         Returns:
             self.
         Raises:
-            ValueError: naming a mesh whose positions became non-finite or whose
-                triangles are gone.
+            ValueError: naming a mesh whose positions became non-finite.
         """
         start = _clock()
         buffers = mesh_buffers(self.shapes, self.meshes)
         options, policy = self._build_options, self.policy
         if self._buffers is None:
             # ---- First build: every mesh is static until it changes ----
-            self.static.indices = tuple(self.meshes)
+            self.static.indices = self.meshes
             self.static.update(self.shapes, options, policy, reshaped=True, decision="build")
         else:
             changed = [i for i in self.meshes if _new_buffers(buffers[i], self._buffers[i])]
