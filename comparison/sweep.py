@@ -28,11 +28,11 @@ Every setting gets its own loaded scene and :class:`hlbvh.render.FrameRenderer`
 renders the first two frames of ``--frames`` once, untimed (the first compiles the
 kernels Dr.Jit's disk cache does not hold, the second is the first update, which
 compiles its own); its first build is kept as ``build_cold_ms``. Then the timed pass:
-for each frame of ``--frames``, the settings take turns (all see the same machine
-load): the frame's geometry is applied, the accelerator updated (native:
-``params.update()``, Mitsuba's rebuild; ours: build, rebuild or refit as its policy
-decides, timed on its own), and the frame rendered at every spp of ``--spp-curve``.
-Per setting, over the timed frames:
+for each frame of ``--frames``, the settings take turns, so all see the same machine
+load (the order rotates from frame to frame): the frame's geometry is applied, the
+accelerator updated (native: ``params.update()``, Mitsuba's rebuild; ours: build,
+rebuild or refit as its policy decides, timed on its own), and the frame rendered at
+every spp of ``--spp-curve``. Per setting, over the timed frames:
 
 - ``build_ms``: median time of the accelerator's update; ``decisions``: what the
   updates did (``rebuild``, ``refit``; native: ``native``);
@@ -220,7 +220,7 @@ def sweep(animation, frames, settings: list[Setting], base: RenderSettings, spp:
     curve = sorted({*spp_curve, spp})
     everyone = [Setting(NATIVE, accel=NATIVE), *settings]
     renderers = {s.label: FrameRenderer(animation, s.render_settings(base)) for s in everyone}
-    cold, runs, reference = {}, {s.label: [] for s in everyone}, {}
+    cold, runs, images = {}, {s.label: [] for s in everyone}, {}
     with tqdm(total=(len(frames) + 2) * len(everyone), desc=f"sweep {animation.name}",
               unit="render", file=sys.stderr, disable=not progress,
               dynamic_ncols=True) as bar:
@@ -233,15 +233,18 @@ def sweep(animation, frames, settings: list[Setting], base: RenderSettings, spp:
                 cold.setdefault(setting.label, run["build_ms"])
                 bar.update()
         # ---- Every frame, the settings taking turns ----
-        for i in frames:
-            for setting in everyone:
+        # The order rotates frame by frame: whatever one setting leaves behind (Embree's
+        # worker threads spinning after a native rebuild, caches) falls on each in turn.
+        for k, i in enumerate(frames):
+            for setting in everyone[k % len(everyone):] + everyone[:k % len(everyone)]:
                 bar.set_postfix_str(setting.label)
                 run, image = _frame(renderers[setting.label], i, curve, spp)
-                if setting.label == NATIVE:
-                    reference[i] = image
-                run["image"] = image_metrics(reference[i], image, TOLERANCE)
+                images[setting.label] = image
                 runs[setting.label].append(run)
                 bar.update()
+            for setting in everyone:
+                runs[setting.label][-1]["image"] = image_metrics(images[NATIVE],
+                                                                 images[setting.label], TOLERANCE)
     throughput = _throughput(renderers)
     return [_row(setting, runs[setting.label], cold[setting.label], throughput[setting.label],
                  spp, curve) for setting in everyone]

@@ -1,0 +1,251 @@
+"""The README's numbers, regenerated: ``hlbvh bench`` (build, trace, frame) at modest
+sizes and an ``hlbvh sweep``, written to ``docs/`` with the machine they ran on.
+
+Run (a few minutes on two cores; run it on an otherwise idle machine)::
+
+    .venv/bin/python -m hlbvh.comparison.readme_figures [--out docs]
+
+It writes:
+
+- ``docs/bench.md``: the machine (CPU model from ``/proc/cpuinfo``, cores, Dr.Jit's
+  threads, Dr.Jit, Mitsuba and Python versions, the variant, the load average before and
+  after), the command, then the tables of ``hlbvh bench build``, ``trace`` and
+  ``frame`` as those commands print them, and the sweep's table and verdict;
+- ``docs/bench.json``: the same rows for machines;
+- ``docs/sweep.png``: the sweep's build time against SAH cost, the Pareto front marked;
+  ``docs/sweep_frame_vs_spp.png``: its frame time against spp, crossovers marked.
+
+The sizes are the module's ``SIZES`` (every knob has an option, see ``--help``); the
+sweep's full report goes to a temporary directory and only its plots and rows are kept.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import math
+import os
+import platform
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+
+from hlbvh.comparison import bench_build, bench_frame, bench_trace, sweep
+from hlbvh.comparison.report import format_value
+from hlbvh.images import atomic_output
+from hlbvh.render import RenderSettings, open_animation
+
+#: What the README's figures are measured on (each overridable on the command line).
+SIZES = {
+    "build_sizes": [100_000, 1_000_000],
+    "trace_sizes": [1_000_000],
+    "frame_sizes": [200_000],
+    "frame_scenes": ["cloth", "fracture"],
+    "sweep_scene": "cloth",
+    "sweep_triangles": 200_000,
+    "resolution": 256,
+    "repeats": 3,
+    "spp": 4,
+    "spp_curve": [1, 4, 16],
+    "frames": "0:4",
+}
+
+#: Columns of the sweep table in ``bench.md`` (all of them are in ``bench.json``).
+_SWEEP_COLUMNS = ("setting", "build_ms", "sah_cost", "mrays_primary", "mrays_secondary",
+                  "render_ms", "frame_ms", "image.max_abs_diff",
+                  "image.fraction_within_tolerance")
+
+
+def machine() -> dict:
+    """What the numbers were measured on: CPU model, cores, Dr.Jit's threads, versions,
+    variant, load average now."""
+    model = "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        model = platform.processor() or model
+    return {
+        "cpu": model,
+        "cores": os.cpu_count(),
+        "drjit_threads": dr.thread_count(),
+        "drjit": dr.__version__,
+        "mitsuba": mi.__version__,
+        "python": platform.python_version(),
+        "variant": mi.variant(),
+        "load_average": [round(x, 2) for x in os.getloadavg()],
+    }
+
+
+def measure(sizes: dict, progress: bool = True) -> dict:
+    """Run the three benchmarks and the sweep with ``sizes`` (keys of :data:`SIZES`).
+
+    Returns:
+        ``{"machine_before", "build", "trace", "frame", "sweep", "sweep_plots",
+        "verdict", "machine_after"}``; the plots in a temporary directory.
+    """
+    log = (lambda text: print(text, file=sys.stderr, flush=True)) if progress else (lambda text: None)
+    results = {"machine_before": machine()}
+    log("readme_figures: bench build")
+    results["build"] = bench_build.run(sizes=sizes["build_sizes"], repeats=sizes["repeats"])
+    log("readme_figures: bench trace")
+    results["trace"] = bench_trace.run(sizes=sizes["trace_sizes"], repeats=sizes["repeats"],
+                                       resolution=sizes["resolution"])
+    log("readme_figures: bench frame")
+    results["frame"] = bench_frame.run(repeats=sizes["repeats"], sizes=sizes["frame_sizes"],
+                                       resolution=sizes["resolution"],
+                                       scenes=sizes["frame_scenes"],
+                                       spps=sizes["spp_curve"], drift_frames=20)
+    log("readme_figures: sweep")
+    animation, _, frames = open_animation(sizes["sweep_scene"], None,
+                                          str(sizes["sweep_triangles"]), sizes["frames"])
+    base = RenderSettings(resolution=(sizes["resolution"], sizes["resolution"]),
+                          spp=sizes["spp"])
+    rows = sweep.sweep(animation, frames, sweep.parse_settings(None), base, sizes["spp"],
+                       sizes["spp_curve"], progress=progress)
+    recorded = {"scene_name": animation.name, "triangles": animation.triangles,
+                "resolution": sizes["resolution"], "spp": sizes["spp"],
+                "frames": sizes["frames"]}
+    plots_dir = Path(tempfile.mkdtemp(prefix="hlbvh-readme-"))
+    written = sweep.write_sweep(plots_dir, rows, recorded, sizes["spp"], sizes["spp_curve"])
+    results["sweep"] = [dict(_flat(row)) for row in rows]
+    results["sweep_plots"] = written["plots"]
+    results["verdict"] = sweep.verdict(written, animation.name, sizes["spp"])
+    results["machine_after"] = machine()
+    return results
+
+
+def write(out_dir, results: dict, sizes: dict, command: str) -> dict[str, Path]:
+    """Write ``bench.md``, ``bench.json``, ``sweep.png`` and ``sweep_frame_vs_spp.png``
+    into ``out_dir`` (atomically, each file whole)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    before, after = results["machine_before"], results["machine_after"]
+    day = datetime.date.today().isoformat()
+    lines = [
+        "# Benchmarks",
+        "",
+        f"Measured on {day} with `{command}` (regenerate the same way; the README shows "
+        "these tables).",
+        "",
+        f"- CPU: {before['cpu']}, {before['cores']} cores, Dr.Jit threads: "
+        f"{before['drjit_threads']}",
+        f"- Dr.Jit {before['drjit']}, Mitsuba {before['mitsuba']} ({before['variant']}), "
+        f"Python {before['python']}",
+        f"- load average (1, 5, 15 min) before: {_load(before)}; after: {_load(after)}. Every "
+        "ratio is measured side by side in one process, so both sides see the same load.",
+        "",
+        f"## Build (`hlbvh bench build --sizes {_join(sizes['build_sizes'])} "
+        f"--repeats {sizes['repeats']}`)",
+        "",
+        "```",
+        bench_build.format_table(results["build"]),
+        "```",
+        "",
+        f"## Trace (`hlbvh bench trace --sizes {_join(sizes['trace_sizes'])} "
+        f"--resolution {sizes['resolution']} --repeats {sizes['repeats']}`)",
+        "",
+        "```",
+        bench_trace.format_table(results["trace"]),
+        "```",
+        "",
+        f"## Frame (`python -m hlbvh.comparison.bench_frame --scenes "
+        f"{','.join(sizes['frame_scenes'])} --sizes {_join(sizes['frame_sizes'])} "
+        f"--resolution {sizes['resolution']} --spp {_join(sizes['spp_curve'])} "
+        f"--repeats {sizes['repeats']} --drift-frames 20`)",
+        "",
+        "```",
+        bench_frame.format_table(results["frame"]),
+        "```",
+        "",
+        f"## Sweep (`hlbvh sweep {sizes['sweep_scene']} --triangles "
+        f"{sizes['sweep_triangles']} --resolution {sizes['resolution']} --spp {sizes['spp']} "
+        f"--spp-curve {_join(sizes['spp_curve'])} --frames {sizes['frames']}`)",
+        "",
+        _markdown_table(results["sweep"], _SWEEP_COLUMNS),
+        "",
+        f"**{results['verdict'][0].upper()}{results['verdict'][1:]}.**",
+        "",
+        "![build time vs SAH cost](sweep.png)",
+        "",
+        "![frame time vs spp](sweep_frame_vs_spp.png)",
+        "",
+    ]
+    files = {"md": out / "bench.md", "json": out / "bench.json",
+             "sweep": out / "sweep.png", "frame_vs_spp": out / "sweep_frame_vs_spp.png"}
+    with atomic_output(files["md"]) as temporary:
+        temporary.write_text("\n".join(lines), encoding="utf-8")
+    document = {key: value for key, value in results.items() if key != "sweep_plots"}
+    with atomic_output(files["json"]) as temporary:
+        temporary.write_text(json.dumps(_json_safe(document), indent=1) + "\n")
+    for key, plot in zip(("sweep", "frame_vs_spp"), results["sweep_plots"]):
+        with atomic_output(files[key]) as temporary:
+            shutil.copyfile(plot, temporary)
+    return files
+
+
+def _markdown_table(rows: list[dict], columns) -> str:
+    lines = ["| " + " | ".join(columns) + " |", "|" + "|".join("---" for _ in columns) + "|"]
+    lines += ["| " + " | ".join(format_value(row.get(c)) for c in columns) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def _flat(row: dict, prefix: str = ""):
+    for key, value in row.items():
+        if isinstance(value, dict):
+            yield from _flat(value, f"{prefix}{key}.")
+        else:
+            yield f"{prefix}{key}", value
+
+
+def _json_safe(value):
+    """Non-finite floats as strings (strict JSON), tuples as lists."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return format_value(value)
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def _load(record: dict) -> str:
+    return ", ".join(f"{x:.1f}" for x in record["load_average"])
+
+
+def _join(values) -> str:
+    return ",".join(str(v) for v in values)
+
+
+def main(argv=None) -> int:
+    """``python -m hlbvh.comparison.readme_figures``: measure and write ``docs/``."""
+    parser = argparse.ArgumentParser(prog="python -m hlbvh.comparison.readme_figures",
+                                     description=__doc__.split("\n\n")[0])
+    ints = lambda text: [int(v) for v in text.split(",")]  # noqa: E731
+    parser.add_argument("--out", default="docs", help="output directory (default docs)")
+    for key, value in SIZES.items():
+        kind = ints if isinstance(value, list) and isinstance(value[0], int) else (
+            (lambda text: text.split(",")) if isinstance(value, list) else type(value))
+        parser.add_argument(f"--{key.replace('_', '-')}", dest=key, type=kind, default=value,
+                            help=f"default {value}")
+    parser.add_argument("--quiet", action="store_true", help="no progress output")
+    args = parser.parse_args(argv)
+    sizes = {key: getattr(args, key) for key in SIZES}
+    given = " ".join(argv if argv is not None else sys.argv[1:])
+    command = f".venv/bin/python -m hlbvh.comparison.readme_figures {given}".strip()
+    results = measure(sizes, progress=not args.quiet)
+    files = write(args.out, results, sizes, command)
+    print(f"{files['md']}: {results['verdict']}; plots {files['sweep']}, "
+          f"{files['frame_vs_spp']}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
