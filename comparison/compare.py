@@ -58,16 +58,17 @@ from __future__ import annotations
 
 import math
 import statistics
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
 
 from hlbvh import images, scenes
-from hlbvh.cli import UserError
+from hlbvh.accel import UpdatePolicy
 from hlbvh.comparison import plots, report
 from hlbvh.comparison.metrics import hit_agreement, image_metrics
+from hlbvh.errors import UserError
 from hlbvh.integrators.common import BUILD_OPTIONS
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.render import (
@@ -222,6 +223,9 @@ def compare_animation(animation, frames, out_dir, settings: RenderSettings,
                 "mitsuba": mi.__version__, "drjit": dr.__version__}
     for key in ("accel", "integrator"):
         recorded.pop(key)
+    # Every builder option and the policy as used, defaults included.
+    recorded["build_options"] = asdict(BuildConfig.from_options(**settings.build_options))
+    recorded["update"] = settings.update or UpdatePolicy().update
     files = report.write_report(out, f"hlbvh compare: {animation.name}", rows, pictures,
                                 recorded, plots=[plot])
     return {"rows": rows, "files": files, "plots": [plot]}

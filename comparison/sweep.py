@@ -12,14 +12,14 @@ Settings (``--settings``, comma separated; default: every name of :data:`SETTING
 -----------------------------------------------------------------------------------
 A *setting* is a set of builder options (:class:`hlbvh.BuildConfig`) plus our
 accelerator's per-frame ``update`` policy, each varying one knob from the defaults:
-``hlbvh`` (the defaults), ``lbvh``, ``sah`` (the builder); ``morton60``, ``axis``
-(Morton key width, quantisation per axis instead of in a cube); ``coarse6``,
-``coarse18`` (``coarse_bits``); ``p1``, ``p5`` (bit planes per emission pass);
-``leaf1``, ``leaf8`` (``leaf_size``); ``refit``, ``auto`` (the update policy: refit
-every frame, or refit while the SAH cost stays near a fresh build's), ``rebuild``
-(a full build every frame). A setting may also be spelled out:
-``builder=lbvh+leaf_size=8+update=refit`` (its label is that text). ``native``
-(Mitsuba's own accelerator) is always measured, as the reference.
+``hlbvh`` (the defaults), ``lbvh``, ``sah`` (the builder); ``morton60`` (60-bit keys),
+``axis``, ``rank`` (quantisation per axis, or by rank, instead of in a cube);
+``coarse6``, ``coarse18`` (``coarse_bits``); ``p1``, ``p5`` (bit planes per emission
+pass); ``leaf1``, ``leaf8`` (``leaf_size``); ``rebuild`` (a build every frame, seeded
+with last frame's order: the accelerator's default), ``refit`` (refit every frame),
+``auto`` (refit while the SAH cost stays near the last build's). A setting may also be
+spelled out: ``builder=lbvh+leaf_size=8+update=refit`` (its label is that text).
+``native`` (Mitsuba's own accelerator) is always measured, as the reference.
 
 What is measured
 ----------------
@@ -57,7 +57,6 @@ and native, the spp where native becomes faster marked).
 
 from __future__ import annotations
 
-import math
 import statistics
 import sys
 import time
@@ -67,15 +66,21 @@ from pathlib import Path
 import drjit as dr
 import mitsuba as mi
 
-from hlbvh.cli import UserError
 from hlbvh.comparison import plots, report
 from hlbvh.comparison.bench_trace import primary_rays, secondary_rays
 from hlbvh.comparison.compare import TOLERANCE, add_scene_options, render_settings
 from hlbvh.comparison.metrics import image_metrics
+from hlbvh.errors import UserError
 from hlbvh.images import as_image
 from hlbvh.integrators.common import BUILD_OPTIONS
-from hlbvh.render import UPDATES, FrameRenderer, RenderSettings, _int_flag, _option_value
-from hlbvh.render import open_animation
+from hlbvh.render import (
+    UPDATES,
+    FrameRenderer,
+    RenderSettings,
+    _int_flag,
+    _option_value,
+    open_animation,
+)
 
 #: The default grid: each setting varies one knob of the defaults (builder options, and
 #: ``update``: our accelerator's per-frame policy).
@@ -85,6 +90,7 @@ SETTINGS = {
     "sah": {"builder": "sah"},
     "morton60": {"morton_bits": 60},
     "axis": {"quantization": "axis"},
+    "rank": {"quantization": "rank"},
     "coarse6": {"coarse_bits": 6},
     "coarse18": {"coarse_bits": 18},
     "p1": {"p": 1},
