@@ -469,15 +469,6 @@ class MeshGroup:
             seeded=False, drift=None,
         )
 
-    def root_area(self) -> float:
-        """Surface area of the BVH's root box (half of it, as the SAH cost's areas),
-        in double precision; 0 without triangles."""
-        if self.bvh is None:
-            return 0.0
-        lo, hi = self.root_box()
-        e = [max(h - l, 0.0) for l, h in zip(lo, hi)]
-        return e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
-
     def root_box(self) -> tuple[list, list]:
         """Lower and upper corner of the BVH's root box, as Python floats."""
         return ([float(c[0]) for c in self.bvh.node_min],
@@ -627,16 +618,13 @@ class SceneAccel(_Accel):
 
     def _sah_cost(self):
         """SAH cost of both groups together (see :attr:`last_update`)."""
-        if not self._traced:
-            return None
-        if len(self._traced) == 1:
-            return float(self._traced[0].bvh.stats.sah_cost)
+        if len(self._traced) < 2:
+            return float(self._traced[0].bvh.stats.sah_cost) if self._traced else None
         boxes = [g.root_box() for g in self._traced]
-        e = [max(max(hi[k] for _, hi in boxes) - min(lo[k] for lo, _ in boxes), 0.0)
-             for k in range(3)]
-        area = e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
-        return sum((g.root_area() / area if area > 0 else 1.0) * g.bvh.stats.sah_cost
-                   for g in self._traced)
+        union = _half_area([min(lo[k] for lo, _ in boxes) for k in range(3)],
+                           [max(hi[k] for _, hi in boxes) for k in range(3)])
+        return sum((_half_area(*box) / union if union > 0 else 1.0) * g.bvh.stats.sah_cost
+                   for g, box in zip(self._traced, boxes))
 
     def _preliminary(self, ray, coherent, active, reorder):
         """The groups' closest triangle hit, then each analytic shape's own routine,
@@ -693,6 +681,13 @@ class SceneAccel(_Accel):
         for _, shape in self.analytic:
             hit |= shape.ray_test(ray, active & ~hit)
         return hit & active
+
+
+def _half_area(lo, hi) -> float:
+    """Half the surface area of the box ``lo``..``hi`` (Python floats: double
+    precision, as the SAH cost's areas)."""
+    e = [max(h - l, 0.0) for l, h in zip(lo, hi)]
+    return e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
 
 
 def _new_buffers(now: tuple, before: tuple) -> bool:
