@@ -1,0 +1,451 @@
+"""Report directories: the numbers of a comparison or a sweep as tables (Markdown and
+HTML), the images side by side, the plots, and the raw numbers as JSON and CSV.
+
+Every report directory holds ``report.md``, ``report.html``, ``results.json`` and
+``results.csv``. The tables are formatted by :func:`format_value` from exactly the rows
+written to ``results.json`` (nested dicts flattened to dotted keys, e.g.
+``build_ms.native``), so a number on the page is the JSON number, shortened. Columns are
+the rows' keys in order of first appearance: a new statistic shows up without touching
+this module.
+
+Links in the HTML and Markdown are relative; images and plots outside the report
+directory are copied into it (``images/``, ``plots/``), so the directory can be moved or
+archived whole and still opens from ``file://``.
+
+``results.json`` is strict JSON (it parses in a browser): the non-finite floats a
+comparison can produce (a PSNR of ``inf`` for identical images) are written as the
+strings ``"inf"``, ``"-inf"`` and ``"nan"``; :func:`read_results` turns them back into
+floats.
+"""
+
+from __future__ import annotations
+
+import csv
+import html
+import io
+import json
+import math
+import os
+import shutil
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+from hlbvh.images import atomic_output
+
+#: Image formats a browser shows; EXR is not one of them.
+BROWSER_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".gif", ".webp", ".svg")
+
+#: Captions of the per-frame images, in the order they are shown; other roles follow.
+IMAGE_ROLES = {"native": "native", "hlbvh": "hlbvh (ours)", "diff": "difference"}
+
+_NONFINITE_STRINGS = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}
+
+_CSS = """
+body { font-family: system-ui, sans-serif; margin: 2em; color: #222; }
+table { border-collapse: collapse; margin: 1em 0; font-size: 0.9em; }
+th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; }
+td.num { text-align: right; font-variant-numeric: tabular-nums; }
+tr.winner td { background: #e6f4e6; font-weight: bold; }
+.images { display: flex; gap: 1em; flex-wrap: wrap; }
+.images figure { margin: 0; }
+.images img { width: 320px; image-rendering: pixelated; border: 1px solid #ccc; }
+img.plot { max-width: 100%; }
+p.warning { color: #a00; }
+"""
+
+
+def format_value(value) -> str:
+    """The table text of one result value.
+
+    Integers and strings as they are; floats with six significant digits, but never
+    rounded to a whole number they are not (``0.9999995`` stays ``0.9999995``, not
+    ``1``), so a fraction just below one cannot read as "all"; non-finite floats as
+    ``inf``, ``-inf``, ``nan``; ``None`` as ``-``; booleans as ``yes``/``no``; lists
+    element by element.
+    """
+    if value is None:
+        return "-"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
+        digits = 6
+        text = f"{value:.{digits}g}"
+        while float(text) != value and float(text) == round(float(text)) and digits < 17:
+            digits += 1
+            text = f"{value:.{digits}g}"
+        return text
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(format_value(item) for item in value) + "]"
+    return str(value)
+
+
+def winner(rows: Sequence[Mapping], objective: str = "frame_ms") -> Mapping:
+    """The row with the smallest finite ``objective`` (the first such row on ties).
+
+    Raises:
+        ValueError: no row has a finite number under ``objective``.
+    """
+    candidates = [
+        row for row in rows
+        if isinstance(row.get(objective), (int, float)) and math.isfinite(row[objective])
+    ]
+    if not candidates:
+        raise ValueError(
+            f"objective={objective!r}: no row has a finite number under that key; "
+            f"the rows have keys {_columns(rows)}"
+        )
+    return min(candidates, key=lambda row: row[objective])
+
+
+def write_report(
+    out_dir,
+    title: str,
+    frames: Sequence[Mapping],
+    images: Mapping[int, Mapping[str, os.PathLike | str]],
+    settings: Mapping,
+    plots: Sequence[os.PathLike | str] = (),
+) -> dict[str, Path]:
+    """Write the report of a native-vs-hlbvh comparison of an animation.
+
+    Args:
+        out_dir: the report directory (created if needed).
+        title: the page title.
+        frames: one dict per frame with at least ``"frame"`` (its number) and any other
+            numbers (image metrics, build and render ms, SAH cost ...); nested dicts are
+            flattened to dotted keys. Rows with ``nonfinite_mismatch_pixels`` > 0 are
+            called out on the page.
+        images: frame number -> ``{"native": png, "hlbvh": png, "diff": png}`` (further
+            roles are shown after these), paths to images a browser shows.
+        settings: what was run (scene, resolution, spp, integrator, builder options ...).
+        plots: PNG plots to show under the tables.
+
+    Returns:
+        ``{"md": ..., "html": ..., "json": ..., "csv": ...}``: the files written.
+
+    Raises:
+        ValueError: a frame without ``"frame"``, images of a frame not in ``frames``, or
+            an image or plot that is missing or not a browser image format.
+    """
+    out_dir = Path(out_dir)
+    rows = [_flatten(row) for row in frames]
+    frame_numbers = [row.get("frame") for row in rows]
+    if None in frame_numbers:
+        raise ValueError("frames: every row needs a 'frame' key with the frame number")
+    unknown = sorted(set(images) - set(frame_numbers), key=str)
+    if unknown:
+        raise ValueError(f"images: frame(s) {unknown} have images but no row in frames")
+    links = {
+        frame: {
+            role: _local_link(out_dir, path, f"images/frame_{frame}_{role}")
+            for role, path in _ordered_roles(roles)
+        }
+        for frame, roles in images.items()
+    }
+    plot_links = _plot_links(out_dir, plots)
+
+    page = _Page(title)
+    page.table("Settings", _setting_rows(settings))
+    page.table("Frames", rows)
+    flagged = [row["frame"] for row in rows if row.get("nonfinite_mismatch_pixels", 0)]
+    if flagged:
+        page.warning(
+            f"Frames {', '.join(map(format_value, flagged))} have pixels that are NaN or "
+            "infinite in one render and not the other (nonfinite_mismatch_pixels); their "
+            "differences and PSNR cover the finite pixels only."
+        )
+    for frame in frame_numbers:
+        if frame in links:
+            page.images(f"Frame {format_value(frame)}", links[frame])
+    page.plots(plot_links)
+    results = {
+        "kind": "compare",
+        "title": title,
+        "settings": dict(_flatten(settings)),
+        "rows": rows,
+        "images": {str(frame): roles for frame, roles in links.items()},
+        "plots": plot_links,
+    }
+    return _write_files(out_dir, page, results)
+
+
+def write_sweep_report(
+    out_dir,
+    title: str,
+    rows: Sequence[Mapping],
+    settings: Mapping,
+    plots: Sequence[os.PathLike | str] = (),
+    objective: str = "frame_ms",
+    label: str = "setting",
+) -> dict[str, Path]:
+    """Write the report of a sweep over builder settings and name the winner.
+
+    Args:
+        out_dir: the report directory (created if needed).
+        title: the page title.
+        rows: one dict per setting, with a ``label`` key naming it and its numbers
+            (e.g. ``build_ms``, ``sah_cost``, ``mrays_per_s``, ``frame_ms``,
+            ``max_abs_diff``); a row for native may be among them.
+        settings: what is fixed across the rows (scene, spp, resolution ...).
+        plots: PNG plots to show under the table.
+        objective: the key minimised to pick the winner (the fastest setting per frame
+            by default).
+        label: the key that names a row's setting.
+
+    Returns:
+        ``{"md": ..., "html": ..., "json": ..., "csv": ...}``; ``results.json`` also
+        holds ``"winner": {"label": ..., "objective": ..., "value": ...}``.
+
+    Raises:
+        ValueError: a row without ``label``, no row with a finite ``objective``, or a
+            plot that is missing or not a browser image format.
+    """
+    out_dir = Path(out_dir)
+    flat = [_flatten(row) for row in rows]
+    if any(label not in row for row in flat):
+        raise ValueError(f"rows: every row needs a {label!r} key naming its setting")
+    best = winner(flat, objective)
+    plot_links = _plot_links(out_dir, plots)
+
+    page = _Page(title)
+    page.table("Settings", _setting_rows(settings))
+    page.paragraph(
+        f"Fastest by {objective}: {format_value(best[label])} "
+        f"({objective} = {format_value(best[objective])})",
+        strong=True,
+    )
+    page.table("Sweep", flat, highlight=flat.index(best))
+    page.plots(plot_links)
+    results = {
+        "kind": "sweep",
+        "title": title,
+        "settings": dict(_flatten(settings)),
+        "rows": flat,
+        "winner": {"label": best[label], "objective": objective, "value": best[objective]},
+        "plots": plot_links,
+    }
+    return _write_files(out_dir, page, results)
+
+
+def read_results(path) -> dict:
+    """``results.json`` back as Python values, the strings ``"inf"``, ``"-inf"`` and
+    ``"nan"`` turned back into floats."""
+    return _from_json(json.loads(Path(path).read_text()))
+
+
+# ---- The page: Markdown and HTML built side by side ----
+
+
+class _Page:
+    """A report page built once and rendered twice: Markdown and HTML parts appended
+    together, so both always show the same content."""
+
+    def __init__(self, title: str):
+        self.markdown = [f"# {title}\n"]
+        self.html = [f"<h1>{html.escape(title)}</h1>"]
+        self.title = title
+
+    def paragraph(self, text: str, strong: bool = False) -> None:
+        self.markdown.append(f"**{text}**\n" if strong else f"{text}\n")
+        body = f"<strong>{html.escape(text)}</strong>" if strong else html.escape(text)
+        self.html.append(f"<p>{body}</p>")
+
+    def warning(self, text: str) -> None:
+        self.markdown.append(f"> **Warning:** {text}\n")
+        self.html.append(f'<p class="warning">Warning: {html.escape(text)}</p>')
+
+    def table(self, heading: str, rows: Sequence[Mapping], highlight: int | None = None) -> None:
+        columns = _columns(rows)
+        self.markdown.append(f"## {heading}\n")
+        self.html.append(f"<h2>{html.escape(heading)}</h2>")
+        if not rows:
+            self.paragraph("(none)")
+            return
+        cells = [[format_value(row.get(column)) for column in columns] for row in rows]
+        self.markdown.append(
+            "\n".join(
+                [
+                    "| " + " | ".join(map(_md_escape, columns)) + " |",
+                    "|" + "|".join("---" for _ in columns) + "|",
+                    *("| " + " | ".join(map(_md_escape, line)) + " |" for line in cells),
+                ]
+            )
+            + "\n"
+        )
+        body = []
+        for index, (row, line) in enumerate(zip(rows, cells)):
+            tds = "".join(
+                f'<td class="num">{html.escape(text)}</td>'
+                if _is_number(row.get(column))
+                else f"<td>{html.escape(text)}</td>"
+                for column, text in zip(columns, line)
+            )
+            body.append(f'<tr class="winner">{tds}</tr>' if index == highlight else f"<tr>{tds}</tr>")
+        head = "".join(f"<th>{html.escape(column)}</th>" for column in columns)
+        self.html.append(f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(body)}</tbody></table>")
+
+    def images(self, heading: str, links: Mapping[str, str]) -> None:
+        captions = [IMAGE_ROLES.get(role, role) for role in links]
+        self.markdown.append(f"### {heading}\n")
+        self.markdown.append(
+            "| " + " | ".join(captions) + " |\n|" + "|".join("---" for _ in links) + "|\n| "
+            + " | ".join(f"![{caption}]({link})" for caption, link in zip(captions, links.values()))
+            + " |\n"
+        )
+        figures = "".join(
+            f'<figure><img src="{html.escape(link)}" alt="{html.escape(caption)}">'
+            f"<figcaption>{html.escape(caption)}</figcaption></figure>"
+            for caption, link in zip(captions, links.values())
+        )
+        self.html.append(f'<h3>{html.escape(heading)}</h3><div class="images">{figures}</div>')
+
+    def plots(self, links: Sequence[str]) -> None:
+        if not links:
+            return
+        self.markdown.append("## Plots\n")
+        self.html.append("<h2>Plots</h2>")
+        for link in links:
+            self.markdown.append(f"![{Path(link).stem}]({link})\n")
+            self.html.append(
+                f'<p><img class="plot" src="{html.escape(link)}" alt="{html.escape(Path(link).stem)}"></p>'
+            )
+
+    def render_html(self) -> str:
+        return (
+            '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+            f"<title>{html.escape(self.title)}</title><style>{_CSS}</style></head>\n<body>\n"
+            + "\n".join(self.html)
+            + "\n</body></html>\n"
+        )
+
+
+# ---- Files ----
+
+
+def _write_files(out_dir: Path, page: _Page, results: dict) -> dict[str, Path]:
+    """Write report.md, report.html, results.json and results.csv atomically."""
+    columns = _columns(results["rows"])
+    table = io.StringIO()
+    writer = csv.writer(table, lineterminator="\n")
+    writer.writerow(columns)
+    for row in results["rows"]:
+        writer.writerow([_csv_value(row.get(column)) for column in columns])
+    texts = {
+        "md": ("report.md", "\n".join(page.markdown)),
+        "html": ("report.html", page.render_html()),
+        "json": ("results.json", json.dumps(_to_json(results), indent=2, allow_nan=False) + "\n"),
+        "csv": ("results.csv", table.getvalue()),
+    }
+    written = {}
+    for key, (name, text) in texts.items():
+        with atomic_output(out_dir / name) as temporary:
+            temporary.write_text(text, encoding="utf-8")
+        written[key] = out_dir / name
+    return written
+
+
+def _local_link(out_dir: Path, path, copy_stem: str) -> str:
+    """A relative link from ``out_dir`` to ``path``; a file outside ``out_dir`` is first
+    copied to ``out_dir / (copy_stem + suffix)``."""
+    source = Path(path)
+    if source.suffix.lower() not in BROWSER_IMAGE_SUFFIXES:
+        raise ValueError(
+            f"{source}: a browser cannot show {source.suffix or 'this'} files; pass the PNG "
+            f"(one of {BROWSER_IMAGE_SUFFIXES})"
+        )
+    if not source.is_file():
+        raise ValueError(f"{source}: no such image file; write it before the report")
+    root = out_dir.resolve()
+    resolved = source.resolve()
+    if not resolved.is_relative_to(root):
+        target = root / f"{copy_stem}{source.suffix.lower()}"
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_output(target) as temporary:
+            shutil.copyfile(resolved, temporary)
+        resolved = target
+    return resolved.relative_to(root).as_posix()
+
+
+def _plot_links(out_dir: Path, plots: Sequence) -> list[str]:
+    return [_local_link(out_dir, plot, f"plots/{index}_{Path(plot).stem}") for index, plot in enumerate(plots)]
+
+
+def _ordered_roles(roles: Mapping) -> list[tuple[str, object]]:
+    """Per-frame images: native, hlbvh, diff first, then any other roles as given."""
+    known = [(role, roles[role]) for role in IMAGE_ROLES if role in roles]
+    return known + [(role, path) for role, path in roles.items() if role not in IMAGE_ROLES]
+
+
+# ---- Values ----
+
+
+def _flatten(row: Mapping, prefix: str = "") -> dict:
+    """Nested dicts -> one level with dotted keys; numpy scalars and paths -> Python
+    values."""
+    flat = {}
+    for key, value in row.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            flat.update(_flatten(value, f"{name}."))
+        else:
+            flat[name] = _plain(value)
+    return flat
+
+
+def _plain(value):
+    if hasattr(value, "item") and getattr(value, "ndim", None) == 0:
+        return value.item()
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if isinstance(value, (list, tuple)) or hasattr(value, "tolist"):
+        return [_plain(item) for item in (value.tolist() if hasattr(value, "tolist") else value)]
+    return value
+
+
+def _setting_rows(settings: Mapping) -> list[dict]:
+    return [{"setting": key, "value": value} for key, value in _flatten(settings).items()]
+
+
+def _columns(rows: Sequence[Mapping]) -> list[str]:
+    return list(dict.fromkeys(key for row in rows for key in row))
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _md_escape(text: str) -> str:
+    return text.replace("|", "\\|").replace("\n", " ")
+
+
+def _csv_value(value):
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, list):
+        return json.dumps(_to_json(value))
+    return value
+
+
+def _to_json(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return format_value(value)
+    if isinstance(value, Mapping):
+        return {str(key): _to_json(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_to_json(item) for item in value]
+    return value
+
+
+def _from_json(value):
+    if isinstance(value, str) and value in _NONFINITE_STRINGS:
+        return _NONFINITE_STRINGS[value]
+    if isinstance(value, dict):
+        return {key: _from_json(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_from_json(item) for item in value]
+    return value
