@@ -1,7 +1,8 @@
-"""What every hlbvh integrator shares: the ``accel`` parameter and the builder's
-options read from the scene description, the intersector built lazily on the first
-render of a scene and cached, and the path-tracing helpers (MIS weight, skipping of
-directly visible area emitters) written against an intersector instead of the scene.
+"""What every hlbvh integrator shares: the ``accel`` parameter and the accelerator's
+options (the builder's and the per-frame update policy) read from the scene
+description, the intersector built lazily on the first render of a scene, cached and
+updated, and the path-tracing helpers (MIS weight, skipping of directly visible area
+emitters) written against an intersector instead of the scene.
 
 The module is reloaded by :func:`hlbvh.register` after a variant change, so that
 :class:`AccelIntegrator` derives from the current variant's ``mi.SamplingIntegrator``.
