@@ -43,11 +43,14 @@ from hlbvh.render import RenderSettings, open_animation
 #: What the README's figures are measured on (each overridable on the command line).
 SIZES = {
     "build_sizes": [100_000, 1_000_000],
+    "sah_max": 100_000,  # the "sah" builder only up to this size (it is the slow one)
     "trace_sizes": [1_000_000],
     "frame_sizes": [200_000],
     "frame_scenes": ["cloth", "fracture"],
     "sweep_scene": "cloth",
     "sweep_triangles": 200_000,
+    # A few settings that span the trade, so the plots stay readable (``all``: the grid).
+    "sweep_settings": "hlbvh,lbvh,sah,axis,leaf8,refit,auto",
     "resolution": 256,
     "repeats": 3,
     "spp": 4,
@@ -94,7 +97,8 @@ def measure(sizes: dict, progress: bool = True) -> dict:
     log = (lambda text: print(text, file=sys.stderr, flush=True)) if progress else (lambda text: None)
     results = {"machine_before": machine()}
     log("readme_figures: bench build")
-    results["build"] = bench_build.run(sizes=sizes["build_sizes"], repeats=sizes["repeats"])
+    results["build"] = bench_build.run(sizes=sizes["build_sizes"], repeats=sizes["repeats"],
+                                       sah_max=sizes["sah_max"])
     log("readme_figures: bench trace")
     results["trace"] = bench_trace.run(sizes=sizes["trace_sizes"], repeats=sizes["repeats"],
                                        resolution=sizes["resolution"])
@@ -108,7 +112,8 @@ def measure(sizes: dict, progress: bool = True) -> dict:
                                           str(sizes["sweep_triangles"]), sizes["frames"])
     base = RenderSettings(resolution=(sizes["resolution"], sizes["resolution"]),
                           spp=sizes["spp"])
-    rows = sweep.sweep(animation, frames, sweep.parse_settings(None), base, sizes["spp"],
+    chosen = None if sizes["sweep_settings"] == "all" else sizes["sweep_settings"]
+    rows = sweep.sweep(animation, frames, sweep.parse_settings(chosen), base, sizes["spp"],
                        sizes["spp_curve"], progress=progress)
     recorded = {"scene_name": animation.name, "triangles": animation.triangles,
                 "resolution": sizes["resolution"], "spp": sizes["spp"],
@@ -143,7 +148,7 @@ def write(out_dir, results: dict, sizes: dict, command: str) -> dict[str, Path]:
         "ratio is measured side by side in one process, so both sides see the same load.",
         "",
         f"## Build (`hlbvh bench build --sizes {_join(sizes['build_sizes'])} "
-        f"--repeats {sizes['repeats']}`)",
+        f"--repeats {sizes['repeats']}`; builder sah only up to {sizes['sah_max']} triangles)",
         "",
         "```",
         bench_build.format_table(results["build"]),
@@ -167,7 +172,9 @@ def write(out_dir, results: dict, sizes: dict, command: str) -> dict[str, Path]:
         "",
         f"## Sweep (`hlbvh sweep {sizes['sweep_scene']} --triangles "
         f"{sizes['sweep_triangles']} --resolution {sizes['resolution']} --spp {sizes['spp']} "
-        f"--spp-curve {_join(sizes['spp_curve'])} --frames {sizes['frames']}`)",
+        f"--spp-curve {_join(sizes['spp_curve'])} --frames {sizes['frames']}"
+        + ("" if sizes["sweep_settings"] == "all" else f" --settings {sizes['sweep_settings']}")
+        + "`)",
         "",
         _markdown_table(results["sweep"], _SWEEP_COLUMNS),
         "",
