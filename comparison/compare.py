@@ -102,19 +102,23 @@ _IMAGE_COLUMNS = ("max_abs_diff", "mean_abs_diff", "fraction_identical",
 # ---------------------------------------------------------------------------------------
 
 
-def add_scene_options(parser, *, builder_options: bool = True) -> None:
+def add_scene_options(parser, out: str, *, builder_options: bool = True,
+                      frames: str | None = None, spp: int | None = None) -> None:
     """The options of a scene and its renders, as ``hlbvh render`` spells them: SCENE,
     ``--frames-dir``, ``--frames``, ``--resolution``, ``--spp``, ``--triangles``,
     ``--max-depth``, ``--seed``, ``--out``, ``--quiet``; with ``builder_options`` also
-    the builder's options and ``--update``."""
+    the builder's options and ``--update``. ``out``, ``frames`` and ``spp`` are the
+    defaults the help states (``None``: every frame, the scene's spp); the caller
+    applies them."""
     add = parser.add_argument
     add("scene", help=f"a procedural scene ({', '.join(scenes.names())}) or a Mitsuba XML "
                       "file (with --frames-dir)")
     add("--frames-dir", help="directory of per-frame meshes <dir>/<shape id>/frame_0001.ply "
                              "(with an XML scene)")
-    add("--frames", help="A:B (frames A .. B-1) or N (the first N)")
+    add("--frames", help="A:B (frames A .. B-1) or N (the first N); default: "
+                         + (frames or "every frame of the scene"))
     add("--resolution", help="W (W×W) or WxH; default: the scene's")
-    add("--spp", help="samples per pixel; default: the scene's")
+    add("--spp", help="samples per pixel; default: " + ("the scene's" if spp is None else str(spp)))
     add("--triangles", help="size of a procedural scene (default 200000)")
     add("--max-depth", default=str(DEFAULT_MAX_DEPTH),
         help=f"longest path of the path integrator (default {DEFAULT_MAX_DEPTH}; -1: unbounded)")
@@ -125,7 +129,7 @@ def add_scene_options(parser, *, builder_options: bool = True) -> None:
         add("--update", help="our accelerator's per-frame policy: rebuild, refit or auto "
                              "(default: the accelerator's own)")
     add("--seed", default="0", help="frame i is rendered with seed SEED + i (default 0)")
-    add("--out", help="report directory")
+    add("--out", help=f"report directory (default {out})")
     add("--quiet", action="store_true", help="no progress bars")
 
 
@@ -273,7 +277,7 @@ def summary(rows: list[dict]) -> str:
 def configure(parser) -> None:
     """Options of ``hlbvh compare``."""
     parser.description = __doc__.split("\n\n")[0]
-    add_scene_options(parser)
+    add_scene_options(parser, "out/compare/<scene>")
     parser.add_argument("--tolerance", default=repr(TOLERANCE),
                         help=f"largest per-channel difference of a pixel counted as equal "
                              f"(default {TOLERANCE}, measured in the plugin's tests)")

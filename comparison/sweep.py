@@ -108,8 +108,9 @@ NATIVE = "native"
 #: Samples per pixel of the frame-time curve unless ``--spp-curve`` says otherwise.
 SPP_CURVE = (1, 4, 16)
 
-#: Frames unless ``--frames`` says otherwise.
+#: Frames and samples per pixel unless ``--frames`` and ``--spp`` say otherwise.
 DEFAULT_FRAMES = "0:4"
+DEFAULT_SPP = 4
 
 _TRACE_REPEATS = 3
 
@@ -380,7 +381,8 @@ def verdict(result: dict, scene: str, spp: int) -> str:
 def configure(parser) -> None:
     """Options of ``hlbvh sweep``."""
     parser.description = __doc__.split("\n\n")[0]
-    add_scene_options(parser, builder_options=False)
+    add_scene_options(parser, "out/sweep/<scene>", builder_options=False,
+                      frames=DEFAULT_FRAMES, spp=DEFAULT_SPP)
     parser.add_argument("--settings", help=f"comma separated: names ({', '.join(SETTINGS)}) "
                                            "or key=value+key=value; default: all names")
     parser.add_argument("--spp-curve", default=",".join(map(str, SPP_CURVE)),
@@ -391,7 +393,7 @@ def configure(parser) -> None:
 def run(args) -> int:
     """``hlbvh sweep``: see the module docstring. Returns the exit status (0)."""
     settings = parse_settings(args.settings)
-    spp = 4 if args.spp is None else _int_flag("--spp", args.spp, least=1)
+    spp = DEFAULT_SPP if args.spp is None else _int_flag("--spp", args.spp, least=1)
     curve = [_int_flag("--spp-curve", s, least=1) for s in args.spp_curve.split(",")]
     base = render_settings(args, spp=spp)
     animation, source, frames = open_animation(
