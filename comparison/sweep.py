@@ -279,11 +279,12 @@ def _frame(renderer: FrameRenderer, i: int, curve: list[int], spp: int) -> tuple
 
 def _throughput(renderers: dict) -> dict:
     """Per setting: millions of closest-hit queries per second on the current frame's
-    camera rays (``primary``) and on one bounce from their hits (``secondary``), the
-    best of a few runs after a first that may compile, the settings taking turns."""
-    first = next(iter(renderers.values())).scene
-    primary = primary_rays(first)
-    rays = {"primary": (primary, True), "secondary": (secondary_rays(first, primary), False)}
+    camera rays (``primary``) and on one bounce from their hits (``secondary``, spawned
+    from native's hits), the best of a few runs after a first that may compile, the
+    settings taking turns."""
+    native = renderers[NATIVE].scene
+    primary = primary_rays(native)
+    rays = {"primary": (primary, True), "secondary": (secondary_rays(native, primary), False)}
     dr.eval(rays)
     times = {label: {kind: [] for kind in rays} for label in renderers}
     for _ in range(_TRACE_REPEATS + 1):
