@@ -424,12 +424,18 @@ class MeshGroup:
         self.builds = 0
         self.refits = 0
         self.last = None
-        self._built_indices = None  # the meshes the tree was built over
+        self._built_indices = ()  # the meshes the tree was built over
         self.keep()
 
     @property
     def triangles(self) -> int:
         return 0 if self.geometry is None else self.geometry.prim_count
+
+    @property
+    def stale(self) -> bool:
+        """Whether the group's meshes are not those its BVH was built over (they
+        changed, and the build that followed failed or has not run yet)."""
+        return self.indices != self._built_indices
 
     def update(self, shapes, build_options: dict, policy: UpdatePolicy, reshaped: bool,
                decision: str = "rebuild"):
@@ -446,7 +452,7 @@ class MeshGroup:
         """
         start = _clock()
         seeded, drift = False, None
-        reshaped = reshaped or self.bvh is None or self.indices != self._built_indices
+        reshaped = reshaped or self.bvh is None or self.stale
         if reshaped or policy.update == "rebuild":
             seeded = self._build(shapes, build_options)
         else:
@@ -568,7 +574,8 @@ class SceneAccel(_Accel):
         """Whether a mesh got new vertex or face buffers (a ``params.update()`` with
         new values) since the last update."""
         buffers = mesh_buffers(self.shapes, self.meshes)
-        return any(_new_buffers(buffers[i], self._buffers[i]) for i in self.meshes)
+        return (self.static.stale or self.dynamic.stale
+                or any(_new_buffers(buffers[i], self._buffers[i]) for i in self.meshes))
 
     def update(self):
         """Bring the BVHs up to date with the meshes' buffers; call it after
@@ -591,19 +598,19 @@ class SceneAccel(_Accel):
             changed = [i for i in self.meshes if _new_buffers(buffers[i], self._buffers[i])]
             # ---- Meshes changing for the first time leave the static group ----
             moved = [i for i in changed if i in self.static.indices]
-            if moved:
-                self.static.indices = tuple(i for i in self.static.indices if i not in moved)
-                self.dynamic.indices = tuple(sorted(self.dynamic.indices + tuple(moved)))
+            self.static.indices = tuple(i for i in self.static.indices if i not in moved)
+            self.dynamic.indices = tuple(sorted(self.dynamic.indices + tuple(moved)))
+            # ---- Each group follows its meshes (a stale group: after a failed build) ----
+            if self.static.stale:
                 self.static.update(self.shapes, options, policy, reshaped=True)
             else:
                 self.static.keep()
-            # ---- The dynamic group follows its meshes ----
-            if changed:
+            if changed or self.dynamic.stale:
                 reshaped = any(_reshaped(buffers[i], self._buffers[i]) for i in changed)
                 self.dynamic.update(self.shapes, options, policy, reshaped)
             else:
                 self.dynamic.keep()
-        self._buffers = buffers
+        self._buffers = buffers  # only once every group is up to date
         self._traced = sorted((g for g in (self.static, self.dynamic) if g.bvh is not None),
                               key=lambda g: g.triangles)
         self.last_update = dict(

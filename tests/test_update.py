@@ -257,21 +257,30 @@ def test07_bad_update_options_name_the_option(accel, options, message):
         mi.load_dict(dict(type="hlbvh_path", **options))
 
 
-def test08_non_finite_positions_name_the_mesh():
-    """Whether the update would rebuild (first change) or refit (later ones)."""
+@pytest.mark.parametrize("restore", ["next frame", "same array"])
+def test08_non_finite_positions_name_the_mesh(restore):
+    """Whether the update would rebuild (first change) or refit (later ones); after
+    the error, good positions trace again, be they new or the very array (the same JIT
+    variable) the mesh had before the failed update."""
     animation, scene, params = load("cloth", triangles=500)
     accel = hlbvh.SceneAccel(scene, update="refit")
+    flag = next(s for s in scene.shapes() if s.id() == "flag")
     for i in (1, 2):
-        scenes.apply_frame(scene, params, animation.frame(i))
-        accel.update()
-        positions = np.array(params["flag.vertex_positions"])
+        before = flag.vertex_positions_buffer()  # params[...] would be updated in place
+        positions = np.array(before)
         positions[7] = np.inf
         params["flag.vertex_positions"] = mi.Float(positions)
         params.update()
         with pytest.raises(ValueError, match="'flag' \\(Mesh\\) has non-finite"):
             accel.update()
-        scenes.apply_frame(scene, params, animation.frame(i))  # fixed: the update works
+        if restore == "same array":
+            params["flag.vertex_positions"] = before
+            params.update()
+        else:
+            scenes.apply_frame(scene, params, animation.frame(i))
         accel.update()
+        assert accel.last_update["triangles"] == sum(
+            s.face_count() for s in scene.shapes() if s.is_mesh())
         assert_hits_equal_native(accel, scene)
 
 
