@@ -572,7 +572,7 @@ class SceneAccel(_Accel):
 
     def changed(self) -> bool:
         """Whether a mesh got new vertex or face buffers (a ``params.update()`` with
-        new values) since the last update."""
+        new values) since the last update, or a group's last build failed."""
         buffers = mesh_buffers(self.shapes, self.meshes)
         return (self.static.stale or self.dynamic.stale
                 or any(_new_buffers(buffers[i], self._buffers[i]) for i in self.meshes))
