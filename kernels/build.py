@@ -53,8 +53,8 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
         faces: flat UInt32 (3·F) vertex indices, or Array3u (F); F >= 1.
         previous: a BVH of an earlier frame of the same mesh: its primitive order
             seeds the CSD sort (temporal coherence). Ignored when the triangle count
-            changed. The nodes are the same as without it; only primitives with equal
-            Morton keys may keep last frame's relative order inside their leaves.
+            changed. The tree has the same shape as without it; only primitives with equal
+            Morton keys may keep last frame's relative order (and so change leaf boxes).
         **options: fields of :class:`BuildConfig` (builder, leaf_size, morton_bits,
             quantization, coarse_bits, p, sah_bins).
     Returns:
