@@ -55,6 +55,14 @@ Dr.Jit variable indices of the BVH's arrays, so a refit (which assigns new box a
 vertex arrays) repacks on the next trace; code that modifies those arrays in place
 must call :func:`forget_records`.
 
+Short stack: the top ``STACK_REGISTERS`` (4) entries of each lane's stack live in
+loop registers, the rest in local memory (``dr.alloc_local``), which is only touched,
+in a symbolic if, by a packet in which some lane pushes onto four held entries or pops
+with none held. Rays rarely hold more than a few entries (on a 1M-triangle grid 1-2 on
+average, under 4 on 75-90% of pushes), while every local-memory access costs a packet a
+scatter or gather plus Dr.Jit's test for a uniform index: measured 1.05-1.15x faster
+than a stack wholly in local memory accessed on every step.
+
 Stack guard: the stack holds ``STACK_SIZE`` (64) entries; ordered traversal pushes at
 most one entry per level, so a tree of depth <= 64 never overflows, and deeper trees
 are refused with a ValueError before tracing. A corrupt tree that still overflows the
@@ -75,6 +83,8 @@ from .arrays import namespace_of, plain
 
 #: Entries of the per-lane traversal stack.
 STACK_SIZE = 64
+#: Of these, the top entries held in loop registers (the rest in local memory).
+STACK_REGISTERS = 4
 #: Bit 31 of a reference marks a leaf.
 LEAF_BIT = 0x80000000
 #: Most triangles a leaf may hold (its count - 1 lives in the reference's low 4 bits).
@@ -389,12 +399,54 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         first = n_nodes + ((ref & ~UInt32(LEAF_BIT)) >> 4)
         return dr.select(leaf, first, ref), first + (ref & 15) + 1
 
+    # ---- Short stack: STACK_REGISTERS entries in registers, the rest in local memory ----
+    memory = dr.alloc_local(ns.UInt64, STACK_SIZE - STACK_REGISTERS)
+
+    def spill(entry, sp, mask):
+        memory.write(entry, sp, active=mask)
+
+    def fill(sp, mask):
+        return memory.read(sp, active=mask)
+
+    def no_fill(sp, mask):
+        return dr.zeros(ns.UInt64, n)
+
+    def push(held, depth, sp, entry, mask):
+        """Push ``entry`` on the lanes of ``mask``; the bottom register spills to local
+        memory when all are in use. Returns ``(held, depth, sp, overflow)``."""
+        spilling = mask & (depth == STACK_REGISTERS)
+        overflow = spilling & (sp >= STACK_SIZE - STACK_REGISTERS)
+        spilling &= ~overflow
+        mask &= ~overflow
+        dr.if_stmt(args=(held[-1], sp, spilling), cond=spilling, true_fn=spill,
+                   false_fn=lambda *args: None, label="hlbvh_spill")
+        sp = dr.select(spilling, sp + 1, sp)
+        held = [dr.select(mask, above, below) for above, below in zip([entry] + held[:-1], held)]
+        depth = dr.select(mask & (depth < STACK_REGISTERS), depth + 1, depth)
+        return held, depth, sp, overflow
+
+    def pop(held, depth, sp, mask):
+        """Pop an entry on the lanes of ``mask`` (each holding one, in registers or in
+        local memory). Returns ``(entry, held, depth, sp)``."""
+        from_register = mask & (depth > 0)
+        filling = mask & (depth == 0)
+        sp = dr.select(filling, sp - 1, sp)
+        filled = dr.if_stmt(args=(sp, filling), cond=filling, true_fn=fill, false_fn=no_fill,
+                            label="hlbvh_fill")
+        entry = dr.select(from_register, held[0], filled)
+        held = [dr.select(from_register, below, above)
+                for above, below in zip(held, held[1:] + held[-1:])]
+        depth = dr.select(from_register, depth - 1, depth)
+        return entry, held, depth, sp
+
     # ---- Loop state (every variable at full width, pitfall 1) ----
-    stack = dr.alloc_local(ns.UInt64, STACK_SIZE)  # entry: t_near bits << 32 | reference
     cur, end = enter(dr.full(UInt32, root, n))  # record to process; end of its leaf
     node_t = dr.zeros(Float, n)  # entry distance of the current node's box
     entering = dr.full(Bool, True, n)  # first step at this node (or leaf)
-    sp = dr.zeros(UInt32, n)  # stack pointer: entries in use
+    # stack entries: t_near bits << 32 | reference; top first
+    held = [dr.zeros(ns.UInt64, n) for _ in range(STACK_REGISTERS)]
+    depth = dr.zeros(UInt32, n)  # entries held in registers
+    sp = dr.zeros(UInt32, n)  # entries in local memory
     t_best = dr.select(alive, maxt, dr.inf)  # closest hit so far (or maxt)
     u_best = dr.zeros(Float, n)
     v_best = dr.zeros(Float, n)
@@ -403,17 +455,16 @@ def _trace(bvh, o, d, maxt, active, any_hit):
     steps = dr.zeros(UInt32, n)  # loop iterations (cycle guard)
     corrupt = dr.zeros(Bool, n)  # the ray hit a stack overflow or a cycle
     max_steps = dr.opaque(UInt32, bvh.size + bvh.prim_count)
-    state = (cur, end, node_t, entering, sp, alive, steps, corrupt, t_best, u_best, v_best,
-             slot_best, found)
-    labels = ("cur", "end", "node_t", "entering", "sp", "alive", "steps", "corrupt",
-              "t_best", "u_best", "v_best", "slot_best", "found")
+    state = (cur, end, node_t, entering, held, depth, sp, alive, steps, corrupt, t_best,
+             u_best, v_best, slot_best, found)
+    labels = ("cur", "end", "node_t", "entering", "held", "depth", "sp", "alive", "steps",
+              "corrupt", "t_best", "u_best", "v_best", "slot_best", "found")
 
-    def trace_cond(cur, end, node_t, entering, sp, alive, steps, corrupt, t_best, u_best,
-                   v_best, slot_best, found):
+    def trace_cond(cur, end, node_t, entering, held, depth, sp, alive, *rest):
         return alive
 
-    def trace_body(cur, end, node_t, entering, sp, alive, steps, corrupt, t_best, u_best,
-                   v_best, slot_best, found):
+    def trace_body(cur, end, node_t, entering, held, depth, sp, alive, steps, corrupt,
+                   t_best, u_best, v_best, slot_best, found):
         rec = dr.gather(ns.ArrayXf, records, cur, shape=(_RECORD, n))
         in_leaf = cur >= n_nodes
         # A node (or leaf) entered beyond the closest hit so far is skipped.
@@ -448,24 +499,19 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         near, near_t = dr.select(left_first, ref_l, ref_r), dr.select(left_first, t_l, t_r)
         far, far_t = dr.select(left_first, ref_r, ref_l), dr.select(left_first, t_r, t_l)
         # Both children hit: go to the nearer, push the farther.
-        both = hit_l & hit_r
-        overflow = both & (sp >= STACK_SIZE)
-        push = both & ~overflow
         entry = ns.UInt64(far) | (ns.UInt64(dr.reinterpret_array(UInt32, far_t)) << 32)
-        stack.write(entry, sp, active=push)
-        sp = dr.select(push, sp + 1, sp)
+        held, depth, sp, overflow = push(held, depth, sp, entry, hit_l & hit_r)
 
         # ---- Next step: the leaf's next triangle, the nearer child, or a pop ----
         more = in_leaf & ~stale & (cur + 1 < end)
         if any_hit:
             more &= ~hit
             alive &= ~hit
-        pop = ~more & ~(hit_l | hit_r)
-        has = sp > 0
-        take = pop & has & alive
-        sp = dr.select(take, sp - 1, sp)
-        popped = stack.read(sp, active=take)
-        alive &= ~(pop & ~has)
+        pop_here = ~more & ~(hit_l | hit_r)
+        has = (depth > 0) | (sp > 0)
+        take = pop_here & has & alive
+        popped, held, depth, sp = pop(held, depth, sp, take)
+        alive &= ~(pop_here & ~has)
         ref = dr.select(take, UInt32(popped), near)
         ref_t = dr.select(take, dr.reinterpret_array(Float, UInt32(popped >> 32)), near_t)
         next_cur, next_end = enter(ref)
@@ -478,12 +524,12 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         cycle = steps > max_steps
         corrupt |= overflow | cycle
         alive &= ~(overflow | cycle)
-        return (cur, end, node_t, entering, sp, alive, steps, corrupt, t_best, u_best,
-                v_best, slot_best, found)
+        return (cur, end, node_t, entering, held, depth, sp, alive, steps, corrupt, t_best,
+                u_best, v_best, slot_best, found)
 
     state = dr.while_loop(state=state, cond=trace_cond, body=trace_body, labels=labels,
                           label="hlbvh_trace")
-    corrupt, t_best, u_best, v_best, slot_best, found = state[7:]
+    corrupt, t_best, u_best, v_best, slot_best, found = state[9:]
     valid = found & ~corrupt
     if any_hit:
         return valid
