@@ -22,6 +22,7 @@ differences are taken per channel in float64 from the float32 values):
 from __future__ import annotations
 
 import math
+import numbers
 
 import numpy as np
 
@@ -53,7 +54,7 @@ def image_metrics(reference, test, tolerance: float, peak: float | None = None) 
     reference = as_image(reference, "reference")
     test = as_image(test, "test")
     _check_same_shape(reference.shape, test.shape)
-    if not (isinstance(tolerance, (int, float)) and math.isfinite(tolerance) and tolerance >= 0):
+    if not (_is_real(tolerance) and math.isfinite(tolerance) and tolerance >= 0):
         raise ValueError(f"tolerance={tolerance!r}: expected a finite number >= 0")
 
     # ---- Per-pixel classification ----
@@ -77,9 +78,10 @@ def image_metrics(reference, test, tolerance: float, peak: float | None = None) 
         finite_values = np.abs(reference[np.isfinite(reference)])
         peak = float(finite_values.max()) if finite_values.size else 0.0
         peak = peak if peak > 0.0 else 1.0
-    elif not (isinstance(peak, (int, float)) and math.isfinite(peak) and peak > 0):
+    elif not (_is_real(peak) and math.isfinite(peak) and peak > 0):
         raise ValueError(f"peak={peak!r}: expected a finite number > 0, or None")
-    psnr_db = math.inf if mse == 0.0 else 10.0 * math.log10(float(peak) ** 2 / mse)
+    # In logarithms, so that neither peak**2 nor peak**2 / mse can overflow.
+    psnr_db = math.inf if mse == 0.0 else 20.0 * math.log10(peak) - 10.0 * math.log10(mse)
 
     return {
         "pixels": pixels,
@@ -161,6 +163,11 @@ def _hit_indices(aov, name: str) -> tuple[np.ndarray, np.ndarray]:
     if np.any(whole != np.round(whole)):
         raise ValueError(f"{name}: float indices must be whole numbers; this is not an index image")
     return whole.astype(np.int64), np.all(finite_entries, axis=2)
+
+
+def _is_real(value) -> bool:
+    """A real number (Python or numpy scalar), not a bool or a string."""
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
 
 
 def _check_same_shape(reference_shape: tuple, test_shape: tuple) -> None:
