@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
 from hlbvh.images import atomic_output
 
@@ -88,6 +89,7 @@ def plot_build_times(
     axes.plot(frames_, native, label="native rebuild", **_NATIVE_STYLE)
     axes.plot(frames_, ours, marker="o", label=f"hlbvh (median {ratio:.3g}x faster)")
     axes.set_xlabel("frame")
+    axes.xaxis.set_major_locator(MaxNLocator(integer=True))
     axes.set_ylabel("build time [ms]")
     axes.set_ylim(bottom=0)
     axes.legend()
@@ -126,13 +128,21 @@ def plot_frame_time_vs_spp(
     if native not in frame_ms:
         raise ValueError(f"frame_ms: no {native!r} entry to compare the settings with")
     samples, native_ms = _paired(spp, frame_ms[native], "spp", f"frame_ms[{native!r}]")
+    # Frame time is linear in spp: draw the piecewise-linear interpolation (curved on the
+    # log axis), so the marked crossovers lie on the lines.
+    if not (np.all(samples > 0) and np.all(np.diff(samples) > 0)):
+        raise ValueError(f"spp={samples.tolist()}: expected positive, strictly increasing values")
+    dense = np.geomspace(samples[0], samples[-1], 256)
     figure, axes = _figure(title)
-    axes.plot(samples, native_ms, label=native, **_NATIVE_STYLE)
+    (line,) = axes.plot(dense, np.interp(dense, samples, native_ms), color="black", linestyle="--")
+    axes.plot(samples, native_ms, color="black", marker="s", linestyle="none")
+    line.set_label(native)
     for label, series in frame_ms.items():
         if label == native:
             continue
         _, ours = _paired(spp, series, "spp", f"frame_ms[{label!r}]")
-        (line,) = axes.plot(samples, ours, marker="o", label=label)
+        (line,) = axes.plot(dense, np.interp(dense, samples, ours), label=label)
+        axes.plot(samples, ours, marker="o", linestyle="none", color=line.get_color())
         crossing = crossover_spp(samples, ours, native_ms)
         if crossing is not None:
             at = float(np.interp(crossing, samples, native_ms))

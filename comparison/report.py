@@ -42,6 +42,7 @@ _NONFINITE_STRINGS = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}
 
 _CSS = """
 body { font-family: system-ui, sans-serif; margin: 2em; color: #222; }
+.scroll { overflow-x: auto; }
 table { border-collapse: collapse; margin: 1em 0; font-size: 0.9em; }
 th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; }
 td.num { text-align: right; font-variant-numeric: tabular-nums; }
@@ -285,7 +286,10 @@ class _Page:
             )
             body.append(f'<tr class="winner">{tds}</tr>' if index == highlight else f"<tr>{tds}</tr>")
         head = "".join(f"<th>{html.escape(column)}</th>" for column in columns)
-        self.html.append(f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(body)}</tbody></table>")
+        self.html.append(
+            f'<div class="scroll"><table><thead><tr>{head}</tr></thead>'
+            f"<tbody>{''.join(body)}</tbody></table></div>"
+        )
 
     def images(self, heading: str, links: Mapping[str, str]) -> None:
         captions = [IMAGE_ROLES.get(role, role) for role in links]
