@@ -100,23 +100,36 @@ def write_exr(path, image, channel_names: Sequence[str] | None = None) -> Path:
         path: destination, conventionally ending in ``.exr``.
         image: ``(H, W)`` or ``(H, W, C)`` values (see :func:`as_image`), stored bit for
             bit.
-        channel_names: one name per channel; defaults to OpenImageIO's (``Y`` for one
-            channel, ``R, G, B, A`` then ``channel4 ...``). EXR stores channels sorted by
-            name, so pass the same names to :func:`read_exr` to get this order back.
+        channel_names: one name per channel. The default (:func:`default_channel_names`)
+            reads back in the order written; EXR stores channels sorted by name, so with
+            other names pass the same names to :func:`read_exr` to get this order back.
 
     Returns:
         ``path`` as a :class:`~pathlib.Path`.
     """
     pixels = as_image(image)
     spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], oiio.FLOAT)
-    if channel_names is not None:
-        if len(channel_names) != pixels.shape[2]:
-            raise ValueError(
-                f"channel_names: {len(channel_names)} names for an image of "
-                f"{pixels.shape[2]} channels; give one name per channel"
-            )
-        spec.channelnames = tuple(channel_names)
+    if channel_names is None:
+        channel_names = default_channel_names(pixels.shape[2])
+    if len(channel_names) != pixels.shape[2]:
+        raise ValueError(
+            f"channel_names: {len(channel_names)} names for an image of "
+            f"{pixels.shape[2]} channels; give one name per channel"
+        )
+    spec.channelnames = tuple(channel_names)
     return _write_with_oiio(Path(path), "openexr", spec, pixels)
+
+
+def default_channel_names(channels: int) -> list[str]:
+    """EXR channel names for an image of ``channels`` channels that OpenImageIO reads
+    back in the same order: ``Y``; ``R, G``; ``R, G, B``; ``R, G, B, A``; beyond four,
+    ``R, G, B, A`` then ``channel04, channel05, ...`` (zero-padded, because the file
+    keeps its channels sorted by name and readers list R, G, B, A first, then the rest
+    in that sorted order)."""
+    if channels <= 4:
+        return ["Y"] if channels == 1 else ["R", "G", "B", "A"][:channels]
+    digits = len(str(channels - 1))
+    return ["R", "G", "B", "A"] + [f"channel{k:0{digits}d}" for k in range(4, channels)]
 
 
 def write_png(path, image) -> Path:
@@ -143,6 +156,11 @@ def write_png(path, image) -> Path:
         alpha = np.nan_to_num(pixels[..., -1], nan=0.0, posinf=1.0, neginf=0.0)
         encoded[..., -1] = np.round(np.clip(alpha, 0.0, 1.0) * 255.0).astype(np.uint8)
     spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], channels, oiio.UINT8)
+    if channels in (2, 4):
+        # PNG stores straight (unassociated) alpha, as the codes above are; without this
+        # OpenImageIO divides the colour by alpha, taking it for premultiplied.
+        spec.alpha_channel = channels - 1
+        spec.attribute("oiio:UnassociatedAlpha", 1)
     return _write_with_oiio(Path(path), "png", spec, encoded)
 
 
@@ -203,11 +221,11 @@ def srgb_encode(image) -> np.ndarray:
     Returns:
         uint8 array of the input's ``(H, W, C)`` shape.
     """
-    linear = np.clip(np.nan_to_num(as_image(image), nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+    linear = np.nan_to_num(as_image(image).astype(np.float64), nan=0.0, posinf=1.0, neginf=0.0)
+    linear = np.clip(linear, 0.0, 1.0)
+    # In float64, so the rounding matches the transfer function's exact value.
     encoded = np.where(
-        linear <= 0.0031308,
-        12.92 * linear,
-        1.055 * np.power(linear, 1.0 / 2.4, dtype=np.float32) - 0.055,
+        linear <= 0.0031308, 12.92 * linear, 1.055 * np.power(linear, 1.0 / 2.4) - 0.055
     )
     return np.round(encoded * 255.0).astype(np.uint8)
 
@@ -241,9 +259,10 @@ def write_difference_map(
         )
     identical = np.all(reference.view(np.uint32) == test.view(np.uint32), axis=2)
     finite = np.all(np.isfinite(reference) & np.isfinite(test), axis=2)
-    difference = np.max(
-        np.abs(test.astype(np.float64) - reference.astype(np.float64)), axis=2
-    )
+    with np.errstate(invalid="ignore"):  # inf - inf: such pixels are set below
+        difference = np.max(
+            np.abs(test.astype(np.float64) - reference.astype(np.float64)), axis=2
+        )
     difference[identical] = 0.0
     flagged = ~finite & ~identical
     difference[flagged] = 0.0
@@ -251,6 +270,8 @@ def write_difference_map(
         vmax = float(difference.max()) or 1.0
     if not np.isfinite(vmax) or vmax <= 0.0:
         raise ValueError(f"vmax={vmax!r}: expected a finite positive number")
+    if colormap not in matplotlib.colormaps:
+        raise ValueError(f"colormap={colormap!r}: not a matplotlib colormap (e.g. 'inferno')")
     colours = matplotlib.colormaps[colormap](np.clip(difference / vmax, 0.0, 1.0))
     rgb = np.round(colours[..., :3] * 255.0).astype(np.uint8)
     rgb[flagged] = NONFINITE_COLOUR
