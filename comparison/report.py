@@ -8,9 +8,10 @@ written to ``results.json`` (nested dicts flattened to dotted keys, e.g.
 the rows' keys in order of first appearance: a new statistic shows up without touching
 this module.
 
-Links in the HTML and Markdown are relative; images and plots outside the report
-directory are copied into it (``images/``, ``plots/``), so the directory can be moved or
-archived whole and still opens from ``file://``.
+Links in the HTML and Markdown are relative and percent-encoded; images and plots
+outside the report directory are copied into it (``images/``, ``plots/``), so the
+directory can be moved or archived whole and still opens from ``file://``.
+``results.json`` holds the same links as plain relative paths.
 
 ``results.json`` is strict JSON (it parses in a browser): the non-finite floats a
 comparison can produce (a PSNR of ``inf`` for identical images) are written as the
@@ -27,6 +28,7 @@ import json
 import math
 import os
 import shutil
+import urllib.parse
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -117,8 +119,9 @@ def write_report(
         title: the page title.
         frames: one dict per frame with at least ``"frame"`` (its number) and any other
             numbers (image metrics, build and render ms, SAH cost ...); nested dicts are
-            flattened to dotted keys. Rows with ``nonfinite_mismatch_pixels`` > 0 are
-            called out on the page.
+            flattened to dotted keys. Rows with ``nonfinite_mismatch_pixels`` > 0 (at
+            any depth, e.g. ``image.nonfinite_mismatch_pixels``) are called out on the
+            page.
         images: frame number -> ``{"native": png, "hlbvh": png, "diff": png}`` (further
             roles are shown after these), paths to images a browser shows.
         settings: what was run (scene, resolution, spp, integrator, builder options ...).
@@ -151,7 +154,7 @@ def write_report(
     page = _Page(title)
     page.table("Settings", _setting_rows(settings))
     page.table("Frames", rows)
-    flagged = [row["frame"] for row in rows if row.get("nonfinite_mismatch_pixels", 0)]
+    flagged = [row["frame"] for row in rows if _nonfinite_mismatch(row)]
     if flagged:
         page.warning(
             f"Frames {', '.join(map(format_value, flagged))} have pixels that are NaN or "
@@ -296,11 +299,12 @@ class _Page:
         self.markdown.append(f"### {heading}\n")
         self.markdown.append(
             "| " + " | ".join(captions) + " |\n|" + "|".join("---" for _ in links) + "|\n| "
-            + " | ".join(f"![{caption}]({link})" for caption, link in zip(captions, links.values()))
+            + " | ".join(f"![{caption}]({_url(link)})"
+                         for caption, link in zip(captions, links.values()))
             + " |\n"
         )
         figures = "".join(
-            f'<figure><img src="{html.escape(link)}" alt="{html.escape(caption)}">'
+            f'<figure><img src="{html.escape(_url(link))}" alt="{html.escape(caption)}">'
             f"<figcaption>{html.escape(caption)}</figcaption></figure>"
             for caption, link in zip(captions, links.values())
         )
@@ -312,9 +316,10 @@ class _Page:
         self.markdown.append("## Plots\n")
         self.html.append("<h2>Plots</h2>")
         for link in links:
-            self.markdown.append(f"![{Path(link).stem}]({link})\n")
+            self.markdown.append(f"![{Path(link).stem}]({_url(link)})\n")
             self.html.append(
-                f'<p><img class="plot" src="{html.escape(link)}" alt="{html.escape(Path(link).stem)}"></p>'
+                f'<p><img class="plot" src="{html.escape(_url(link))}" '
+                f'alt="{html.escape(Path(link).stem)}"></p>'
             )
 
     def render_html(self) -> str:
@@ -373,6 +378,13 @@ def _local_link(out_dir: Path, path, copy_stem: str) -> str:
     return resolved.relative_to(root).as_posix()
 
 
+def _url(link: str) -> str:
+    """A relative file path as a link target: percent-encoded, so that a space, ``#``,
+    ``%``, ``?`` or a parenthesis in a folder name neither breaks the Markdown link nor
+    makes the browser read a fragment or an escape."""
+    return urllib.parse.quote(link)
+
+
 def _plot_links(out_dir: Path, plots: Sequence) -> list[str]:
     return [_local_link(out_dir, plot, f"plots/{index}_{Path(plot).stem}") for index, plot in enumerate(plots)]
 
@@ -407,6 +419,15 @@ def _plain(value):
     if isinstance(value, (list, tuple)) or hasattr(value, "tolist"):
         return [_plain(item) for item in (value.tolist() if hasattr(value, "tolist") else value)]
     return value
+
+
+def _nonfinite_mismatch(row: Mapping) -> bool:
+    """Whether a flattened row counts pixels non-finite in one render only."""
+    return any(
+        (key == "nonfinite_mismatch_pixels" or key.endswith(".nonfinite_mismatch_pixels"))
+        and _is_number(value) and value > 0
+        for key, value in row.items()
+    )
 
 
 def _setting_rows(settings: Mapping) -> list[dict]:
