@@ -56,7 +56,8 @@ def test02_one_pixel_changed_by_a_known_amount():
     # PSNR by its definition: the peak is the reference's largest magnitude.
     peak = float(np.abs(reference).max())
     assert metrics["psnr_peak"] == peak
-    assert metrics["psnr_db"] == pytest.approx(10 * math.log10(peak**2 / (amount**2 / (PIXELS * C))))
+    mse = amount**2 / (PIXELS * C)
+    assert metrics["psnr_db"] == pytest.approx(10 * math.log10(peak**2 / mse))
     # The sign of the change does not matter.
     assert image_metrics(reference, with_one_pixel(reference, 2, 3, 1, -amount), 0.0)[
         "max_abs_diff"] == amount
@@ -226,7 +227,8 @@ def test14_hit_agreement_counts_nonfinite_indices_as_disagreeing():
     (np.zeros((2, 3, 3)), np.zeros((2, 3, 3)), r"\(H, W, 2\)"),
     (np.zeros((2, 3)), np.zeros((2, 3)), r"\(H, W, 2\)"),
     ((np.zeros((2, 3)),), (np.zeros((2, 3)),), "pair"),
-    ((np.zeros((2, 3)), np.zeros((3, 2))), (np.zeros((2, 3)), np.zeros((2, 3))), "different shapes"),
+    ((np.zeros((2, 3)), np.zeros((3, 2))), (np.zeros((2, 3)), np.zeros((2, 3))),
+     "different shapes"),
     (np.full((1, 1, 2), 0.5), np.zeros((1, 1, 2)), "whole numbers"),
     (np.array([[["a", "b"]]]), np.array([[["a", "b"]]]), "dtype"),
 ])
