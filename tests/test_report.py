@@ -428,3 +428,23 @@ def test14_report_html_shows_every_image_in_chromium(run, tmp_path):
     broken.unlink()
     assert seen["total"] == frames + 1 and seen["loaded"] == frames
     assert [src for src, width, _ in seen["images"] if width == 0] == ["images/no_such_frame.png"]
+
+
+def test15_the_directory_can_be_moved(run, tmp_path):
+    """Every link is relative and points inside the report directory, so a copy of the
+    directory elsewhere shows the same images."""
+    from urllib.parse import unquote
+
+    moved = tmp_path / "moved report"
+    shutil.copytree(run["out"], moved)
+    page = parse_html(moved / "report.html")
+    md_links = re.findall(r"!\[[^\]]*\]\(([^)]*)\)", (moved / "report.md").read_text())
+    assert len(page.sources) == len(md_links) == len(FRAMES) * len(ROLES) + 1
+    for link in page.sources + md_links:
+        assert "://" not in link and not link.startswith("/"), link
+        target = (moved / unquote(link)).resolve()
+        assert target.is_relative_to(moved.resolve()) and target.is_file(), link
+    results = read_results(moved / "results.json")
+    for roles in results["images"].values():
+        for link in roles.values():
+            assert (moved / link).is_file(), link
