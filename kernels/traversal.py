@@ -37,23 +37,36 @@ infinite component, a zero direction, ``maxt <= 0`` or ``maxt`` NaN are clean mi
 Packed records (built once per BVH and cached on it, see :func:`packed_records`): the
 arrays of ``hlbvh.kernels.bvh`` are repacked into one Float array of 16-float records
 (64 bytes, one cache line), so that each step is one packet gather, whatever the lane
-is doing. Records ``0 .. N-1`` belong to the nodes, ``N + s`` to the triangle in slot
-``s``:
+is doing. An internal node has one record; a leaf has none of its own, only its
+triangles' records, one per triangle:
 
-=========================  ==============================================================
-``rec[16·i + 0..5]``       internal node ``i``: its left child's box: lo x, y, z, hi x, y, z
-``rec[16·i + 6..11]``      its right child's box
-``rec[16·i + 12, 13]``     left and right child's references (the bits of a UInt32);
-                           14, 15 zero padding; records of leaves are unused
-``rec[16·(N+s) + 0..8]``   p0, p1, p2 of the triangle in slot ``s``; 9..15 zero padding
-=========================  ==============================================================
+========================  ===============================================================
+internal node, ``0..5``   its left child's box: lo x, y, z, hi x, y, z
+``6..11``                 its right child's box
+``12, 13``                left and right child's references (the bits of a UInt32);
+                          14, 15 zero padding
+triangle, ``0..8``        p0, p1, p2 (in the face's order)
+``9``                     the input face index (the bits of a UInt32); 10..15 zero
+========================  ===============================================================
 
-A *reference* names a node: an internal node by its index (bit 31 clear); a leaf by
-``LEAF_BIT | first_slot << 4 | (count - 1)`` so a leaf needs no record of its own (this
-bounds leaves to 16 triangles and meshes to 2**27 triangles). The cache is keyed by the
-Dr.Jit variable indices of the BVH's arrays, so a refit (which assigns new box and
-vertex arrays) repacks on the next trace; code that modifies those arrays in place
-must call :func:`forget_records`.
+The records are laid out depth first (pre-order, left child first): a node's record,
+then its left subtree's records, then its right subtree's, a leaf's triangles in slot
+order where the leaf stands. A ray that descends often steps to the next record, which
+the cache (or its adjacent-line prefetch) already holds: measured 1.11-1.18x faster on
+a 1M-triangle grid than nodes in index order followed by all triangles (no change on
+Cornell box, which fits in L1), and packing is no slower. The order comes from the
+tree's ``levels`` (one pass up for subtree sizes, one down for positions); a hand-made
+tree whose ``levels`` do not describe it exactly (checked: every internal node and
+leaf triangle got a record of its own and no record is empty) is packed in index order
+instead: node ``i`` at record ``i``, the triangle in slot ``s`` at ``N + s``. Storing
+the face index in the triangle's record also spares a gather after the loop.
+
+A *reference* names a node: an internal node by its record (bit 31 clear); a leaf by
+``LEAF_BIT | first_record << 4 | (count - 1)`` so a leaf needs no record of its own (this
+bounds leaves to 16 triangles and the records to 2**27, about 2**26 triangles). The
+cache is keyed by the Dr.Jit variable indices of the BVH's arrays, so a refit (which
+assigns new box and vertex arrays) repacks on the next trace; code that modifies those
+arrays in place must call :func:`forget_records`.
 
 Short stack: the top ``STACK_REGISTERS`` (4) entries of each lane's stack live in
 loop registers, the rest in local memory (``dr.alloc_local``), which is only touched,
@@ -89,10 +102,15 @@ STACK_REGISTERS = 4
 LEAF_BIT = 0x80000000
 #: Most triangles a leaf may hold (its count - 1 lives in the reference's low 4 bits).
 MAX_LEAF_SIZE = 16
-#: Most triangles a BVH may hold (the first slot of a leaf lives in bits 4..30).
-MAX_PRIMS = 1 << 27
+#: Most records (internal nodes plus triangles) a BVH may pack into (the first record
+#: of a leaf lives in bits 4..30 of its reference).
+MAX_RECORDS = 1 << 27
 
 _RECORD = 16  # floats per packed node or triangle record
+_TRIANGLE_TAG = 0x80000000  # a record holding a triangle, the slot in the low bits
+_NOTHING = 0xFFFFFFFF  # a record holding nothing (index-order layout only)
+_TRIANGLE_TAG = 0x80000000  # a record holding a triangle (the slot in the low bits)
+_NOTHING = 0xFFFFFFFF  # a record holding nothing
 _FLT_MIN = 2.0**-126  # smallest normal float: 1 / _FLT_MIN is finite
 _EPS = 2.0**-24  # unit roundoff of float32
 _GAMMA3 = 3 * _EPS / (1 - 3 * _EPS)  # gamma(3) of Pharr et al., as in Ize 2013
@@ -168,15 +186,17 @@ def packed_records(bvh):
     built on first use and cached on the BVH object.
 
     Returns:
-        ``(records, root)``: Float (16·(N+F)) and the Python int reference of the root.
+        ``(records, root)``: Float (16 per record) and the Python int reference of the
+        root.
     Raises:
         ValueError: the tree is deeper than ``STACK_SIZE``, has a leaf of more than 16
-            triangles, more than 2**27 triangles, or a child/leaf range outside its
-            arrays.
+            triangles, more than ``MAX_RECORDS`` records, or a child/leaf range outside
+            its arrays.
     """
-    arrays = (bvh.node_min, bvh.node_max, bvh.node_first, bvh.node_count,
+    arrays = (bvh.node_min, bvh.node_max, bvh.node_first, bvh.node_count, bvh.prim_ids,
               bvh.tri_p0, bvh.tri_p1, bvh.tri_p2)
     key = tuple(c.index for a in arrays for c in (a if dr.depth_v(a) > 1 else (a,)))
+    key += tuple(level.index for level in bvh.levels)
     cache = getattr(bvh, "_traversal_records", None)
     if cache is not None and cache[0] == key:
         return cache[1]
@@ -202,8 +222,11 @@ def _pack(bvh):
             f"BVH depth {depth} exceeds the traversal stack ({STACK_SIZE} entries): "
             "rebuild with a builder that bounds the depth"
         )
-    if n_prims >= MAX_PRIMS:
-        raise ValueError(f"BVH has {n_prims} triangles; traversal supports < {MAX_PRIMS}")
+    if n_nodes + n_prims > MAX_RECORDS:
+        raise ValueError(
+            f"BVH has {n_prims} triangles in {n_nodes} nodes; traversal supports at most "
+            f"{MAX_RECORDS} nodes plus triangles (about {MAX_RECORDS // 2} triangles)"
+        )
     if n_nodes == 0 or n_prims == 0:
         raise ValueError("BVH is empty: build it from at least one triangle")
     first, count = UInt32(bvh.node_first), UInt32(bvh.node_count)
@@ -218,32 +241,113 @@ def _pack(bvh):
             "corrupt BVH: a child index or leaf range lies outside the node/slot "
             f"arrays, or a leaf holds more than {MAX_LEAF_SIZE} triangles"
         )
+    widest = int(dr.max(count, axis=None)[0])
 
-    # ---- Node records: both children's boxes and references ----
-    ref = dr.select(internal, dr.arange(UInt32, n_nodes),
-                    LEAF_BIT | (first << 4) | (count - 1))
-    left = dr.select(internal, first, 0)
-    right = dr.select(internal, first + 1, 0)
-    rows = []
-    for child in (left, right):
-        lo = dr.gather(ns.Array3f, bvh.node_min, child)
-        hi = dr.gather(ns.Array3f, bvh.node_max, child)
-        rows += [lo.x, lo.y, lo.z, hi.x, hi.y, hi.z]
-    for child in (left, right):
-        rows.append(dr.reinterpret_array(Float, dr.gather(UInt32, ref, child)))
-    zero = dr.zeros(Float, n_nodes)
-    rows += [zero, zero]
-    nodes = dr.ravel(ArrayXf(rows))
+    # ---- Layout: what each record holds ----
+    position, total = _depth_first(bvh.levels, first, count, internal, n_prims)
+    holds = None
+    if position is not None:
+        holds = _holdings(position, total, first, count, internal, widest)
+        if not _exact(holds, position, total, first, count, internal, widest):
+            holds = None
+    if holds is None:  # index order: node i at record i, slot s at record N + s
+        position = dr.select(internal, dr.arange(UInt32, n_nodes), n_nodes + first)
+        total = n_nodes + n_prims
+        holds = _holdings(position, total, first, count, internal, widest)
+    is_node = (holds & _TRIANGLE_TAG) == 0
+    is_triangle = ~is_node & (holds != _NOTHING)
+    item = holds & ~UInt32(_TRIANGLE_TAG)
 
-    # ---- Triangle records: the three vertices of each slot ----
-    rows = [c for p in (bvh.tri_p0, bvh.tri_p1, bvh.tri_p2) for c in (p.x, p.y, p.z)]
-    zero = dr.zeros(Float, n_prims)
+    # ---- Node rows: both children's boxes and references ----
+    # Each node's box and reference as an 8-float row in index order, read twice (the
+    # children of a node are adjacent) by packet gathers.
+    ref = dr.select(internal, position, LEAF_BIT | (position << 4) | (count - 1))
+    lo, hi = bvh.node_min, bvh.node_max
+    half = dr.ravel(ArrayXf([lo.x, lo.y, lo.z, hi.x, hi.y, hi.z,
+                             dr.reinterpret_array(Float, ref), dr.zeros(Float, n_nodes)]))
+    left = dr.gather(UInt32, first, item, is_node)
+    one = dr.gather(ArrayXf, half, left, is_node, shape=(8, total))
+    other = dr.gather(ArrayXf, half, left + 1, is_node, shape=(8, total))
+    zero = dr.zeros(Float, total)
+    rows = [one[i] for i in range(6)] + [other[i] for i in range(6)] + [one[6], other[6]]
     rows += [zero] * (_RECORD - len(rows))
-    tris = dr.ravel(ArrayXf(rows))
 
-    records = dr.concat([nodes, tris])
+    # ---- Triangle rows: the three vertices and the face index ----
+    tri_rows = [c for p in (bvh.tri_p0, bvh.tri_p1, bvh.tri_p2)
+                for c in dr.gather(ns.Array3f, p, item, is_triangle)]
+    face = dr.gather(UInt32, UInt32(bvh.prim_ids), item, is_triangle)
+    tri_rows.append(dr.reinterpret_array(Float, face))
+    tri_rows += [zero] * (_RECORD - len(tri_rows))
+
+    records = dr.ravel(ArrayXf([dr.select(is_node, a, b) for a, b in zip(rows, tri_rows)]))
     dr.eval(records)
     return records, int(ref[0])
+
+
+def _depth_first(levels, first, count, internal, n_prims):
+    """Depth-first record positions from the tree's ``levels`` (internal nodes per
+    depth, root first): one pass up for each subtree's number of records, one pass down
+    for the positions.
+
+    Returns:
+        ``(position, total)``: UInt32[N] the record of each internal node and the first
+        record of each leaf, and the number of records; ``(None, 0)`` when ``levels``
+        cannot describe the tree (no levels, or a record count out of range).
+    """
+    UInt32 = type(first)
+    n_nodes = dr.width(first)
+    if not levels:
+        return None, 0
+    # ---- Up: records in each subtree (a leaf: its triangles) ----
+    size = dr.select(internal, 0, count)
+    for nodes in reversed(levels):
+        left = dr.gather(UInt32, first, nodes)
+        grown = 1 + dr.gather(UInt32, size, left) + dr.gather(UInt32, size, left + 1)
+        dr.eval(grown)  # read before writing into the same array (pitfall 5)
+        dr.scatter(size, grown, nodes)
+    total = int(size[0])
+    if not 0 < total <= n_nodes + n_prims:
+        return None, 0
+    # ---- Down: a node at p, its left child at p + 1, its right after the left subtree ----
+    position = dr.zeros(UInt32, n_nodes)
+    for nodes in levels:
+        left = dr.gather(UInt32, first, nodes)
+        after = dr.gather(UInt32, position, nodes) + 1
+        right = after + dr.gather(UInt32, size, left)
+        dr.eval(after, right)
+        dr.scatter(position, after, left)
+        dr.scatter(position, right, left + 1)
+    return position, total
+
+
+def _holdings(position, total, first, count, internal, widest):
+    """UInt32[total]: what each record holds: an internal node's index, or
+    ``_TRIANGLE_TAG | slot``, or ``_NOTHING``. Positions beyond ``total`` are dropped."""
+    UInt32 = type(first)
+    holds = dr.full(UInt32, _NOTHING, total)
+    dr.scatter(holds, dr.arange(UInt32, dr.width(first)), position,
+               internal & (position < total))
+    for k in range(widest):
+        dr.scatter(holds, _TRIANGLE_TAG | (first + k), position + k,
+                   ~internal & (count > k) & (position + k < total))
+    return holds
+
+
+def _exact(holds, position, total, first, count, internal, widest):
+    """Whether the layout ``position`` gives every internal node and every triangle of
+    every leaf a record of its own and leaves no record empty (no two of them wrote
+    the same record, none fell outside, and as many were written as there are)."""
+    UInt32 = type(first)
+    ok = dr.full(type(internal), True, dr.width(first))
+    for k in range(max(widest, 1)):
+        owner = ~internal & (count > k)
+        expected = _TRIANGLE_TAG | (first + k)
+        if k == 0:
+            owner |= internal
+            expected = dr.select(internal, dr.arange(UInt32, dr.width(first)), expected)
+        fits = position + k < total
+        ok &= ~owner | (fits & (dr.gather(UInt32, holds, position + k, owner & fits) == expected))
+    return bool(dr.all(ok, axis=None)[0]) and not dr.any(holds == _NOTHING, axis=None)[0]
 
 
 # ---------------------------------------------------------------------------------------
@@ -390,14 +494,13 @@ def _trace(bvh, o, d, maxt, active, any_hit):
     def no_triangle(rec, t_best):
         return dr.zeros(Bool, n), dr.zeros(Float, n), dr.zeros(Float, n), dr.zeros(Float, n)
 
-    n_nodes = dr.opaque(UInt32, bvh.size)
-
     def enter(ref):
-        """Record range of the node ``ref`` names: ``(cur, end)``; ``end`` is only
-        meaningful for a leaf (its triangles' records are ``cur .. end-1``)."""
+        """Record range of the node ``ref`` names: ``(cur, end)``, a leaf's triangles
+        at ``cur .. end-1``; ``end = 0`` for an internal node (so ``cur < end`` says
+        whether a lane is in a leaf)."""
         leaf = (ref & LEAF_BIT) != 0
-        first = n_nodes + ((ref & ~UInt32(LEAF_BIT)) >> 4)
-        return dr.select(leaf, first, ref), first + (ref & 15) + 1
+        first = (ref & ~UInt32(LEAF_BIT)) >> 4
+        return dr.select(leaf, first, ref), dr.select(leaf, first + (ref & 15) + 1, 0)
 
     # ---- Short stack: STACK_REGISTERS entries in registers, the rest in local memory ----
     memory = dr.alloc_local(ns.UInt64, STACK_SIZE - STACK_REGISTERS)
@@ -450,23 +553,23 @@ def _trace(bvh, o, d, maxt, active, any_hit):
     t_best = dr.select(alive, maxt, dr.inf)  # closest hit so far (or maxt)
     u_best = dr.zeros(Float, n)
     v_best = dr.zeros(Float, n)
-    slot_best = dr.zeros(UInt32, n)  # slot of the closest hit
+    prim_best = dr.zeros(UInt32, n)  # input face index of the closest hit
     found = dr.zeros(Bool, n)
     steps = dr.zeros(UInt32, n)  # loop iterations (cycle guard)
     corrupt = dr.zeros(Bool, n)  # the ray hit a stack overflow or a cycle
     max_steps = dr.opaque(UInt32, bvh.size + bvh.prim_count)
     state = (cur, end, node_t, entering, held, depth, sp, alive, steps, corrupt, t_best,
-             u_best, v_best, slot_best, found)
+             u_best, v_best, prim_best, found)
     labels = ("cur", "end", "node_t", "entering", "held", "depth", "sp", "alive", "steps",
-              "corrupt", "t_best", "u_best", "v_best", "slot_best", "found")
+              "corrupt", "t_best", "u_best", "v_best", "prim_best", "found")
 
     def trace_cond(cur, end, node_t, entering, held, depth, sp, alive, *rest):
         return alive
 
     def trace_body(cur, end, node_t, entering, held, depth, sp, alive, steps, corrupt,
-                   t_best, u_best, v_best, slot_best, found):
+                   t_best, u_best, v_best, prim_best, found):
         rec = dr.gather(ns.ArrayXf, records, cur, shape=(_RECORD, n))
-        in_leaf = cur >= n_nodes
+        in_leaf = cur < end
         # A node (or leaf) entered beyond the closest hit so far is skipped.
         stale = entering & (node_t > t_best * _TFAR_SCALE)
 
@@ -481,7 +584,7 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         t_best = dr.select(hit, t, t_best)
         u_best = dr.select(hit, u, u_best)
         v_best = dr.select(hit, v, v_best)
-        slot_best = dr.select(hit, cur - n_nodes, slot_best)
+        prim_best = dr.select(hit, dr.reinterpret_array(UInt32, rec[9]), prim_best)
         found |= hit
 
         # ---- A lane at an internal node: test both children's boxes ----
@@ -525,14 +628,13 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         corrupt |= overflow | cycle
         alive &= ~(overflow | cycle)
         return (cur, end, node_t, entering, held, depth, sp, alive, steps, corrupt, t_best,
-                u_best, v_best, slot_best, found)
+                u_best, v_best, prim_best, found)
 
     state = dr.while_loop(state=state, cond=trace_cond, body=trace_body, labels=labels,
                           label="hlbvh_trace")
-    corrupt, t_best, u_best, v_best, slot_best, found = state[9:]
+    corrupt, t_best, u_best, v_best, prim_best, found = state[9:]
     valid = found & ~corrupt
     if any_hit:
         return valid
-    prim = dr.gather(UInt32, UInt32(bvh.prim_ids), slot_best, valid)
     return (dr.select(valid, t_best, dr.inf), dr.select(valid, u_best, 0),
-            dr.select(valid, v_best, 0), prim, valid)
+            dr.select(valid, v_best, 0), dr.select(valid, prim_best, 0), valid)

@@ -627,3 +627,40 @@ def test19_matches_mitsuba_native_on_cornell_box():
         ours = {"t": t, "u": u, "v": v, "valid": valid}
         # Camera rays along the image diagonals run exactly into the box's corners.
         assert assert_matches_native(ours, pi, key, n_key)[0] < 1e-2
+
+
+# ---------------------------------------------------------------------------------------
+# Record layout
+# ---------------------------------------------------------------------------------------
+
+
+def test20_depth_first_and_index_order_records_trace_alike():
+    """A built tree is packed depth first (one record per internal node and per
+    triangle, the root's left child right after it); a tree whose ``levels`` do not
+    describe it (missing, or in the wrong order) is packed in index order (a record per
+    node, then one per triangle) and gives bit-identical hits."""
+    import dataclasses
+
+    rng = np.random.default_rng(25)
+    vertices, faces = random_soup(400, seed=26)
+    bvh = build(vertices, faces, "hlbvh")
+    first, count = bvh.node_first.numpy(), bvh.node_count.numpy()
+    internal = int(np.sum(count == 0))
+    records, root = traversal.packed_records(bvh)
+    assert dr.width(records) == 16 * (internal + len(faces))
+    root_left = records.numpy()[:16].view(np.uint32)[12]
+    if count[first[0]] == 0:
+        assert root_left == 1  # the left child's record follows the root's
+    else:
+        assert root_left & 0x7FFFFFFF == 1 << 4 | (count[first[0]] - 1)
+    o, d = random_rays(rng, 3000)
+    ref = brute_force(vertices, faces, o, d)
+    depth_first = trace(bvh, o, d)
+    assert_matches_reference(depth_first, ref, vertices, faces, o, d)
+    for levels in ([], bvh.levels[::-1]):
+        other = dataclasses.replace(bvh, levels=levels)
+        records, _ = traversal.packed_records(other)
+        assert dr.width(records) == 16 * (bvh.size + len(faces))
+        index_order = trace(other, o, d)
+        for key in depth_first:
+            np.testing.assert_array_equal(index_order[key], depth_first[key])
