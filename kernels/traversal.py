@@ -507,6 +507,10 @@ def _trace(bvh, o, d, maxt, active, any_hit):
 
     def spill(entry, sp, mask):
         memory.write(entry, sp, active=mask)
+        return dr.select(mask, sp + 1, sp)
+
+    def no_spill(entry, sp, mask):
+        return sp
 
     def fill(sp, mask):
         return memory.read(sp, active=mask)
@@ -521,9 +525,8 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         overflow = spilling & (sp >= STACK_SIZE - STACK_REGISTERS)
         spilling &= ~overflow
         mask &= ~overflow
-        dr.if_stmt(args=(held[-1], sp, spilling), cond=spilling, true_fn=spill,
-                   false_fn=lambda *args: None, label="hlbvh_spill")
-        sp = dr.select(spilling, sp + 1, sp)
+        sp = dr.if_stmt(args=(held[-1], sp, spilling), cond=spilling, true_fn=spill,
+                        false_fn=no_spill, label="hlbvh_spill")
         held = [dr.select(mask, above, below) for above, below in zip([entry] + held[:-1], held)]
         depth = dr.select(mask & (depth < STACK_REGISTERS), depth + 1, depth)
         return held, depth, sp, overflow
