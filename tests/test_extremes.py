@@ -659,3 +659,29 @@ def test17_scene_accel_updates_and_traces_keep_memory_and_time_flat():
         assert dr.all(hit)
     rss["last"] = rss_mb()
     assert_flat(rss, ms)
+
+
+def _kernel_hashes(fn) -> set:
+    """Hashes of the kernels ``fn()`` launched."""
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        fn()
+        return {k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT}
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "traversal.py: packing the records bakes the node and triangle counts into ~6 "
+    "kernels as literals (pitfall 6), so every tree with a new node count compiles them "
+    "again: 110-190 ms on each SceneAccel.update of a deforming 20k-triangle mesh (its "
+    "node count changes every frame), ~2.5x the update's own time, and the process grows "
+    "with every new size (217 -> 257 MB over 500 frames of a 100k-triangle mesh)"))
+def test18_tracing_a_tree_of_another_size_runs_the_same_kernels():
+    """Per-frame work must not compile: tracing the same rays through trees over 1800
+    and 1682 triangles launches kernels with the same hashes."""
+    ray = as_ray(*grid_rays(1000, seed=3))
+    trees = [hlbvh.build(mi.Float(V.ravel()), mi.UInt32(F.ravel())) for V, F in (grid(30), grid(29))]
+    hashes = [_kernel_hashes(lambda: dr.eval(bvh.intersect(ray).t)) for bvh in trees]
+    assert hashes[0] == hashes[1], f"{len(hashes[0] ^ hashes[1])} kernels differ"
