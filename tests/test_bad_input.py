@@ -224,13 +224,10 @@ def test12_after_a_failed_update_new_good_positions_trace_again(cornell):
     assert _break_and_restore(cornell, fresh=True)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "accel.py: a failed update has already moved the mesh out of the static group (and "
-    "rebuilt that group without it) but leaves SceneAccel._buffers at the buffers before "
-    "the update; writing back the array the mesh had before (the same JIT variable) "
-    "makes changed() false, update() records 'kept', and the mesh is in no BVH: every "
-    "ray at it misses silently (the Cornell box drops from 36 to 6 triangles)"))
 def test12b_after_a_failed_update_the_old_positions_trace_again(cornell):
+    """The mesh's very array written back after a failed update (the same JIT
+    variable): the mesh had already left the static group, so it must be rebuilt,
+    not "kept" in no BVH at all (the Cornell box once dropped from 36 to 6 triangles)."""
     assert _break_and_restore(cornell, fresh=False)
 
 

@@ -439,6 +439,28 @@ def test09_degenerate_geometry_builds_valid_trees_and_hits_equal_brute_force(bui
     np.testing.assert_array_equal(bvh.occluded(ray).numpy(), ref["valid"])
 
 
+@pytest.mark.xfail(strict=True, reason=(
+    "traversal.py: a triangle with three collinear vertices (zero area) is hit by rays "
+    "passing through its segment: after the float32 shear its projected vertices are no "
+    "longer exactly collinear, so det != 0 and the hit is accepted (622 of 4000 rays "
+    "aimed at such a segment's middle vertex); Embree and the brute force never hit it, "
+    "and Mitsuba's surface interaction there has a NaN normal (NaN pixels). A zero "
+    "cross product of the stored edges is an exact test for these."))
+def test09b_rays_through_a_zero_area_triangle_never_hit_it():
+    V = np.array([[0, 0, 0], [0, 0, 2.5e-4], [0, 0, 5e-4], [1, 1, 1], [1, 1, 1.5], [1, 1, 2]], np.float32)
+    F = np.array([[0, 1, 2], [3, 4, 5]], np.uint32)
+    rng = np.random.default_rng(1)
+    o = np.concatenate([rng.normal(size=(2000, 3)) * 1e-3 + [0, 0, 2.5e-4],
+                        rng.normal(size=(2000, 3)) + [1, 1, 1.5]]).astype(np.float32)
+    d = (np.repeat([[0, 0, 2.5e-4], [1, 1, 1.5]], 2000, axis=0) - o).astype(np.float32)
+    scene = mesh_scene(V, F)
+    ray = as_ray(o, d)
+    assert not scene.ray_intersect_preliminary(ray).is_valid().numpy().any()
+    pi = hlbvh.SceneAccel(scene).ray_intersect_preliminary(ray)
+    assert not pi.is_valid().numpy().any()
+    assert not np.isnan(np.array(pi.compute_surface_interaction(ray).n)).any()
+
+
 # ---------------------------------------------------------------------------------------
 # 4. The rays ray tracers get wrong, through every query
 # ---------------------------------------------------------------------------------------
@@ -473,7 +495,7 @@ def assert_all_queries_agree(q: dict, ref: dict):
 def test10_axis_parallel_rays_equal_brute_force_and_native(direction, grid_scene):
     V, F = grid_scene[:2]
     rng = np.random.default_rng(2)
-    count = 4000
+    count = 2000
     d = np.tile(np.asarray(direction, np.float64) / np.linalg.norm(direction), (count, 1))
     o = np.stack([rng.uniform(-0.1, 1.1, count), rng.uniform(-0.1, 1.1, count),
                   rng.uniform(-0.06, 0.06, count)], 1) - 2 * d  # start outside the grid
