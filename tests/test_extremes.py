@@ -30,7 +30,7 @@ from bvh_check import check_bvh, rows
 from meshes import grid
 from reference import brute_force
 
-MARGIN = 0.002  # agreement may fall this much below scale 1's (8 of 4000 rays)
+MARGIN = 0.002  # agreement may fall this much below scale 1's (5 of 2500 rays)
 T_REL = 1e-5  # relative error of t against the float64 reference (measured: < 1e-6)
 TIE_REL = 1e-6  # two hits this close in t are a tie
 
@@ -141,7 +141,7 @@ def trace_three_ways(V, F, o, d) -> dict:
 # ---------------------------------------------------------------------------------------
 
 GRID_V, GRID_F = grid(30)  # 1800 triangles, displaced, over [0, 1]^2
-RAY_O, RAY_D = grid_rays(4000, seed=0)
+RAY_O, RAY_D = grid_rays(2500, seed=0)
 
 
 @pytest.fixture(scope="module")
@@ -302,7 +302,7 @@ def tiny_on_huge():
 
 #: (builder, morton_bits, quantization); the local SAH each gives is in issue 6's note.
 OBJECT_CONFIGS = [("hlbvh", "auto", "cube"), ("hlbvh", 30, "cube"), ("hlbvh", 60, "cube"),
-                  ("lbvh", 60, "cube"), ("lbvh", "auto", "cube"), ("sah", 30, "cube")]
+                  ("lbvh", "auto", "cube"), ("sah", 30, "cube")]
 
 
 @pytest.fixture(scope="module")
@@ -384,16 +384,16 @@ def _degenerate_meshes() -> dict:
     points = np.repeat(rng.random((60, 3)), 3, axis=0)  # all three vertices equal
     a, b, t = rng.random((60, 3)), rng.random((60, 3)), rng.random((60, 1))
     collinear = np.stack([a, b, a + t * (b - a)], 1).reshape(-1, 3)
-    # 3000 triangles whose boxes all have the same centre (so all keys are equal):
+    # 2000 triangles whose boxes all have the same centre (so all keys are equal):
     # vertices c ± h and c + s·h, |s| <= 1 per axis.
-    h = rng.uniform(0.05, 0.4, (3000, 1, 3)) * [1, 1, 0.2]
-    s = rng.uniform(-1, 1, (3000, 1, 3))
+    h = rng.uniform(0.05, 0.4, (2000, 1, 3)) * [1, 1, 0.2]
+    s = rng.uniform(-1, 1, (2000, 1, 3))
     same_centre = (0.5 + np.concatenate([h, -h, s * h], 1)).reshape(-1, 3)
     meshes = {
         "zero_area_points": plus(points, np.arange(180).reshape(-1, 3)),
         "collinear": plus(collinear, np.arange(180).reshape(-1, 3)),
         "duplicates": (V, np.concatenate([F, F, F[:, ::-1]])),
-        "same_centre": plus(same_centre, np.arange(9000).reshape(-1, 3)),
+        "same_centre": plus(same_centre, np.arange(6000).reshape(-1, 3)),
     }
     for axis in range(3):  # the grid flattened onto the plane x, y or z = 0.25
         P = V.copy()
@@ -430,7 +430,7 @@ def test09_degenerate_geometry_builds_valid_trees_and_hits_equal_brute_force(bui
     F = F.astype(np.uint32)
     bvh = hlbvh.build(mi.Float(V.ravel()), mi.UInt32(F.ravel()), builder=builder, leaf_size=4)
     check_bvh(bvh, V, F, 4)
-    o, d = _rays_at(V, 1000, seed=len(name))
+    o, d = _rays_at(V, 600, seed=len(name))
     ray = as_ray(o, d)
     ours = hits_of(bvh.intersect(ray))
     ref = brute_force(V, F, o, d)
