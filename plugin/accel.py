@@ -304,6 +304,24 @@ def _bind_overloads(args: tuple, long_names: tuple, given: dict) -> dict:
     return bound
 
 
+def _checked_scene(scene):
+    """``scene``, after checking it is a loaded ``mi.Scene`` (TypeError otherwise)."""
+    if not isinstance(scene, mi.Scene):
+        raise TypeError(
+            f"scene: expected a loaded mi.Scene (mi.load_file / mi.load_dict), got "
+            f"{type(scene).__name__}"
+        )
+    return scene
+
+
+def _checked_ray(ray):
+    """``ray``, after checking it is a ray (anything with ``o``, ``d`` and ``maxt``, as
+    ``mi.Ray3f``); TypeError otherwise."""
+    if not all(hasattr(ray, name) for name in ("o", "d", "maxt")):
+        raise TypeError(f"ray: expected an mi.Ray3f, got {type(ray).__name__}")
+    return ray
+
+
 class _Accel:
     """The three query methods of ``mi.Scene`` with its signatures, keyword names and
     defaults (every overload: ``ray_intersect(ray, active)`` and ``ray_test(ray,
@@ -325,7 +343,8 @@ class _Accel:
             (local to the shape), ``shape_index`` (into ``scene.shapes()``), ``shape``,
             ``instance`` null; on a miss ``valid`` False and ``t`` infinite.
         """
-        return self._preliminary(ray, coherent, active, (reorder, reorder_hint, reorder_hint_bits))
+        return self._preliminary(_checked_ray(ray), coherent, active,
+                                 (reorder, reorder_hint, reorder_hint_bits))
 
     def ray_intersect(self, ray, *args, ray_flags=mi.RayFlags.All, coherent=False, active=None,
                       reorder=False, reorder_hint=0, reorder_hint_bits=0):
@@ -337,7 +356,7 @@ class _Accel:
         """
         a = _bind_overloads(args, ("ray_flags", "coherent"),
                             dict(ray_flags=ray_flags, coherent=coherent, active=active))
-        return self._intersect(ray, a["ray_flags"], a["coherent"], a["active"],
+        return self._intersect(_checked_ray(ray), a["ray_flags"], a["coherent"], a["active"],
                                (reorder, reorder_hint, reorder_hint_bits))
 
     def ray_test(self, ray, *args, coherent=False, active=None):
@@ -347,7 +366,7 @@ class _Accel:
             Bool per ray: whether anything lies on it at 0 < t <= ``ray.maxt``.
         """
         a = _bind_overloads(args, ("coherent",), dict(coherent=coherent, active=active))
-        return self._test(ray, a["coherent"], a["active"])
+        return self._test(_checked_ray(ray), a["coherent"], a["active"])
 
     def _intersect(self, ray, ray_flags, coherent, active, reorder):
         """The closest hit, expanded by Mitsuba, as ``mi.Scene.ray_intersect`` does."""
@@ -553,6 +572,7 @@ class SceneAccel(_Accel):
     name = "hlbvh"
 
     def __init__(self, scene, **options):
+        _checked_scene(scene)
         self.policy, self._build_options = split_options(options)
         self.config = BuildConfig.from_options(**self._build_options)
         self.shapes = list(scene.shapes())
@@ -719,6 +739,7 @@ def make_accel(scene, accel: str = "hlbvh", **options):
     Raises:
         ValueError: for any other ``accel``, or an unknown or invalid option.
     """
+    _checked_scene(scene)
     if accel == "hlbvh":
         return SceneAccel(scene, **options)
     if accel == "native":
