@@ -67,7 +67,7 @@ import drjit as dr
 import mitsuba as mi
 
 from hlbvh.kernels.build import build
-from hlbvh.kernels.bvh import BuildConfig
+from hlbvh.kernels.bvh import BUILDERS, BuildConfig
 from hlbvh.kernels.traversal import any_hit, closest_hit, packed_records
 
 ACCELS = ("hlbvh", "native")
@@ -76,7 +76,7 @@ UPDATES = ("rebuild", "refit", "auto")
 #: The options of :func:`hlbvh.build` an accelerator accepts.
 BUILD_OPTIONS = tuple(f.name for f in dataclasses.fields(BuildConfig))
 #: The accelerator's own options (:class:`UpdatePolicy`).
-UPDATE_OPTIONS = ("update", "refit_tolerance")
+UPDATE_OPTIONS = ("update", "refit_tolerance", "static_builder")
 #: What an update did to a group, from the least work to the most: ``kept`` (nothing
 #: changed), ``refit``, ``rebuild``, ``build`` (the accelerator's first build).
 DECISIONS = ("kept", "refit", "rebuild", "build")
@@ -103,10 +103,16 @@ class UpdatePolicy:
             built for. ``"auto"``: refit, then rebuild if the refit tree's SAH cost
             exceeds ``refit_tolerance`` times the SAH cost of the group's last build.
         refit_tolerance: the drift ``"auto"`` accepts, a number >= 1 (default 1.3).
+        static_builder: the builder of the static group once meshes have moved out of
+            it (``"sah"`` by default: it is built once and traced every frame, so the
+            best tree pays; measured on the cloth scene's ground and pole: SAH cost 7.9
+            with "hlbvh", 4.5 with "sah", 1.5x the primary rays per second), or
+            ``"same"`` for the scene's own builder.
     """
 
     update: str = "rebuild"
     refit_tolerance: float = 1.3
+    static_builder: str = "sah"
 
     def validated(self) -> "UpdatePolicy":
         """Self, after checking both fields; raises ValueError naming the bad one."""
@@ -120,6 +126,10 @@ class UpdatePolicy:
                 "cost a refit tree may reach, relative to a fresh build's)"
             )
         self.refit_tolerance = float(tolerance)
+        if self.static_builder not in BUILDERS + ("same",):
+            raise ValueError(
+                f"static_builder={self.static_builder!r}: expected one of {BUILDERS + ('same',)}"
+            )
         return self
 
 
@@ -622,7 +632,11 @@ class SceneAccel(_Accel):
             self.dynamic.indices = tuple(sorted(self.dynamic.indices + tuple(moved)))
             # ---- Each group follows its meshes (a stale group: after a failed build) ----
             if self.static.stale:
-                self.static.update(self.shapes, options, policy, reshaped=True)
+                # Built once for every frame to come: with the static builder.
+                static_options = dict(options)
+                if policy.static_builder != "same":
+                    static_options["builder"] = policy.static_builder
+                self.static.update(self.shapes, static_options, policy, reshaped=True)
             else:
                 self.static.keep()
             if changed or self.dynamic.stale:

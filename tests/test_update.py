@@ -247,6 +247,7 @@ def test06_new_faces_force_a_rebuild():
     (dict(refit_tolerance="1.3"), "refit_tolerance='1.3'"),
     (dict(refit_tolerance=True), "refit_tolerance=True"),
     (dict(updates="auto"), "updates"),
+    (dict(static_builder="best"), "static_builder='best'"),
 ])
 @pytest.mark.parametrize("accel", ["hlbvh", "native"])
 def test07_bad_update_options_name_the_option(accel, options, message):
@@ -318,3 +319,21 @@ def test09_renders_with_refit_and_auto_match_native():
     assert refit.policy.update == "refit" and refit.dynamic.refits == len(FRAMES) - 1
     assert (auto.policy.update, auto.policy.refit_tolerance) == ("auto", 1.2)
     assert auto.dynamic.refits == len(FRAMES) - 1
+
+
+@pytest.mark.parametrize("static_builder, expected", [("sah", "sah"), ("same", "lbvh")])
+def test10_the_static_group_is_rebuilt_once_with_the_static_builder(static_builder, expected):
+    """After the first motion the static group (built once, traced every frame) gets
+    the static builder; the dynamic group keeps the scene's; hits stay native's."""
+    animation, scene, params = load("cloth")
+    accel = hlbvh.SceneAccel(scene, builder="lbvh", static_builder=static_builder)
+    assert accel.static.bvh.stats.builder == "lbvh"  # first build: nothing known to move
+    scenes.apply_frame(scene, params, animation.frame(8))
+    accel.update()
+    assert accel.static.bvh.stats.builder == expected
+    assert accel.dynamic.bvh.stats.builder == "lbvh"
+    static_bvh = accel.static.bvh
+    scenes.apply_frame(scene, params, animation.frame(16))
+    accel.update()
+    assert accel.static.bvh is static_bvh
+    assert_hits_equal_native(accel, scene, shape_indices(scene, animation.static_ids()))

@@ -24,9 +24,9 @@ class AccelIntegrator(mi.SamplingIntegrator):
         accel: ``"hlbvh"`` (default) or ``"native"``.
         builder, leaf_size, morton_bits, quantization, coarse_bits, p, sah_bins:
             options of :func:`hlbvh.build` (see :class:`hlbvh.BuildConfig`).
-        update, refit_tolerance: the per-frame policy of the accelerator
+        update, refit_tolerance, static_builder: the per-frame policy of the accelerator
             (``"rebuild"``, ``"refit"`` or ``"auto"``, and the SAH drift ``"auto"``
-            accepts; see :class:`hlbvh.accel.UpdatePolicy`).
+            accepts, the builder of the static group; see :class:`hlbvh.accel.UpdatePolicy`).
 
     The accelerator is built on the first render of a scene and kept for the next
     renders of that scene; it is built anew when another scene is rendered, and
