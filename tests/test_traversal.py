@@ -664,3 +664,22 @@ def test20_depth_first_and_index_order_records_trace_alike():
         index_order = trace(other, o, d)
         for key in depth_first:
             np.testing.assert_array_equal(index_order[key], depth_first[key])
+
+
+def test21_symbolic_even_when_loops_are_evaluated():
+    """With Dr.Jit's loops switched to evaluated mode (``JitFlag.SymbolicLoops`` off,
+    e.g. for an integrator that wants wavefront kernels), the traversal's own loop and
+    ifs stay symbolic: a handful of kernel launches (an evaluated traversal launches
+    kernels on every step, and took minutes for 1000 rays), and the same hits."""
+    rng = np.random.default_rng(27)
+    vertices, faces = random_soup(300, seed=28)
+    bvh = build(vertices, faces, "hlbvh")
+    traversal.packed_records(bvh)
+    o, d = random_rays(rng, 1000)
+    with dr.scoped_set_flag(dr.JitFlag.SymbolicLoops, False), \
+            dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        ours = trace(bvh, o, d)
+        launches = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+    # closest and any hit, one kernel each, and a few conversions of the rays
+    assert len(launches) < 10, len(launches)
+    assert_matches_reference(ours, brute_force(vertices, faces, o, d), vertices, faces, o, d)
