@@ -16,7 +16,6 @@ neighbour). Each scale is held to the agreement measured at scale 1, within
 from __future__ import annotations
 
 import gc
-import time
 import warnings
 
 import numpy as np
@@ -626,36 +625,30 @@ def deformed(x: mi.Point3f, frame: int) -> mi.Float:
     return v
 
 
-def assert_flat(rss: dict, ms: list, bound_mb: float = 12.0, factor: float = 2.5):
-    """Memory after the last frame within ``bound_mb`` of frame 20's; the median build
-    time of the last 20 frames within ``factor`` of that of frames 1..20 (frame 0
-    compiles)."""
+def assert_flat(rss: dict, bound_mb: float = 12.0):
+    """Memory after the last frame within ``bound_mb`` of frame 20's. (Time is not
+    asserted: tests never assert on time; bench frame measures it.)"""
     assert rss["last"] - rss[20] <= bound_mb, rss
-    first, last = np.median(ms[1:21]), np.median(ms[-20:])
-    assert last <= factor * first, (first, last)
 
 
 @pytest.mark.slow
-def test16_200_rebuilds_with_temporal_reuse_keep_memory_and_build_time_flat():
+def test16_200_rebuilds_with_temporal_reuse_keep_memory_flat():
     """A 100k-triangle deforming mesh rebuilt 200 times, each build seeded with the
     previous one's order. (Measured once for 500 frames: 155.0 MB at frame 10, 157.0 MB
     at frame 500.)"""
     V, F = grid(224)
     x, faces = mi.Point3f(V.T), mi.UInt32(F.ravel())
-    bvh, rss, ms = None, {}, []
+    bvh, rss = None, {}
     for frame in range(200):
-        vertices = deformed(x, frame)
-        t0 = time.perf_counter()
-        bvh = hlbvh.build(vertices, faces, previous=bvh)
-        ms.append(time.perf_counter() - t0)
+        bvh = hlbvh.build(deformed(x, frame), faces, previous=bvh)
         if frame + 1 == 20:
             rss[20] = rss_mb()
     rss["last"] = rss_mb()
-    assert_flat(rss, ms)
+    assert_flat(rss)
 
 
 @pytest.mark.slow
-def test17_scene_accel_updates_and_traces_keep_memory_and_time_flat():
+def test17_scene_accel_updates_and_traces_keep_memory_flat():
     """A 20k-triangle mesh of a Mitsuba scene deformed through ``params.update()``,
     then ``SceneAccel.update()`` and a trace, 100 times."""
     V, F = grid(100)
@@ -666,21 +659,17 @@ def test17_scene_accel_updates_and_traces_keep_memory_and_time_flat():
     rng = np.random.default_rng(0)
     ray = as_ray(np.stack([rng.random(20_000), rng.random(20_000), np.ones(20_000)], 1),
                  np.tile([0.0, 0.0, -1.0], (20_000, 1)))
-    x, rss, ms = mi.Point3f(V.T), {}, []
+    x, rss = mi.Point3f(V.T), {}
     for frame in range(100):
         params[key] = deformed(x, frame)
         params.update()
-        t0 = time.perf_counter()
         accel.update()
         hit = accel.ray_intersect_preliminary(ray).is_valid()
-        dr.eval(hit)
-        dr.sync_thread()
-        ms.append(time.perf_counter() - t0)
         if frame + 1 == 20:
             rss[20] = rss_mb()
         assert dr.all(hit)
     rss["last"] = rss_mb()
-    assert_flat(rss, ms)
+    assert_flat(rss)
 
 
 def _kernel_hashes(fn) -> set:
