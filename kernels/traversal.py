@@ -506,7 +506,10 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         return dr.select(leaf, first, ref), dr.select(leaf, first + (ref & 15) + 1, 0)
 
     # ---- Short stack: STACK_REGISTERS entries in registers, the rest in local memory ----
-    memory = dr.alloc_local(ns.UInt64, STACK_SIZE - STACK_REGISTERS)
+    # Any hit: the closest hit stays maxt, which every pushed entry already passed, so
+    # entries are bare references (no entry distance, no staleness).
+    Entry = UInt32 if any_hit else ns.UInt64
+    memory = dr.alloc_local(Entry, STACK_SIZE - STACK_REGISTERS)
 
     def spill(entry, sp, mask):
         memory.write(entry, sp, active=mask)
@@ -519,7 +522,7 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         return memory.read(sp, active=mask)
 
     def no_fill(sp, mask):
-        return dr.zeros(ns.UInt64, n)
+        return dr.zeros(Entry, n)
 
     def push(held, depth, sp, entry, mask):
         """Push ``entry`` on the lanes of ``mask``; the bottom register spills to local
@@ -552,8 +555,8 @@ def _trace(bvh, o, d, maxt, active, any_hit):
     cur, end = enter(dr.full(UInt32, root, n))  # record to process; end of its leaf
     node_t = dr.zeros(Float, n)  # entry distance of the current node's box
     entering = dr.full(Bool, True, n)  # first step at this node (or leaf)
-    # stack entries: t_near bits << 32 | reference; top first
-    held = [dr.zeros(ns.UInt64, n) for _ in range(STACK_REGISTERS)]
+    # stack entries, top first: t_near bits << 32 | reference (any hit: the reference)
+    held = [dr.zeros(Entry, n) for _ in range(STACK_REGISTERS)]
     depth = dr.zeros(UInt32, n)  # entries held in registers
     sp = dr.zeros(UInt32, n)  # entries in local memory
     t_best = dr.select(alive, maxt, dr.inf)  # closest hit so far (or maxt)
@@ -577,7 +580,7 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         rec = dr.gather(ns.ArrayXf, records, cur, shape=(_RECORD, n))
         in_leaf = cur < end
         # A node (or leaf) entered beyond the closest hit so far is skipped.
-        stale = entering & (node_t > t_best * _TFAR_SCALE)
+        stale = dr.zeros(Bool, n) if any_hit else entering & (node_t > t_best * _TFAR_SCALE)
 
         # ---- A lane in a leaf: test one triangle ----
         at_triangle = in_leaf & ~stale
@@ -608,7 +611,8 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         near, near_t = dr.select(left_first, ref_l, ref_r), dr.select(left_first, t_l, t_r)
         far, far_t = dr.select(left_first, ref_r, ref_l), dr.select(left_first, t_r, t_l)
         # Both children hit: go to the nearer, push the farther.
-        entry = ns.UInt64(far) | (ns.UInt64(dr.reinterpret_array(UInt32, far_t)) << 32)
+        entry = far if any_hit else \
+            ns.UInt64(far) | (ns.UInt64(dr.reinterpret_array(UInt32, far_t)) << 32)
         held, depth, sp, overflow = push(held, depth, sp, entry, hit_l & hit_r)
 
         # ---- Next step: the leaf's next triangle, the nearer child, or a pop ----
@@ -622,7 +626,8 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         popped, held, depth, sp = pop(held, depth, sp, take)
         alive &= ~(pop_here & ~has)
         ref = dr.select(take, UInt32(popped), near)
-        ref_t = dr.select(take, dr.reinterpret_array(Float, UInt32(popped >> 32)), near_t)
+        ref_t = near_t if any_hit else \
+            dr.select(take, dr.reinterpret_array(Float, UInt32(popped >> 32)), near_t)
         next_cur, next_end = enter(ref)
         cur = dr.select(more, cur + 1, next_cur)
         end = dr.select(more, end, next_end)
