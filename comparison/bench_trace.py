@@ -14,8 +14,12 @@ native: ``scene.ray_intersect_preliminary(ray, coherent=...)``) and ``any``
 evaluates the query's outputs and waits for the device (``dr.sync_thread``) before
 the clock stops. ``cold`` is the first call in the process (tracing, and compiling
 unless Dr.Jit's kernel cache on disk already holds the kernel); ``min``/``median`` are
-over ``repeats`` warm calls. ``agree`` is the fraction of rays whose hit/miss and
-primitive (closest) or occlusion (any) equal the native result.
+over ``repeats`` warm calls. ``cpu`` is the process's CPU time over the same calls
+(all threads, ``time.process_time``): on a machine shared with other work, wall time
+also counts the time other processes hold the cores, CPU time hardly does, so
+``ratio_cpu`` (from the minima) is the steadier comparison there (pass ``threads=1``
+to measure one core). ``agree`` is the fraction of rays whose hit/miss and primitive
+(closest) or occlusion (any) equal the native result.
 
 Run: ``python -m hlbvh.comparison.bench_trace`` (the CLI's ``hlbvh bench trace``).
 """
@@ -122,14 +126,15 @@ def _scene_triangles(scene):
 # ---------------------------------------------------------------------------------------
 
 
-def _run(fn) -> tuple[float, object]:
-    """(ms, output) of one call of ``fn``, its outputs evaluated and the device synced."""
+def _run(fn) -> tuple[float, float, object]:
+    """(wall ms, process CPU ms, output) of one call of ``fn``, its outputs evaluated
+    and the device synced."""
     dr.sync_thread()
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     out = fn()
     dr.eval(out)
     dr.sync_thread()
-    return 1e3 * (time.perf_counter() - start), out
+    return 1e3 * (time.perf_counter() - start), 1e3 * (time.process_time() - cpu), out
 
 
 def _timed_pair(ours, native, repeats: int):
@@ -137,15 +142,17 @@ def _timed_pair(ours, native, repeats: int):
     repeat so that both see the same machine load.
 
     Returns:
-        ``((cold, [warm...], output), (cold, [warm...], output))`` for ours, native.
+        ``((cold, [warm...], [warm cpu...], output), (...))`` for ours, native.
     """
     runs = {ours: [], native: []}
+    cpus = {ours: [], native: []}
     outs = {}
     for _ in range(repeats + 1):
         for fn in (ours, native):
-            ms, outs[fn] = _run(fn)
+            ms, cpu, outs[fn] = _run(fn)
             runs[fn].append(ms)
-    return tuple((runs[fn][0], runs[fn][1:], outs[fn]) for fn in (ours, native))
+            cpus[fn].append(cpu)
+    return tuple((runs[fn][0], runs[fn][1:], cpus[fn][1:], outs[fn]) for fn in (ours, native))
 
 
 def _measure(scene, bvh, prim_shape, prim_local, ray, coherent: bool, repeats: int):
@@ -172,7 +179,8 @@ def _measure(scene, bvh, prim_shape, prim_local, ray, coherent: bool, repeats: i
         ("closest", ours_closest, native_closest),
         ("any", ours_any, native_any),
     ):
-        (o_cold, o_warm, o_out), (n_cold, n_warm, n_out) = _timed_pair(ours, native, repeats)
+        (o_cold, o_warm, o_cpu, o_out), (n_cold, n_warm, n_cpu, n_out) = _timed_pair(
+            ours, native, repeats)
         if query == "closest":
             _, _, _, prim, valid = o_out
             n_valid = dr.isfinite(n_out[0])
@@ -198,6 +206,9 @@ def _measure(scene, bvh, prim_shape, prim_local, ray, coherent: bool, repeats: i
             "native_mrays": rays / native_min / 1e3,
             "ratio": native_min / ours_min,
             "ratio_median": statistics.median(n_warm) / statistics.median(o_warm),
+            "ours_cpu_ms": min(o_cpu),
+            "native_cpu_ms": min(n_cpu),
+            "ratio_cpu": min(n_cpu) / min(o_cpu),
             "agree": dr.count(same)[0] / rays,
         })
     return rows
@@ -209,7 +220,8 @@ def _measure(scene, bvh, prim_shape, prim_local, ray, coherent: bool, repeats: i
 
 
 def run(sizes=(1_000_000,), repeats: int = 5, resolution: int = 512,
-        cornell: bool = True, build=None, **options) -> list[dict]:
+        cornell: bool = True, build=None, threads: int | None = None,
+        **options) -> list[dict]:
     """Measure traversal speed, ours vs native, on the same rays.
 
     Args:
@@ -218,14 +230,20 @@ def run(sizes=(1_000_000,), repeats: int = 5, resolution: int = 512,
         resolution: the camera's width and height in pixels (rays = resolution²).
         cornell: also trace Cornell box (``mi.cornell_box()``).
         build: ``build(vertices, faces, **options) -> BVH``; ``hlbvh.build`` when None.
+        threads: Dr.Jit's worker threads while tracing (``None``: as they are).
         options: builder options (``builder="hlbvh"``, ``leaf_size``, ...).
     Returns:
         One dict per (scene, ray kind, query): ``scene``, ``triangles``, ``rays``,
-        ``kind``, ``query``, ``ours_/native_`` ``cold_ms``/``min_ms``/``median_ms``,
-        ``ours_mrays``, ``native_mrays`` (from the minimum), ``ratio`` (ours/native
-        throughput, from the minima), ``ratio_median`` (from the medians), ``agree``,
-        ``build_ms``.
+        ``kind``, ``query``, ``ours_/native_`` ``cold_ms``/``min_ms``/``median_ms``/
+        ``cpu_ms`` (the least process CPU time of the warm runs), ``ours_mrays``,
+        ``native_mrays`` (from the minimum), ``ratio`` (ours/native throughput, from the
+        minima), ``ratio_median`` (from the medians), ``ratio_cpu`` (from the CPU
+        times), ``agree``, ``build_ms``.
+    Raises:
+        ValueError: ``threads`` below 1.
     """
+    if threads is not None and threads < 1:
+        raise ValueError(f"threads={threads}: expected at least 1 (or None)")
     if build is None:
         from hlbvh import build
     scenes = []
@@ -246,17 +264,24 @@ def run(sizes=(1_000_000,), repeats: int = 5, resolution: int = 512,
         build_ms = 1e3 * (time.perf_counter() - start)
         primary = primary_rays(scene)
         secondary = secondary_rays(scene, primary)
-        for ray, coherent in ((primary, True), (secondary, False)):
-            for row in _measure(scene, bvh, prim_shape, prim_local, ray, coherent, repeats):
-                rows.append({"scene": name, "triangles": len(faces) // 3,
-                             "build_ms": build_ms, **row})
+        default_threads = dr.thread_count()
+        try:
+            if threads is not None:
+                dr.set_thread_count(threads)
+            for ray, coherent in ((primary, True), (secondary, False)):
+                for row in _measure(scene, bvh, prim_shape, prim_local, ray, coherent,
+                                    repeats):
+                    rows.append({"scene": name, "triangles": len(faces) // 3,
+                                 "build_ms": build_ms, **row})
+        finally:
+            dr.set_thread_count(default_threads)
     return rows
 
 
 def format_table(rows: list[dict]) -> str:
     """The rows as a fixed-width text table."""
     head = (f"{'scene':<12} {'tris':>8} {'rays':>8} {'rays kind':<10} {'query':<7} "
-            f"{'ours Mr/s':>9} {'Embree':>8} {'ratio':>6} {'(med)':>6} "
+            f"{'ours Mr/s':>9} {'Embree':>8} {'ratio':>6} {'(med)':>6} {'(cpu)':>6} "
             f"{'ours min/med/cold ms':>22} {'native min/med/cold ms':>24} {'agree':>9}")
     lines = [head, "-" * len(head)]
     for r in rows:
@@ -266,7 +291,8 @@ def format_table(rows: list[dict]) -> str:
         lines.append(
             f"{r['scene']:<12} {r['triangles']:>8} {r['rays']:>8} {r['kind']:<10} "
             f"{r['query']:<7} {r['ours_mrays']:>9.2f} {r['native_mrays']:>8.2f} "
-            f"{r['ratio']:>6.2f} {r['ratio_median']:>6.2f} {ours:>22} {nat:>24} "
+            f"{r['ratio']:>6.2f} {r['ratio_median']:>6.2f} {r['ratio_cpu']:>6.2f} "
+            f"{ours:>22} {nat:>24} "
             f"{100 * r['agree']:>8.4f}%"
         )
     return "\n".join(lines)
@@ -284,12 +310,15 @@ def main(argv=None) -> int:
                         help="camera width and height in pixels (default 512)")
     parser.add_argument("--no-cornell", action="store_true", help="skip Cornell box")
     parser.add_argument("--builder", default="hlbvh", help="hlbvh | lbvh | sah")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="Dr.Jit worker threads while tracing (default: as they are)")
     args = parser.parse_args(argv)
     rows = run(sizes=args.sizes, repeats=args.repeats, resolution=args.resolution,
-               cornell=not args.no_cornell, builder=args.builder)
+               cornell=not args.no_cornell, builder=args.builder, threads=args.threads)
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    threads = dr.thread_count() if args.threads is None else args.threads
     print(f"hlbvh trace benchmark ({mi.variant()}, builder={args.builder}, "
-          f"{dr.thread_count()} threads, load average {load})")
+          f"{threads} threads, load average {load})")
     print(format_table(rows))
     return 0
 

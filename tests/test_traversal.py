@@ -683,3 +683,29 @@ def test21_symbolic_even_when_loops_are_evaluated():
     # closest and any hit, one kernel each, and a few conversions of the rays
     assert len(launches) < 10, len(launches)
     assert_matches_reference(ours, brute_force(vertices, faces, o, d), vertices, faces, o, d)
+
+
+# ---------------------------------------------------------------------------------------
+# The trace benchmark's own bookkeeping
+# ---------------------------------------------------------------------------------------
+
+
+def test22_bench_trace_rows_threads_and_agreement():
+    """``bench_trace.run`` on a small grid: one row per ray kind and query with wall
+    and CPU times, our hits agreeing with the native ones, the thread count restored
+    afterwards, and a bad thread count refused."""
+    from hlbvh.comparison import bench_trace
+
+    threads = dr.thread_count()
+    rows = bench_trace.run(sizes=(2000,), repeats=1, resolution=24, cornell=False, threads=1)
+    assert dr.thread_count() == threads
+    assert [(r["kind"], r["query"]) for r in rows] == [
+        ("coherent", "closest"), ("coherent", "any"),
+        ("incoherent", "closest"), ("incoherent", "any")]
+    for r in rows:
+        assert r["ours_cpu_ms"] > 0 and r["native_cpu_ms"] > 0
+        assert r["ratio_cpu"] == pytest.approx(r["native_cpu_ms"] / r["ours_cpu_ms"])
+        assert 0.99 <= r["agree"] <= 1
+    assert "(cpu)" in bench_trace.format_table(rows)
+    with pytest.raises(ValueError, match="threads"):
+        bench_trace.run(sizes=(2000,), repeats=1, resolution=8, cornell=False, threads=0)
