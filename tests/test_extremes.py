@@ -683,12 +683,6 @@ def _kernel_hashes(fn) -> set:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "traversal.py: packing the records bakes the node and triangle counts into ~6 "
-    "kernels as literals (pitfall 6), so every tree with a new node count compiles them "
-    "again: 110-190 ms on each SceneAccel.update of a deforming 20k-triangle mesh (its "
-    "node count changes every frame), ~2.5x the update's own time, and the process grows "
-    "with every new size (217 -> 257 MB over 500 frames of a 100k-triangle mesh)"))
 def test18_tracing_a_tree_of_another_size_runs_the_same_kernels():
     """Per-frame work must not compile: tracing the same rays through trees over 1800
     and 1682 triangles launches kernels with the same hashes."""
