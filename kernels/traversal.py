@@ -95,9 +95,10 @@ integrator's symbolic loop nothing can be sorted anyway. Two triangles per leaf 
 the box (the rounding of ``o/d`` is not bounded by the slab distance). Testing for
 possible hits before the triangle test's two divisions, and the shear from the
 reciprocal direction: 0.93-1.03x. Leaf sizes 2 or 8 instead of the builder's 4: no
-better. In ``hlbvh_path`` most time goes to sparse packets (on a 200k-triangle cloth
-frame, 0.33 of the SIMD lanes stepping are active; 0.21 for shadow rays through the
-cloth), which only fewer steps per ray or compacted rays would cut.
+better. In ``hlbvh_path`` a packet steps while any of its lanes still traverses: on a
+200k-triangle cloth frame a third of the lane-steps paid for are active ones (a fifth
+for shadow rays through the cloth), which only fewer steps per ray or compacted rays
+would change.
 
 Stack guard: the stack holds ``STACK_SIZE`` (64) entries; ordered traversal pushes at
 most one entry per level, so a tree of depth <= 64 never overflows, and deeper trees
