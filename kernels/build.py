@@ -219,8 +219,10 @@ def _sah_top_level(config, records: NodeRecords, sorted_keys, bits, coarse_bits,
     # ---- Cluster boxes: union of their triangles' boxes ----
     lo = dr.full(Array3f, dr.inf, clusters)
     hi = dr.full(Array3f, -dr.inf, clusters)
-    dr.scatter_reduce(dr.ReduceOp.Min, lo, slot_lo, cluster_of)
-    dr.scatter_reduce(dr.ReduceOp.Max, hi, slot_hi, cluster_of)
+    # ReduceMode.Local: Auto picks Expand for small targets, which bakes the cluster
+    # count into the kernel (a new kernel for every new count, i.e. most frames).
+    dr.scatter_reduce(dr.ReduceOp.Min, lo, slot_lo, cluster_of, mode=dr.ReduceMode.Local)
+    dr.scatter_reduce(dr.ReduceOp.Max, hi, slot_hi, cluster_of, mode=dr.ReduceMode.Local)
 
     # ---- SAH top level, one cluster per leaf ----
     top = binned_sah(lo, hi, end - start, 1, config.sah_bins)
