@@ -21,8 +21,9 @@ traversal launched kernels on every step: minutes for a thousand rays).
 - **Conservative slab test** (Ize, "Robust BVH ray traversal", JCGT 2013): the exit
   distance of a box is scaled by ``1 + 2·gamma(3)`` so rounding never culls a box the
   ray touches; so is the closest hit so far when a box's entry distance is compared
-  with it (a triangle lying on a box face at exactly ``maxt`` is still found). Reciprocal directions come from directions clamped away from zero
-  (``|d| >= FLT_MIN``, sign kept), so no ``0 · inf = NaN`` reaches the min/max.
+  with it (a triangle lying on a box face at exactly ``maxt`` is still found).
+  Reciprocal directions come from directions clamped away from zero (``|d| >=
+  FLT_MIN``, sign kept), so no ``0 · inf = NaN`` reaches the min/max.
 - **Watertight ray/triangle test** (Woop, Benthin & Wald, JCGT 2013): vertices are
   translated to the ray origin, permuted so the ray's dominant axis is z and sheared so
   the ray becomes the z axis. Every vertex is transformed the same way whichever
@@ -374,7 +375,8 @@ def _exact(holds, position, total, first, count, internal, widest):
             owner |= internal
             expected = dr.select(internal, dr.arange(UInt32, dr.width(first)), expected)
         fits = position + k < dr.opaque(UInt32, total)
-        ok &= ~owner | (fits & (dr.gather(UInt32, holds, position + k, owner & fits) == expected))
+        held_here = dr.gather(UInt32, holds, position + k, owner & fits)
+        ok &= ~owner | (fits & (held_here == expected))
     return bool(dr.all(ok, axis=None)[0]) and not dr.any(holds == _NOTHING, axis=None)[0]
 
 
@@ -558,7 +560,8 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         mask &= ~overflow
         sp = dr.if_stmt(args=(held[-1], sp, spilling), cond=spilling, true_fn=spill,
                         false_fn=no_spill, label="hlbvh_spill", mode="symbolic")
-        held = [dr.select(mask, above, below) for above, below in zip([entry] + held[:-1], held)]
+        held = [dr.select(mask, above, below)
+                for above, below in zip([entry] + held[:-1], held)]
         depth = dr.select(mask & (depth < STACK_REGISTERS), depth + 1, depth)
         return held, depth, sp, overflow
 
@@ -568,8 +571,8 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         from_register = mask & (depth > 0)
         filling = mask & (depth == 0)
         sp = dr.select(filling, sp - 1, sp)
-        filled = dr.if_stmt(args=(sp, filling), cond=filling, true_fn=fill, false_fn=no_fill,
-                            label="hlbvh_fill", mode="symbolic")
+        filled = dr.if_stmt(args=(sp, filling), cond=filling, true_fn=fill,
+                            false_fn=no_fill, label="hlbvh_fill", mode="symbolic")
         entry = dr.select(from_register, held[0], filled)
         held = [dr.select(from_register, below, above)
                 for above, below in zip(held, held[1:] + held[-1:])]
@@ -635,7 +638,7 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         left_first = hit_l if any_hit else hit_l & (~hit_r | (t_l <= t_r))
         near, near_t = dr.select(left_first, ref_l, ref_r), dr.select(left_first, t_l, t_r)
         far, far_t = dr.select(left_first, ref_r, ref_l), dr.select(left_first, t_r, t_l)
-        # Both children hit: go to the nearer, push the farther.
+        # Both children hit: go to ``near`` (the nearer; any hit: the left), push the other.
         entry = far if any_hit else \
             ns.UInt64(far) | (ns.UInt64(dr.reinterpret_array(UInt32, far_t)) << 32)
         held, depth, sp, overflow = push(held, depth, sp, entry, hit_l & hit_r)
