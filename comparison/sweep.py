@@ -68,7 +68,8 @@ import mitsuba as mi
 
 from hlbvh.comparison import plots, report
 from hlbvh.comparison.bench_trace import primary_rays, secondary_rays
-from hlbvh.comparison.compare import TOLERANCE, add_scene_options, render_settings
+from hlbvh.comparison.compare import TOLERANCE, render_settings
+from hlbvh.render import add_scene_options
 from hlbvh.comparison.metrics import image_metrics
 from hlbvh.errors import UserError
 from hlbvh.images import as_image

@@ -420,27 +420,41 @@ def configure(parser) -> None:
     """Options of ``hlbvh render`` (values are checked in :func:`run`, so every
     mistake is reported in one line)."""
     parser.description = __doc__.split("\n\n")[0]
+    add_scene_options(parser, "out/render/<scene>-<accel>")
+    parser.add_argument("--integrator", default="path",
+                        help="path (hlbvh_path, default) or aov (hlbvh_aov)")
+    parser.add_argument("--accel", default="hlbvh", help="hlbvh (default) or native")
+
+
+def add_scene_options(parser, out: str, *, builder_options: bool = True,
+                      frames: str | None = None, spp: int | None = None) -> None:
+    """The options of a scene and its renders (``hlbvh render``, ``compare``, ``sweep``): SCENE,
+    ``--frames-dir``, ``--frames``, ``--resolution``, ``--spp``, ``--triangles``,
+    ``--max-depth``, ``--seed``, ``--out``, ``--quiet``; with ``builder_options`` also
+    the builder's options and ``--update``. ``out``, ``frames`` and ``spp`` are the
+    defaults the help states (``None``: every frame, the scene's spp); the caller
+    applies them."""
     add = parser.add_argument
     add("scene", help=f"a procedural scene ({', '.join(scenes.names())}) or a Mitsuba XML "
                       "file (with --frames-dir)")
     add("--frames-dir", help="directory of per-frame meshes <dir>/<shape id>/frame_0001.ply "
                              "(with an XML scene)")
-    add("--frames", help="A:B (frames A .. B-1) or N (the first N); default: all")
+    add("--frames", help="A:B (frames A .. B-1) or N (the first N); default: "
+                         + (frames or "every frame of the scene"))
     add("--resolution", help="W (W×W) or WxH; default: the scene's")
-    add("--spp", help="samples per pixel; default: the scene's")
+    add("--spp", help="samples per pixel; default: " + ("the scene's" if spp is None else str(spp)))
     add("--triangles", help="size of a procedural scene (default 200000)")
-    add("--integrator", default="path", help="path (hlbvh_path, default) or aov (hlbvh_aov)")
     add("--max-depth", default=str(DEFAULT_MAX_DEPTH),
         help=f"longest path of the path integrator (default {DEFAULT_MAX_DEPTH}; -1: unbounded)")
-    add("--accel", default="hlbvh", help="hlbvh (default) or native")
-    for name in BUILD_OPTIONS:
-        add(f"--{name.replace('_', '-')}", dest=name,
-            help=f"builder option {name} (hlbvh.build; default {getattr(BuildConfig, name)!r})")
-    add("--update", help="our accelerator's per-frame policy: rebuild, refit or auto "
-                         "(default: the accelerator's own)")
+    if builder_options:
+        for name in BUILD_OPTIONS:
+            add(f"--{name.replace('_', '-')}", dest=name,
+                help=f"builder option {name} (hlbvh.build; default {getattr(BuildConfig, name)!r})")
+        add("--update", help="our accelerator's per-frame policy: rebuild, refit or auto "
+                             "(default: the accelerator's own)")
     add("--seed", default="0", help="frame i is rendered with seed SEED + i (default 0)")
-    add("--out", help="output directory (default out/render/<scene>-<accel>)")
-    add("--quiet", action="store_true", help="no progress bar")
+    add("--out", help=f"output directory (default {out})")
+    add("--quiet", action="store_true", help="no progress bars")
 
 
 def run(args) -> int:
