@@ -99,6 +99,7 @@ SETTINGS = {
     "leaf1": {"leaf_size": 1},
     "leaf8": {"leaf_size": 8},
     "rebuild": {"update": "rebuild"},
+    "fresh": {"update": "fresh"},
     "refit": {"update": "refit"},
     "auto": {"update": "auto"},
 }

@@ -72,7 +72,7 @@ from hlbvh.kernels.traversal import any_hit, closest_hit, packed_records
 
 ACCELS = ("hlbvh", "native")
 #: Per-frame policies of :meth:`SceneAccel.update` (option ``update``).
-UPDATES = ("rebuild", "refit", "auto")
+UPDATES = ("rebuild", "fresh", "refit", "auto")
 #: The options of :func:`hlbvh.build` an accelerator accepts.
 BUILD_OPTIONS = tuple(f.name for f in dataclasses.fields(BuildConfig))
 #: The accelerator's own options (:class:`UpdatePolicy`).
@@ -97,7 +97,9 @@ class UpdatePolicy:
 
     Attributes:
         update: ``"rebuild"`` (default): a new BVH every update, its CSD sort seeded
-            with last frame's order; always the best tree. ``"refit"``: the tree of the
+            with last frame's order (temporal coherence); always the best tree.
+            ``"fresh"``: the same without the seed (temporal reuse off, for
+            comparison). ``"refit"``: the tree of the
             last build with new boxes (:meth:`hlbvh.BVH.refit`), much cheaper, never
             wrong, but slower to trace as the geometry moves away from the pose it was
             built for. ``"auto"``: refit, then rebuild if the refit tree's SAH cost
@@ -482,8 +484,8 @@ class MeshGroup:
         start = _clock()
         seeded, drift = False, None
         reshaped = reshaped or self.bvh is None or self.stale
-        if reshaped or policy.update == "rebuild":
-            seeded = self._build(shapes, build_options)
+        if reshaped or policy.update in ("rebuild", "fresh"):
+            seeded = self._build(shapes, build_options, seed=policy.update != "fresh")
         else:
             drift = self._refit(shapes)
             decision = "refit"
@@ -509,11 +511,12 @@ class MeshGroup:
         return ([float(c[0]) for c in self.bvh.node_min],
                 [float(c[0]) for c in self.bvh.node_max])
 
-    def _build(self, shapes, build_options) -> bool:
+    def _build(self, shapes, build_options, seed: bool = True) -> bool:
         """A new BVH over the meshes' current triangles, its CSD sort seeded with the
-        previous tree's order when the triangle count is unchanged; whether it was.
-        On failure the group is left as it was (and rebuilds on its next update)."""
-        previous = self.bvh
+        previous tree's order when ``seed`` and the triangle count is unchanged; whether
+        it was. On failure the group is left as it was (and rebuilds on its next
+        update)."""
+        previous = self.bvh if seed else None
         geometry = collect_geometry(shapes, self.indices)
         bvh = None
         if geometry.prim_count:

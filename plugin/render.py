@@ -66,7 +66,7 @@ import mitsuba as mi
 import numpy as np
 
 from hlbvh import images, scenes
-from hlbvh.accel import ACCELS
+from hlbvh.accel import ACCELS, UPDATES
 from hlbvh.cli import UserError
 from hlbvh.integrators.common import BUILD_OPTIONS
 from hlbvh.kernels.bvh import BuildConfig
@@ -79,7 +79,6 @@ STATS_FIELDS = ("frame", "accel", "triangles", "seed", "geometry_ms", "mitsuba_u
 INTEGRATORS = {"path": "hlbvh_path", "aov": "hlbvh_aov"}
 
 #: ``--update`` choices: the per-frame policy of our accelerator.
-UPDATES = ("rebuild", "refit", "auto")
 
 #: Longest path of ``--integrator path`` unless ``--max-depth`` says otherwise.
 DEFAULT_MAX_DEPTH = 8
@@ -450,7 +449,7 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
         for name in BUILD_OPTIONS:
             add(f"--{name.replace('_', '-')}", dest=name,
                 help=f"builder option {name} (hlbvh.build; default {getattr(BuildConfig, name)!r})")
-        add("--update", help="our accelerator's per-frame policy: rebuild, refit or auto "
+        add("--update", help="our accelerator's per-frame policy: rebuild, fresh, refit or auto "
                              "(default: the accelerator's own)")
     add("--seed", default="0", help="frame i is rendered with seed SEED + i (default 0)")
     add("--out", help=f"output directory (default {out})")

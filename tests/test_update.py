@@ -337,3 +337,16 @@ def test10_the_static_group_is_rebuilt_once_with_the_static_builder(static_build
     accel.update()
     assert accel.static.bvh is static_bvh
     assert_hits_equal_native(accel, scene, shape_indices(scene, animation.static_ids()))
+
+
+def test11_fresh_rebuilds_without_last_frames_order_and_hits_equal_native():
+    """update="fresh" (temporal reuse off) rebuilds unseeded; "rebuild" seeds."""
+    for update, seeded in (("fresh", False), ("rebuild", True)):
+        animation, scene, params = load("cloth")
+        accel = hlbvh.SceneAccel(scene, update=update)
+        for frame in (8, 16):
+            scenes.apply_frame(scene, params, animation.frame(frame))
+            accel.update()
+        assert accel.last_update["groups"]["dynamic"]["seeded"] is seeded
+        assert accel.last_update["groups"]["dynamic"]["decision"] == "rebuild"
+        assert_hits_equal_native(accel, scene)

@@ -25,7 +25,7 @@ class AccelIntegrator(mi.SamplingIntegrator):
         builder, leaf_size, morton_bits, quantization, coarse_bits, p, sah_bins:
             options of :func:`hlbvh.build` (see :class:`hlbvh.BuildConfig`).
         update, refit_tolerance, static_builder: the per-frame policy of the accelerator
-            (``"rebuild"``, ``"refit"`` or ``"auto"``, and the SAH drift ``"auto"``
+            (``"rebuild"``, ``"fresh"``, ``"refit"`` or ``"auto"``, the SAH drift ``"auto"``
             accepts, the builder of the static group; see :class:`hlbvh.accel.UpdatePolicy`).
 
     The accelerator is built on the first render of a scene and kept for the next
