@@ -53,7 +53,8 @@ internal node, ``0..5``   its left child's box: lo x, y, z, hi x, y, z
 ``12, 13``                left and right child's references (the bits of a UInt32);
                           14, 15 zero padding
 triangle, ``0..8``        p0, p1, p2 (in the face's order)
-``9``                     the input face index (the bits of a UInt32); 10..15 zero
+``9``                     the input face index (the bits of a UInt32)
+``10``                    1 for a zero-area triangle (never hit), else 0; 11..15 zero
 ========================  ===============================================================
 
 The records are laid out depth first (pre-order, left child first): a node's record,
@@ -305,6 +306,15 @@ def _pack(bvh):
                 for c in dr.gather(ns.Array3f, p, item, is_triangle)]
     face = dr.gather(UInt32, UInt32(bvh.prim_ids), item, is_triangle)
     tri_rows.append(dr.reinterpret_array(Float, face))
+    # A zero-area triangle (collinear vertices) is never hit, as in Embree: its normal
+    # would be NaN. After the shear its determinant may round away from zero, so the
+    # flag is taken here, from the unsheared edges.
+    # In double precision: float32 products underflow at 1e-30 and overflow at 1e20.
+    p0, p1, p2 = (ns.Array3f64(dr.gather(ns.Array3f, p, item, is_triangle))
+                  for p in (bvh.tri_p0, bvh.tri_p1, bvh.tri_p2))
+    normal = dr.cross(p1 - p0, p2 - p0)
+    flat = (normal.x == 0) & (normal.y == 0) & (normal.z == 0)
+    tri_rows.append(dr.select(flat, Float(1), Float(0)))
     tri_rows += [zero] * (_RECORD - len(tri_rows))
 
     records = dr.ravel(ArrayXf([dr.select(is_node, a, b) for a, b in zip(rows, tri_rows)]))
@@ -511,7 +521,7 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         )
         inside = (b0 >= -BARYCENTRIC_MARGIN) & (b1 >= -BARYCENTRIC_MARGIN) \
             & (b2 >= -BARYCENTRIC_MARGIN)
-        hit = inside & (t > 0) & (t <= t_max)
+        hit = inside & (t > 0) & (t <= t_max) & (rec[10] == 0)  # rec[10]: zero area
         return hit, t, b1, b2
 
     def box_pair(rec, t_best):

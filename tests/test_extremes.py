@@ -438,13 +438,6 @@ def test09_degenerate_geometry_builds_valid_trees_and_hits_equal_brute_force(bui
     np.testing.assert_array_equal(bvh.occluded(ray).numpy(), ref["valid"])
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "traversal.py: a triangle with three collinear vertices (zero area) is hit by rays "
-    "passing through its segment: after the float32 shear its projected vertices are no "
-    "longer exactly collinear, so det != 0 and the hit is accepted (622 of 4000 rays "
-    "aimed at such a segment's middle vertex); Embree and the brute force never hit it, "
-    "and Mitsuba's surface interaction there has a NaN normal (NaN pixels). A zero "
-    "cross product of the stored edges is an exact test for these."))
 def test09b_rays_through_a_zero_area_triangle_never_hit_it():
     V = np.array([[0, 0, 0], [0, 0, 2.5e-4], [0, 0, 5e-4], [1, 1, 1], [1, 1, 1.5], [1, 1, 2]], np.float32)
     F = np.array([[0, 1, 2], [3, 4, 5]], np.uint32)
