@@ -10,6 +10,11 @@ from __future__ import annotations
 import types
 
 import drjit as dr
+import numpy as np
+
+# Dr.Jit's LLVM backend marks a vector load aligned only when the input's address is a
+# multiple of the packet size; its own allocations always are (64 bytes covers AVX-512).
+_JIT_ALIGNMENT = 64
 
 
 def namespace_of(x) -> types.ModuleType:
@@ -33,6 +38,33 @@ def namespace_of(x) -> types.ModuleType:
 
 def plain(x, kind: str):
     """``x`` converted to the plain type ``kind`` ('Float', 'UInt32', 'Array3f', ...)
-    of its backend, detached from any AD graph (no copy when it already is one)."""
+    of its backend, detached from any AD graph, in Dr.Jit's own memory (no copy when it
+    already is all of that).
+
+    Dr.Jit wraps an evaluated numpy array's buffer without copying, and on the LLVM
+    backend a buffer at another alignment compiles another kernel: without the copy,
+    the same build would compile anew whenever a caller's array landed at a new
+    address."""
     t = getattr(namespace_of(x), kind)
-    return x if type(x) is t else t(dr.detach(x) if dr.is_diff_v(x) else x)
+    x = x if type(x) is t else t(dr.detach(x) if dr.is_diff_v(x) else x)
+    if dr.depth_v(x) > 1:
+        parts = [_in_jit_memory(c) for c in x]
+        return x if all(p is c for p, c in zip(parts, x)) else t(*parts)
+    return _in_jit_memory(x)
+
+
+def _in_jit_memory(x):
+    """``x`` (a flat JIT array) itself when its buffer is aligned as Dr.Jit allocates,
+    else an aligned copy (foreign buffers, e.g. from numpy, can sit at any address)."""
+    if dr.backend_v(x) != dr.JitBackend.LLVM or x.state != dr.VarState.Evaluated:
+        return x  # CUDA copies host arrays to the device; pending values get jit memory
+    if dr.width(x) == 0 or np.asarray(x).ctypes.data % _JIT_ALIGNMENT == 0:
+        return x
+    # A host copy into an aligned buffer, which Dr.Jit maps as it maps any host array:
+    # no kernel, so no compile the first time a misaligned input shows up.
+    src = np.asarray(x)
+    buf = np.empty(src.nbytes + _JIT_ALIGNMENT, np.uint8)
+    skip = -buf.ctypes.data % _JIT_ALIGNMENT
+    copy = buf[skip : skip + src.nbytes].view(src.dtype)
+    copy[:] = src
+    return type(x)(copy)

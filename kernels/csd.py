@@ -43,7 +43,7 @@ from typing import Any
 
 import drjit as dr
 
-from .arrays import namespace_of
+from .arrays import namespace_of, plain
 
 # Most bits per pass of the LSD radix sort. CPU: passes of 10, 11 and 12 bits cost the
 # same per pass here (1M keys), 12 lets a 12-bit coarse key take one pass and a 24-bit
@@ -290,7 +290,7 @@ def _checked_keys(keys, key_bits):
         )
     ns = namespace_of(keys)
     wide = dr.type_v(keys) == dr.VarType.UInt64
-    keys = (ns.UInt64 if wide else ns.UInt32)(keys)
+    keys = plain(keys, 'UInt64' if wide else 'UInt32')
     limit = 64 if wide else 32
     if not isinstance(key_bits, int) or not 1 <= key_bits <= limit:
         raise ValueError(
@@ -308,7 +308,7 @@ def _checked_keys(keys, key_bits):
 def _checked_order(ns, start_order, n):
     """``start_order`` as a plain UInt32 array of ``n`` entries, checked to look like a
     permutation of 0..n-1."""
-    order = ns.UInt32(start_order)
+    order = plain(ns.UInt32(start_order), 'UInt32')
     if dr.width(order) != n:
         raise ValueError(
             f"csd_sort: start_order has {dr.width(order)} entries for {n} keys; pass the "

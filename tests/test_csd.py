@@ -14,7 +14,11 @@ import pytest
 from hlbvh.kernels.csd import CsdResult, csd_sort
 from hlbvh.kernels.morton import morton_codes, point_bounds
 
-Array3f, UInt32, UInt64 = dr.llvm.Array3f, dr.llvm.UInt32, dr.llvm.UInt64
+from hlbvh.kernels.arrays import namespace_of
+
+# The plain (non-AD) types of the variant's backend: LLVM here, CUDA where a GPU is.
+jit = namespace_of(mi.Float)
+Array3f, UInt32, UInt64 = jit.Array3f, jit.UInt32, jit.UInt64
 
 
 def reference(keys, start):
@@ -169,7 +173,7 @@ def test09_bad_arguments_raise_errors_naming_them():
     with pytest.raises(ValueError, match="key_bits=40"):
         csd_sort(keys, 40, 3)
     with pytest.raises(TypeError, match="UInt32 or UInt64"):
-        csd_sort(dr.llvm.Float([1.0, 2.0]), 30, 3)
+        csd_sort(jit.Float([1.0, 2.0]), 30, 3)
     with pytest.raises(TypeError, match="UInt32 or UInt64"):
         csd_sort(np.array([1, 2], dtype=np.uint32), 30, 3)
 

@@ -7,6 +7,7 @@ import subprocess
 import sys
 import weakref
 
+import drjit as dr
 import hlbvh
 import mitsuba as mi
 import numpy as np
@@ -200,6 +201,7 @@ import sys
 sys.path.insert(0, {tests!r})
 import hlbvh, mitsuba as mi, numpy as np
 from test_accel import cornell_box
+backend = mi.variant().split("_")[0]  # llvm here, cuda where a GPU is
 mi.set_variant("scalar_rgb")
 hlbvh.register()
 try:
@@ -208,7 +210,7 @@ except Exception as e:
     assert "need a JIT variant" in str(e), e
 else:
     raise AssertionError("hlbvh_path accepted a scalar variant")
-mi.set_variant("llvm_ad_spectral")
+mi.set_variant(backend + "_ad_spectral")
 hlbvh.register()
 scene = mi.load_dict(cornell_box(res=8, spp=2))
 ref = mi.render(scene, integrator=mi.load_dict(dict(type="path", max_depth=3)), seed=1)
@@ -259,6 +261,30 @@ def test13_accel_is_cached_per_scene_and_follows_updates():
     del scene, integrator, first, other, params
     gc.collect()
     assert alive() is None
+
+
+@pytest.mark.parametrize("integrator", [
+    dict(type="hlbvh_path", max_depth=4),
+    dict(type="hlbvh_path", max_depth=3, hide_emitters=True),
+    dict(type="hlbvh_aov"),
+])
+def test13b_later_renders_of_a_scene_compile_nothing(integrator):
+    """Three renders of one scene (same seed): the first builds the intersector and
+    compiles the render's kernels, the second and third launch only kernels the first
+    compiled (a build inside the first render's recording changed its kernel: a
+    compile on the second render). Checked on what Dr.Jit reports as a compile, so it
+    holds with an empty kernel cache."""
+    desc = cornell_box(res=16, spp=2)
+    desc["integrator"] = integrator
+    scene = mi.load_dict(desc)
+    compiled = []
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        for _ in range(3):
+            dr.kernel_history()
+            dr.eval(mi.render(scene, seed=3))
+            compiled.append([k["hash"] for k in dr.kernel_history()
+                             if k["type"] == dr.KernelType.JIT and k.get("cache_hit") == 0])
+    assert compiled[1:] == [[], []], f"renders 2 and 3 compiled {compiled[1:]}"
 
 
 @pytest.mark.parametrize("builder", ["lbvh", "sah"])

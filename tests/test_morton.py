@@ -13,7 +13,11 @@ import pytest
 
 from hlbvh.kernels.morton import choose_morton_bits, morton_codes, point_bounds
 
-Array3f, UInt32, UInt64 = dr.llvm.Array3f, dr.llvm.UInt32, dr.llvm.UInt64
+from hlbvh.kernels.arrays import namespace_of
+
+# The plain (non-AD) types of the variant's backend: LLVM here, CUDA where a GPU is.
+jit = namespace_of(mi.Float)
+Array3f, UInt32, UInt64 = jit.Array3f, jit.UInt32, jit.UInt64
 
 
 def reference_keys(points, bits, quantization):

@@ -12,7 +12,13 @@ import pytest
 
 from hlbvh.kernels.sah import SahTree, binned_sah
 
-from drjit.llvm import Array3f, Float, UInt32
+import mitsuba as mi
+
+from hlbvh.kernels.arrays import namespace_of
+
+# The plain (non-AD) types of the variant's backend: LLVM here, CUDA where a GPU is.
+jit = namespace_of(mi.Float)
+Array3f, Float, UInt32 = jit.Array3f, jit.Float, jit.UInt32
 
 F32 = np.float32
 

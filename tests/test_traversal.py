@@ -19,6 +19,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from reference import brute_force, median_split_bvh, random_soup, triangle_grid  # noqa: E402
 
 from hlbvh.kernels import traversal  # noqa: E402
+from hlbvh.kernels.arrays import namespace_of  # noqa: E402
 from hlbvh.kernels.bvh import BVH, BuildConfig, BuildStats  # noqa: E402
 from hlbvh.kernels.traversal import any_hit, closest_hit  # noqa: E402
 
@@ -463,7 +464,7 @@ def _caterpillar(levels, depth_in_stats):
     """A hand-made chain tree over ``levels`` stacked squares (two triangles each, one
     leaf per square): node k has the leaf of square k and the subtree of squares
     k+1... as children, so a ray from above pushes one entry per level."""
-    ns = dr.llvm if "llvm" in mi.variant() else dr.cuda
+    ns = namespace_of(mi.Float)
     squares = np.arange(levels) * 0.01
     vertices, faces = [], []
     for k, z in enumerate(squares):

@@ -69,6 +69,25 @@ class AccelIntegrator(mi.SamplingIntegrator):
             self._accel.update()
         return self._accel
 
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        """Bring the intersector up to date, then render as Mitsuba's sampling
+        integrator does.
+
+        The build or update runs before the render's kernel is recorded, so the first
+        render of a scene records the same kernel as every later one (built inside
+        the recording, it changed the kernel and cost a compile on the second render).
+        """
+        self.accel(scene)
+        return super().render(scene, sensor, seed, spp, develop, evaluate)
+
+    def traced_accel(self, scene):
+        """The intersector for the ray queries of :meth:`sample`: the one
+        :meth:`render` just brought up to date, without looking at the meshes again
+        (or :meth:`accel`'s when ``sample`` is called outside a render)."""
+        if self.accel_name == "hlbvh" and self._accel is not None and self._accel.is_for(scene):
+            return self._accel
+        return self.accel(scene)
+
     def _options_string(self) -> str:
         options = "".join(f", {k}={v!r}" for k, v in self.accel_options.items())
         return f"accel={self.accel_name!r}{options}"
