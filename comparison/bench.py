@@ -11,6 +11,10 @@ from __future__ import annotations
 import importlib
 import json
 
+from hlbvh.errors import UserError
+from hlbvh.kernels.bvh import BUILDERS
+from hlbvh.render import _int_flag
+
 _SUITES = {
     "build": "hlbvh.comparison.bench_build",
     "trace": "hlbvh.comparison.bench_trace",
@@ -22,24 +26,34 @@ def configure(parser) -> None:
     parser.add_argument("suite", choices=sorted(_SUITES), help="which benchmark to run")
     parser.add_argument("--sizes", default=None,
                         help="triangle counts, comma separated (suite default when omitted)")
-    parser.add_argument("--repeats", type=int, default=5, help="warm runs after the cold one")
-    parser.add_argument("--builder", default=None, help="builders, comma separated")
-    parser.add_argument("--resolution", type=int, default=512, help="image side in pixels")
+    parser.add_argument("--repeats", default="5", help="warm runs after the cold one (default 5)")
+    parser.add_argument("--builder", default=None,
+                        help=f"builders, comma separated ({', '.join(BUILDERS)})")
+    parser.add_argument("--resolution", default="512", help="image side in pixels (default 512)")
     parser.add_argument("--json", action="store_true", help="print JSON rows, not a table")
 
 
 def run(args) -> int:
-    module = importlib.import_module(_SUITES[args.suite])
-    kwargs = {"repeats": args.repeats}
-    if args.sizes:
-        kwargs["sizes"] = [int(s) for s in args.sizes.split(",")]
+    """``hlbvh bench``: every option checked (one line naming it, exit status 2), then
+    the suite's ``run``."""
+    kwargs = {"repeats": _int_flag("--repeats", args.repeats, least=1)}
+    if args.sizes is not None:
+        kwargs["sizes"] = [_int_flag("--sizes", s.strip(), least=1) for s in args.sizes.split(",")]
+    builders = None if args.builder is None else [b.strip() for b in args.builder.split(",")]
+    for builder in builders or ():
+        if builder not in BUILDERS:
+            raise UserError(f"--builder {args.builder!r}: {builder!r} is not one of "
+                            f"{', '.join(BUILDERS)}")
     if args.suite == "build":
-        if args.builder:
-            kwargs["builders"] = args.builder.split(",")
+        if builders:
+            kwargs["builders"] = builders
     else:
-        kwargs["resolution"] = args.resolution
-        if args.builder:
-            kwargs["builder"] = args.builder
+        kwargs["resolution"] = _int_flag("--resolution", args.resolution, least=1)
+        if builders:
+            if len(builders) > 1:
+                raise UserError(f"--builder {args.builder!r}: bench {args.suite} takes one builder")
+            kwargs["builder"] = builders[0]
+    module = importlib.import_module(_SUITES[args.suite])
     rows = module.run(**kwargs)
     print(json.dumps(rows, indent=1, default=str) if args.json else module.format_table(rows))
     return 0

@@ -79,10 +79,14 @@ from hlbvh.render import (
     _choice,
     _int_flag,
     _option_value,
+    check_seed,
     frame_name,
     open_animation,
+    out_flag,
+    output_directory,
     parse_resolution,
     render_animation,
+    seed_flag,
 )
 
 #: Largest absolute per-channel difference of a pixel still counted as equal to native:
@@ -120,7 +124,7 @@ def render_settings(args, spp=None) -> RenderSettings:
         accel="native",
         build_options=build_options,
         update=None if update is None else _choice("--update", update, UPDATES),
-        seed=_int_flag("--seed", args.seed, least=0),
+        seed=seed_flag(args.seed),
     )
 
 
@@ -151,7 +155,6 @@ def compare_animation(animation, frames, out_dir, settings: RenderSettings,
         ValueError: a frame's geometry cannot be read or applied.
     """
     out = Path(out_dir)
-    frames = list(frames)
     stats = {}
     for accel in ACCELS:
         colour = replace(settings, accel=accel, integrator="path")
@@ -253,8 +256,9 @@ def run(args) -> int:
     settings = render_settings(args)
     tolerance = _tolerance(args.tolerance)
     animation, source, frames = open_animation(args.scene, args.frames_dir, args.triangles,
-                                               args.frames)
-    out = Path(args.out) if args.out else Path("out/compare") / Path(args.scene).stem
+                                               args.frames, args.topology)
+    check_seed(settings.seed, frames)
+    out = output_directory(out_flag(args.out, Path("out/compare") / Path(args.scene).stem))
     result = compare_animation(animation, frames, out, settings, source, tolerance,
                                progress=not args.quiet)
     print(f"{result['files']['html']}: frames {frames.start}..{frames.stop - 1} of "

@@ -80,7 +80,10 @@ from hlbvh.render import (
     RenderSettings,
     _int_flag,
     _option_value,
+    check_seed,
     open_animation,
+    out_flag,
+    output_directory,
 )
 
 #: The default grid: each setting varies one knob of the defaults (builder options, and
@@ -222,7 +225,7 @@ def sweep(animation, frames, settings: list[Setting], base: RenderSettings, spp:
     """
     from tqdm import tqdm
 
-    frames = list(frames)
+    frames = frames if isinstance(frames, range) else list(frames)
     if len(frames) < 2:
         raise ValueError(f"frames {frames}: a sweep needs at least two (the first two are "
                          "also rendered once untimed, to compile every kernel)")
@@ -401,10 +404,11 @@ def run(args) -> int:
     base = render_settings(args, spp=spp)
     animation, source, frames = open_animation(
         args.scene, args.frames_dir, args.triangles,
-        DEFAULT_FRAMES if args.frames is None else args.frames)
+        DEFAULT_FRAMES if args.frames is None else args.frames, args.topology)
     if len(frames) < 2:
         raise UserError(f"--frames {args.frames}: a sweep needs at least two frames")
-    out = Path(args.out) if args.out else Path("out/sweep") / Path(args.scene).stem
+    check_seed(base.seed, frames)
+    out = output_directory(out_flag(args.out, Path("out/sweep") / Path(args.scene).stem))
     rows = sweep(animation, frames, settings, base, spp, curve, progress=not args.quiet)
     recorded = {"scene_name": animation.name, **source, **_recorded(base),
                 "frames": f"{frames.start}:{frames.stop}", "spp_curve": sorted({*curve, spp}),

@@ -84,6 +84,22 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f"hlbvh {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Exception as error:
+        # Dr.Jit re-raises a Ctrl-C that arrives inside a traced loop or a custom
+        # operation as a RuntimeError caused by the KeyboardInterrupt.
+        if not _interrupted(error):
+            raise
+        print(f"hlbvh {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+def _interrupted(error: BaseException) -> bool:
+    """Whether ``error`` was raised from or during a ``KeyboardInterrupt``."""
+    while error is not None:
+        if isinstance(error, KeyboardInterrupt):
+            return True
+        error = error.__cause__ or error.__context__
+    return False
 
 
 if __name__ == "__main__":

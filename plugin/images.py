@@ -292,7 +292,49 @@ def _write_with_oiio(path: Path, format_name: str, spec, pixels: np.ndarray) -> 
         closed = output.close()
         if not (written and closed):
             raise OSError(f"{path}: writing the {format_name} failed: {output.geterror()}")
+        # A full disk can cut the file short while the writer reports success: only a
+        # file that decodes whole, at its size and channels, is renamed into place.
+        check_image(temporary, spec.width, spec.height, spec.nchannels, name=path)
     return path
+
+
+def check_image(path, width: int | None = None, height: int | None = None,
+                channels: int | None = None, name=None) -> tuple[int, int, int]:
+    """Decode every pixel of an image file and check its size and channel count.
+
+    Args:
+        path: the file (EXR, PNG, anything OpenImageIO reads).
+        width, height, channels: what the file must hold; ``None`` accepts any.
+        name: how the message calls the file (default ``path``).
+    Returns:
+        ``(width, height, channels)`` of the file.
+    Raises:
+        OSError: the file cannot be opened, does not decode whole (a truncated or
+            corrupt file), or holds another size or channel count; the message names it.
+    """
+    name = path if name is None else name
+    source = oiio.ImageInput.open(str(path))
+    if source is None:
+        raise OSError(f"{name}: not a readable image ({_first_line(oiio.geterror()) or 'unknown format'})")
+    try:
+        spec = source.spec()
+        pixels = source.read_image(oiio.FLOAT)
+        error = source.geterror()
+    finally:
+        source.close()
+    found = (spec.width, spec.height, spec.nchannels)
+    if pixels is None or error:
+        raise OSError(f"{name}: the image does not decode whole ({_first_line(error) or 'no pixels'})")
+    expected = (width, height, channels)
+    if any(want is not None and want != got for want, got in zip(expected, found)):
+        raise OSError(f"{name}: holds {found[0]}x{found[1]} pixels of {found[2]} channels, "
+                      f"expected {width}x{height} of {channels}")
+    return found
+
+
+def _first_line(text: str) -> str:
+    """The first non-empty line of an OpenImageIO error (they span several lines)."""
+    return next((line.strip() for line in text.splitlines() if line.strip()), "")
 
 
 def _fsync_directory(directory: Path) -> None:

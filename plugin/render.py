@@ -29,12 +29,21 @@ Each frame
 5. its row (:data:`STATS_FIELDS`) is added to ``stats.csv`` and ``stats.json``, both
    rewritten whole and atomically.
 
-A frame is complete when its EXR, its PNG and its row exist. Running the same command
-again renders only the frames of the range that are not complete (after an interrupt:
-from the one that was being rendered), and removes the temporary files a killed
-process left. ``stats.json`` records the settings (scene, size, resolution, spp,
+A frame is complete when its EXR and its PNG decode whole, at one size (the
+``--resolution`` when given), and its row is in ``stats.json``. Running the same
+command again renders only the frames of the range that are not complete (after an
+interrupt: from the one that was being rendered; a truncated or emptied file: that
+frame again), rewrites ``stats.csv`` from ``stats.json`` (a kill between the two writes
+is healed), and removes the temporary files a killed process left. A write that fails
+(a full disk) leaves no partial file and stops with one line; the frames before it stay
+complete. ``stats.json`` records the settings (scene, size, resolution, spp,
 integrator, accelerator, builder options, seed); rendering into a directory that
 holds frames of other settings is refused, so one directory never mixes two renders.
+One render writes into a directory at a time: it holds the directory's lock file
+(:data:`LOCK_NAME`, naming its pid and host); a second is refused, and a lock left by a
+process that died is taken over. Frame ranges are iterated, never listed, and the seed
+of the last frame, the film's size and the samples per frame are checked against what
+Dr.Jit and the machine's memory hold before any frame is rendered.
 
 Statistics (``stats.json``: ``{"settings": {...}, "frames": [row, ...]}``)
 --------------------------------------------------------------------------
@@ -52,10 +61,15 @@ compiling kernels that Dr.Jit's disk cache did not hold.
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import fcntl
 import io
 import json
+import os
 import re
+import resource
+import socket
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -66,10 +80,11 @@ import mitsuba as mi
 import numpy as np
 
 from hlbvh import images, scenes
-from hlbvh.accel import ACCELS, UPDATES
+from hlbvh.accel import ACCELS, UPDATES, scene_shapes
 from hlbvh.cli import UserError
 from hlbvh.integrators.common import BUILD_OPTIONS
 from hlbvh.kernels.bvh import BuildConfig
+from hlbvh.scenes.sequence import TOPOLOGIES
 
 #: Columns of ``stats.csv``, and keys of every row of ``stats.json``.
 STATS_FIELDS = ("frame", "accel", "triangles", "seed", "geometry_ms", "mitsuba_update_ms",
@@ -78,10 +93,23 @@ STATS_FIELDS = ("frame", "accel", "triangles", "seed", "geometry_ms", "mitsuba_u
 #: ``--integrator`` choices and the registered integrators they name.
 INTEGRATORS = {"path": "hlbvh_path", "aov": "hlbvh_aov"}
 
-#: ``--update`` choices: the per-frame policy of our accelerator.
-
 #: Longest path of ``--integrator path`` unless ``--max-depth`` says otherwise.
 DEFAULT_MAX_DEPTH = 8
+
+#: Largest seed of a frame: Mitsuba's samplers take 32-bit seeds.
+MAX_SEED = 2**32 - 1
+
+#: Most samples (width x height x spp) of one frame: Dr.Jit arrays hold at most
+#: 2^32 - 1 entries, and ``mi.render`` traces them as one wavefront.
+MAX_SAMPLES = 2**32 - 1
+
+#: Memory a frame takes per pixel and per sample, in bytes: measured peaks of
+#: ``mi.render`` on the LLVM backend (about 40 per pixel at 1 spp, 15 per sample at
+#: 4 spp; film, wavefront and the developed image), doubled.
+BYTES_PER_PIXEL, BYTES_PER_SAMPLE = 64, 32
+
+#: The lock file of an output directory (see :func:`output_lock`).
+LOCK_NAME = ".hlbvh.lock"
 
 _STALE = re.compile(r"^\.(frame_\d+\.(exr|png)|stats\.(csv|json))\.[0-9a-f]+\.tmp$")
 
@@ -136,8 +164,8 @@ class RenderSettings:
         BuildConfig.from_options(**self.build_options)
         if self.update is not None and self.update not in UPDATES:
             raise ValueError(f"update={self.update!r}: expected one of {UPDATES}")
-        if not (_is_int(self.seed) and self.seed >= 0):
-            raise ValueError(f"seed={self.seed!r}: expected an int >= 0")
+        if not (_is_int(self.seed) and 0 <= self.seed <= MAX_SEED):
+            raise ValueError(f"seed={self.seed!r}: expected an int in 0..{MAX_SEED}")
 
     def integrator_dict(self) -> dict:
         """The Mitsuba description of the integrator these settings ask for."""
@@ -174,6 +202,9 @@ class FrameRenderer:
     Raises:
         ValueError: the integrator cannot be made from the settings (naming what
             Mitsuba or the builder objected to).
+        UserError: the frame does not fit in Dr.Jit's arrays or the machine's memory
+            (:func:`check_frame_fits`), or ``accel="hlbvh"`` and the scene holds shapes
+            our accelerator does not intersect (instances, curves, ...).
 
     Attributes:
         scene: the loaded ``mi.Scene``; ``params``: its ``mi.traverse``;
@@ -194,6 +225,16 @@ class FrameRenderer:
             resolution=settings.resolution, spp=settings.spp, integrator=description))
         self.params = mi.traverse(self.scene)
         self.integrator = self.scene.integrator()
+        sensor = self.scene.sensors()[0]
+        width, height = sensor.film().crop_size()
+        check_frame_fits(int(width), int(height), int(sensor.sampler().sample_count()))
+        if settings.accel == "hlbvh":
+            try:
+                scene_shapes(self.scene.shapes())
+            except ValueError as error:
+                reason = str(error).split(" Use accel=")[0]
+                raise UserError(f"{reason} Render this scene with --accel native "
+                                f"(Mitsuba's own accelerator).") from None
 
     def render(self, i: int, spp: int | None = None) -> tuple[mi.TensorXf, dict]:
         """Apply frame ``i`` and render it.
@@ -255,6 +296,62 @@ class FrameRenderer:
         return ["R", "G", "B", "A"][:colour] + aovs
 
 
+def check_frame_fits(width: int, height: int, spp: int) -> None:
+    """Refuse a frame that Dr.Jit cannot index (:data:`MAX_SAMPLES`) or that needs more
+    memory than this process can still get (:func:`available_memory`, with
+    :data:`BYTES_PER_PIXEL` and :data:`BYTES_PER_SAMPLE`): it would otherwise fail
+    deep inside ``mi.render`` or crash the process.
+
+    Raises:
+        UserError: naming ``--resolution`` and ``--spp``, the limit and the need.
+    """
+    samples = width * height * spp
+    what = f"--resolution {width}x{height} at --spp {spp}"
+    if samples > MAX_SAMPLES:
+        raise UserError(f"{what}: {samples} samples per frame, more than the {MAX_SAMPLES} "
+                        f"a Dr.Jit array holds; lower --resolution or --spp")
+    need = width * height * BYTES_PER_PIXEL + samples * BYTES_PER_SAMPLE
+    available = available_memory()
+    if available is not None and need > available:
+        raise UserError(f"{what}: a frame needs about {need / 2**30:.1f} GiB, this process "
+                        f"can get {available / 2**30:.1f} GiB; lower --resolution or --spp")
+
+
+def available_memory() -> int | None:
+    """Bytes this process can still allocate, or ``None`` when nothing says: the least
+    of the system's available memory, the cgroup's limit less its use, and the
+    address-space limit (``RLIMIT_AS``) less what the process maps now."""
+    limits = []
+    meminfo = _proc_fields("/proc/meminfo")
+    if "MemAvailable" in meminfo:
+        limits.append(meminfo["MemAvailable"])
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if limit != "max":
+            used = int(Path("/sys/fs/cgroup/memory.current").read_text())
+            limits.append(int(limit) - used)
+    except (OSError, ValueError):
+        pass
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft != resource.RLIM_INFINITY:
+        limits.append(soft - _proc_fields("/proc/self/status").get("VmSize", 0))
+    return max(min(limits), 0) if limits else None
+
+
+def _proc_fields(path: str) -> dict[str, int]:
+    """``Name: N kB`` lines of a /proc file, in bytes (empty where there is none)."""
+    fields = {}
+    try:
+        for line in Path(path).read_text().splitlines():
+            name, _, value = line.partition(":")
+            parts = value.split()
+            if len(parts) == 2 and parts[1] == "kB" and parts[0].isdigit():
+                fields[name] = int(parts[0]) * 1024
+    except OSError:
+        pass
+    return fields
+
+
 class _TimedUpdate:
     """``mi.SceneParameters`` as :func:`hlbvh.scenes.apply_frame` uses them, with the
     wall time of ``update()`` (Mitsuba's own refresh and accelerator rebuild) kept in
@@ -302,11 +399,21 @@ def _mitsuba_message(error: Exception) -> str:
 
 class _Statistics:
     """``stats.json`` and ``stats.csv`` of an output directory: the settings and one row
-    per complete frame, rewritten whole (atomically) whenever a row is added."""
+    per complete frame, rewritten whole (atomically) whenever a row is added. The json
+    is the record; the csv is written from it after it, and again when a directory is
+    opened, so a kill between the two writes is healed by the next run.
 
-    def __init__(self, directory: Path, settings: dict):
+    Args:
+        directory: the output directory.
+        settings: what the frames are rendered with (JSON values).
+        resolution: ``(width, height)`` every frame must have, or ``None`` (then the
+            EXR and the PNG of a frame need only agree).
+    """
+
+    def __init__(self, directory: Path, settings: dict, resolution=None):
         self.directory = directory
         self.settings = settings
+        self.resolution = resolution
         self.rows: dict[int, dict] = {}
         path = directory / "stats.json"
         if not path.exists():
@@ -329,19 +436,39 @@ class _Statistics:
                 f"{directory} holds frames rendered with other settings ({changes}); "
                 f"choose another --out, or remove the directory to start over"
             )
+        if self.rows:
+            self._write_csv()
 
     def complete(self, i: int) -> bool:
-        """Whether frame ``i`` has its row, EXR and PNG."""
+        """Whether frame ``i`` has its row, and an EXR and a PNG that decode whole, of
+        one size (``resolution`` when given), the PNG with the EXR's colour channels."""
+        if i not in self.rows:
+            return False
         name = frame_name(i)
-        return (i in self.rows and (self.directory / f"{name}.exr").is_file()
-                and (self.directory / f"{name}.png").is_file())
+        width, height = self.resolution or (None, None)
+        try:
+            width, height, channels = images.check_image(
+                self.directory / f"{name}.exr", width, height)
+            images.check_image(self.directory / f"{name}.png", width, height,
+                               min(channels, 3))
+        except OSError:
+            return False
+        return True
 
     def add(self, row: dict) -> None:
+        """Record frame ``row["frame"]``'s row: ``stats.json``, then ``stats.csv``."""
         self.rows[row["frame"]] = row
-        ordered = [self.rows[i] for i in sorted(self.rows)]
-        document = {"settings": self.settings, "frames": ordered}
+        document = {"settings": self.settings, "frames": self.ordered()}
         with images.atomic_output(self.directory / "stats.json") as temporary:
             temporary.write_text(json.dumps(document, indent=1) + "\n")
+        self._write_csv()
+
+    def ordered(self) -> list[dict]:
+        """Every row, in frame order."""
+        return [self.rows[i] for i in sorted(self.rows)]
+
+    def _write_csv(self) -> None:
+        ordered = self.ordered()
         table = io.StringIO()
         writer = csv.DictWriter(table, fieldnames=STATS_FIELDS, extrasaction="ignore",
                                 lineterminator="\n")
@@ -365,6 +492,102 @@ def remove_stale_files(directory: Path) -> list[Path]:
     return stale
 
 
+def output_directory(path) -> Path:
+    """``--out`` as a directory that exists and can be written, created if needed.
+
+    Raises:
+        UserError: naming ``--out``: a file (``/dev/null``), a path under
+            a file, a directory that cannot be created or written (read-only).
+    """
+    directory = Path(path)
+    if directory.exists() and not directory.is_dir():
+        raise UserError(f"--out {path}: it exists and is not a directory; choose a directory")
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise UserError(f"--out {path}: cannot create it ({_reason(error)}); choose a "
+                        f"directory that can be written") from None
+    if not os.access(directory, os.W_OK | os.X_OK):
+        raise UserError(f"--out {path}: the directory cannot be written (read-only or no "
+                        f"permission); choose another")
+    return directory
+
+
+@contextlib.contextmanager
+def output_lock(directory: Path):
+    """Hold ``directory``'s lock file (:data:`LOCK_NAME`) for the ``with`` body, so one
+    directory has one writer at a time.
+
+    The file is locked with ``flock``, which the kernel releases when its process ends,
+    however it ends, and it names the owner's pid and host. A lock file whose lock is
+    free was left by a process that died: it is taken over, with a message on stderr.
+    The file is removed when the body ends.
+
+    Raises:
+        UserError: another process holds the lock (naming its pid and host).
+    """
+    path = directory / LOCK_NAME
+    while True:
+        handle = open(path, "a+")
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            owner = _lock_owner(handle)
+            handle.close()
+            raise UserError(f"--out {directory}: another render is writing into it "
+                            f"({owner}, lock file {path}); wait for it to end or choose "
+                            f"another --out") from None
+        try:
+            current = os.stat(path).st_ino == os.fstat(handle.fileno()).st_ino
+        except FileNotFoundError:
+            current = False
+        if current:  # not a file its previous owner removed while we opened it
+            break
+        handle.close()
+    try:
+        previous = _lock_owner(handle)
+        if previous != "an unknown process":
+            print(f"hlbvh: {path}: taking over the lock left by {previous}, which is no "
+                  f"longer running", file=sys.stderr)
+        handle.seek(0)
+        handle.truncate()
+        handle.write(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}) + "\n")
+        handle.flush()
+        yield path
+    finally:
+        path.unlink(missing_ok=True)
+        handle.close()
+
+
+def _lock_owner(handle) -> str:
+    """Who a lock file names: ``process 123 on host h``."""
+    handle.seek(0)
+    try:
+        owner = json.loads(handle.read())
+        return f"process {int(owner['pid'])} on host {owner['host']}"
+    except (ValueError, KeyError, TypeError):
+        return "an unknown process"
+
+
+def check_seed(seed: int, frames) -> None:
+    """Refuse a ``--seed`` whose last frame's seed (``seed + frame``) is past
+    :data:`MAX_SEED`, before any frame is rendered.
+
+    Raises:
+        UserError: naming ``--seed`` and the largest one that fits ``frames``.
+    """
+    last = frames[-1]
+    if seed + last > MAX_SEED:
+        raise UserError(f"--seed {seed}: frame {last} would get seed {seed + last}, past "
+                        f"{MAX_SEED} (seeds are 32-bit); use --seed {max(MAX_SEED - last, 0)} "
+                        f"or less")
+
+
+def _reason(error: OSError) -> str:
+    """What an ``OSError`` says, without its file name."""
+    return error.strerror or str(error)
+
+
 def render_animation(animation, frames, out_dir, settings: RenderSettings,
                      source: dict | None = None,
                      progress: bool = True) -> tuple[list[dict], list[int]]:
@@ -372,7 +595,7 @@ def render_animation(animation, frames, out_dir, settings: RenderSettings,
 
     Args:
         animation: the :class:`hlbvh.scenes.AnimatedScene`.
-        frames: the frame indices (e.g. ``range(0, 24)``).
+        frames: the frame indices, a sequence iterated once (e.g. ``range(0, 24)``).
         out_dir: the output directory (created if needed).
         settings: the :class:`RenderSettings`.
         source: what identifies the scene (JSON values, e.g. ``{"scene": "cloth",
@@ -382,32 +605,58 @@ def render_animation(animation, frames, out_dir, settings: RenderSettings,
         ``(rows, rendered)``: every row of the directory's statistics (earlier runs'
         included) in frame order, and the frames this call rendered.
     Raises:
-        UserError: the directory holds frames of other settings, or unreadable
-            statistics.
+        UserError: ``out_dir`` cannot be used (:func:`output_directory`) or another
+            render holds it (:func:`output_lock`), it holds frames of other settings or
+            unreadable statistics, a seed or the frame's size is out of range, or a
+            write failed (a full disk): no partial file is left, the frames finished
+            before it stay complete.
         ValueError: a frame cannot be read or applied; the frames finished before it
             stay complete.
     """
     from tqdm import tqdm
 
-    directory = Path(out_dir)
-    directory.mkdir(parents=True, exist_ok=True)
-    remove_stale_files(directory)
-    statistics = _Statistics(directory, {**(source or {}), **settings.as_dict()})
-    todo = [i for i in frames if not statistics.complete(i)]
-    if todo:
-        renderer = FrameRenderer(animation, settings)
-        with tqdm(todo, desc=f"{animation.name} {settings.accel}", unit="frame",
-                  file=sys.stderr, disable=not progress, dynamic_ncols=True) as bar:
-            for i in bar:
-                image, row = renderer.render(i)
-                pixels = images.as_image(image)
-                names = renderer.channel_names(pixels)
-                images.write_exr(directory / f"{frame_name(i)}.exr", pixels, channel_names=names)
-                images.write_png(directory / f"{frame_name(i)}.png", pixels[..., :3])
-                statistics.add(row)
-                bar.set_postfix(build=f"{row['build_ms']:.0f}ms",
-                                render=f"{row['render_ms']:.0f}ms")
-    return [statistics.rows[i] for i in sorted(statistics.rows)], todo
+    directory = output_directory(out_dir)
+    check_seed(settings.seed, frames)
+    with output_lock(directory):
+        remove_stale_files(directory)
+        statistics = _Statistics(directory, {**(source or {}), **settings.as_dict()},
+                                 settings.resolution)
+        renderer, rendered = None, []
+        with tqdm(total=len(frames), desc=f"{animation.name} {settings.accel}",
+                  unit="frame", file=sys.stderr, disable=not progress,
+                  dynamic_ncols=True) as bar:
+            for i in frames:
+                if not statistics.complete(i):
+                    renderer = renderer or FrameRenderer(animation, settings)
+                    image, row = renderer.render(i)
+                    write_frame(directory, i, image, renderer, row, statistics)
+                    rendered.append(i)
+                    bar.set_postfix(build=f"{row['build_ms']:.0f}ms",
+                                    render=f"{row['render_ms']:.0f}ms")
+                bar.update()
+    return statistics.ordered(), rendered
+
+
+def write_frame(directory: Path, i: int, image, renderer: FrameRenderer, row: dict,
+                statistics: _Statistics) -> None:
+    """Frame ``i``'s EXR and PNG, then its row: the frame is complete once this returns.
+
+    Raises:
+        UserError: a write failed or came out short (a full disk, a directory where the
+            file goes); its temporary file is gone and the frame is not complete.
+    """
+    pixels = images.as_image(image)
+    try:
+        images.write_exr(directory / f"{frame_name(i)}.exr", pixels,
+                         channel_names=renderer.channel_names(pixels))
+        images.write_png(directory / f"{frame_name(i)}.png", pixels[..., :3])
+        statistics.add(row)
+    except OSError as error:
+        named = error.filename2 or error.filename
+        where = f"{named}: " if named else ""
+        raise UserError(f"--out {directory}: frame {i} could not be written ({where}"
+                        f"{_reason(error)}); the frames before it are complete: free space "
+                        f"or fix the directory, then run the same command again") from None
 
 
 # ---------------------------------------------------------------------------------------
@@ -438,6 +687,9 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
                       "file (with --frames-dir)")
     add("--frames-dir", help="directory of per-frame meshes <dir>/<shape id>/frame_0001.ply "
                              "(with an XML scene)")
+    add("--topology", help="of the meshes of --frames-dir: fixed (default: only positions "
+                           "change), changing (every frame brings its faces), or per shape "
+                           "ID=changing,ID=fixed")
     add("--frames", help="A:B (frames A .. B-1) or N (the first N); default: "
                          + (frames or "every frame of the scene"))
     add("--resolution", help="W (W×W) or WxH; default: the scene's")
@@ -467,12 +719,11 @@ def run(args) -> int:
         build_options={name: _option_value(getattr(args, name)) for name in BUILD_OPTIONS
                        if getattr(args, name) is not None},
         update=None if args.update is None else _choice("--update", args.update, UPDATES),
-        seed=_int_flag("--seed", args.seed, least=0),
+        seed=seed_flag(args.seed),
     )
     animation, source, frames = open_animation(args.scene, args.frames_dir, args.triangles,
-                                               args.frames)
-    out = Path(args.out) if args.out else (
-        Path("out/render") / f"{Path(args.scene).stem}-{settings.accel}")
+                                               args.frames, args.topology)
+    out = out_flag(args.out, Path("out/render") / f"{Path(args.scene).stem}-{settings.accel}")
     rows, rendered = render_animation(animation, frames, out, settings, source,
                                       progress=not args.quiet)
     ours = [row for row in rows if row["frame"] in frames]
@@ -484,9 +735,26 @@ def run(args) -> int:
     return 0
 
 
-def open_animation(scene: str, frames_dir, triangles, frames) -> tuple:
+def out_flag(text: str | None, default: Path) -> Path:
+    """``--out`` as given, or ``default`` when it is not; an empty ``--out ''`` is an
+    error, not the default (the directory itself is checked by
+    :func:`output_directory`)."""
+    if text is None:
+        return default
+    if not text.strip():
+        raise UserError("--out '': an empty path; give a directory, or leave --out out "
+                        "for the default")
+    return Path(text)
+
+
+def seed_flag(text: str) -> int:
+    """``--seed``: an integer in 0 .. :data:`MAX_SEED`."""
+    return _int_flag("--seed", text, least=0, most=MAX_SEED)
+
+
+def open_animation(scene: str, frames_dir, triangles, frames, topology=None) -> tuple:
     """The animated scene, what identifies it, and the frame range, from the command
-    line's strings.
+    line's strings (``topology``: ``--topology``, see :func:`parse_topology`).
 
     Returns:
         ``(animation, source, range)``.
@@ -498,6 +766,9 @@ def open_animation(scene: str, frames_dir, triangles, frames) -> tuple:
     if scene in scenes.names():
         if frames_dir is not None:
             raise UserError(f"--frames-dir is for XML scenes; {scene!r} is procedural")
+        if topology is not None:
+            raise UserError(f"--topology is for the meshes of an XML scene's --frames-dir; "
+                            f"{scene!r} is procedural")
         options = {}
         if triangles is not None:
             options["triangles"] = _int_flag("--triangles", triangles, least=1)
@@ -519,8 +790,11 @@ def open_animation(scene: str, frames_dir, triangles, frames) -> tuple:
                             f"per-frame meshes")
         if triangles is not None:
             raise UserError("--triangles sizes procedural scenes; an XML scene has its own")
-        animation = scenes.SequenceScene(path, frames_dir)
+        kinds = parse_topology(topology)
+        animation = scenes.SequenceScene(path, frames_dir, topology=kinds)
         source = {"scene": str(path.resolve()), "frames_dir": str(Path(frames_dir).resolve())}
+        if topology is not None:
+            source["topology"] = kinds
         stop = animation.frame_count if stop is None else stop
     if stop > animation.frame_count:
         raise UserError(f"--frames {frames}: {scene!r} has frames 0:{animation.frame_count}")
@@ -545,6 +819,25 @@ def parse_frames(text) -> tuple[int, int | None]:
     return int(match.group(1) or 0), int(match.group(2)) if match.group(2) else None
 
 
+def parse_topology(text: str | None):
+    """``--topology``: ``None`` or ``"fixed"`` -> ``"fixed"``, ``"changing"``, or
+    ``"ID=changing,ID=fixed"`` -> ``{"ID": "changing", ...}`` (what
+    :class:`hlbvh.scenes.SequenceScene` takes)."""
+    if text is None:
+        return "fixed"
+    word = text.strip()
+    if word in TOPOLOGIES:
+        return word
+    kinds = {}
+    for part in word.split(","):
+        shape, _, kind = part.partition("=")
+        if not shape.strip() or kind.strip() not in TOPOLOGIES:
+            raise UserError(f"--topology {text!r}: expected fixed, changing, or "
+                            f"ID=changing,ID=fixed per shape")
+        kinds[shape.strip()] = kind.strip()
+    return kinds
+
+
 def parse_resolution(text: str) -> tuple[int, int]:
     """``"W"`` -> ``(W, W)``; ``"WxH"`` -> ``(W, H)``."""
     match = re.fullmatch(r"\s*(\d+)\s*(?:[xX×]\s*(\d+)\s*)?", text)
@@ -554,13 +847,14 @@ def parse_resolution(text: str) -> tuple[int, int]:
     return width, int(match.group(2)) if match.group(2) else width
 
 
-def _int_flag(flag: str, text: str, least: int) -> int:
+def _int_flag(flag: str, text: str, least: int, most: int | None = None) -> int:
+    expected = f"an integer >= {least}" if most is None else f"an integer in {least}..{most}"
     try:
         value = int(text)
     except ValueError:
-        raise UserError(f"{flag} {text!r}: expected an integer >= {least}") from None
-    if value < least:
-        raise UserError(f"{flag} {text!r}: expected an integer >= {least}")
+        raise UserError(f"{flag} {text!r}: expected {expected}") from None
+    if value < least or (most is not None and value > most):
+        raise UserError(f"{flag} {text!r}: expected {expected}")
     return value
 
 

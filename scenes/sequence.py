@@ -141,7 +141,8 @@ class SequenceScene(AnimatedScene):
         samplers set to ``spp``, a box filter unless ``box_filter=False``, and
         ``integrator`` in place of its own. Every shape is handed over already built
         (Mitsuba is told not to merge meshes), keyed by its id; shapes without an id get
-        ``shape_<k>``."""
+        ``shape_<k>``. Instances and their shape groups, which Mitsuba does not take
+        built, are described by :meth:`_instancing`."""
         state = self._parse()
         _configure_films(state, resolution, spp, self._box_filter)
         scene = self._instantiate(state)
@@ -150,13 +151,53 @@ class SequenceScene(AnimatedScene):
         if integrator is not None or own is not None:
             description["integrator"] = dict(integrator) if integrator is not None else own
         for shape in scene.shapes():
-            description[shape.id()] = shape
+            if shape.class_name() != "Instance":
+                description[shape.id()] = shape
+        description.update(self._instancing())
         for k, sensor in enumerate(scene.sensors()):
             description[_free_key(description, sensor.id() or f"sensor_{k}")] = sensor
         for k, emitter in enumerate(scene.emitters()):
             if emitter.get_shape() is None:  # area lights come with their shape
                 description[_free_key(description, emitter.id() or f"emitter_{k}")] = emitter
         return description
+
+    def _instancing(self) -> dict:
+        """The scene's shape groups and instances as dicts for ``mi.load_dict``: a
+        built instance or shape group in a scene dict fails ("Couldn't find key"), so
+        each group is described with its shapes built, each instance with its
+        ``to_world`` and a reference to its group. Read from a parse tree of its own
+        (instantiating a tree takes its references)."""
+        state = self._parse()
+        groups, instances = {}, {}
+        for node in state.nodes:
+            if node.type != mi.ObjectType.Shape:
+                continue
+            kind = node.props.plugin_name()
+            if kind == "shapegroup":
+                groups[node.props.id()] = _references(node)
+            elif kind == "instance":
+                description = {"type": "instance"}
+                if "to_world" in node.props.keys():
+                    description["to_world"] = node.props["to_world"]
+                for k, child in enumerate(_references(node)):
+                    description[f"group_{k}"] = {"type": "ref", "id": state.nodes[child].props.id()}
+                instances[node.props.id()] = description
+        if not instances:
+            return {}
+        # The groups' shapes, built as the only shapes of a scene of their own.
+        members = [child for children in groups.values() for child in children]
+        root = state.root.props
+        for name in list(root.keys()):
+            del root[name]
+        for k, child in enumerate(members):
+            root[f"member_{k}"] = mi.Properties.ResolvedReference(child)
+        built = {shape.id(): shape for shape in self._instantiate(state).shapes()}
+        description = {}
+        for group, children in groups.items():
+            description[group] = {"type": "shapegroup", **{
+                state.nodes[child].props.id(): built[state.nodes[child].props.id()]
+                for child in children}}
+        return {**description, **instances}
 
     # ---- Loading the scene ---------------------------------------------------------
 
@@ -194,8 +235,9 @@ class SequenceScene(AnimatedScene):
             with _resolving_next_to(self._source):
                 mi.parser.transform_merge_equivalent(config, state)
                 return mi.parser.instantiate(config, state)
-        except RuntimeError as error:
-            raise ValueError(f"scene {self._describe()}: Mitsuba cannot load it: {error}") from None
+        except (RuntimeError, UnicodeDecodeError) as error:
+            raise ValueError(f"scene {self._describe()}: Mitsuba cannot load it: "
+                             f"{_first_line(error)}") from None
 
     @staticmethod
     def _config() -> mi.parser.ParserConfig:
@@ -291,7 +333,7 @@ class SequenceScene(AnimatedScene):
             raise ValueError(f"{where}: the file is missing")
         try:
             mesh = mi.load_dict(plugin)
-        except RuntimeError as error:
+        except (RuntimeError, UnicodeDecodeError) as error:
             raise ValueError(f"{where}: Mitsuba cannot read it: {_first_line(error)}") from None
         positions = mesh.vertex_positions_buffer()
         faces = mesh.faces_buffer()
@@ -302,12 +344,12 @@ class SequenceScene(AnimatedScene):
             raise ValueError(
                 f"{where}: {mesh.vertex_count()} vertices and {mesh.face_count()} faces, but "
                 f"the scene's shape has {vertex_count} and {face_count} (topology 'fixed'); "
-                f"pass topology={{{shape_id!r}: 'changing'}} if its topology changes"
+                f"{_changing_hint(shape_id)}"
             )
         if not dr.all(mi.UInt32(faces) == self._fixed_faces[shape_id], axis=None):
             raise ValueError(
-                f"{where}: its faces differ from the scene's shape (topology 'fixed'); pass "
-                f"topology={{{shape_id!r}: 'changing'}} if its topology changes"
+                f"{where}: its faces differ from the scene's shape (topology 'fixed'); "
+                f"{_changing_hint(shape_id)}"
             )
         return FrameGeometry(positions)
 
@@ -365,6 +407,12 @@ def _configure_films(state, resolution, spp, box_filter: bool) -> None:
             props["rfilter"] = box
 
 
+def _references(node) -> list[int]:
+    """Indices of the nodes a parse-tree node refers to (its children)."""
+    return [value.index() for _, value in node.props.items()
+            if isinstance(value, mi.Properties.ResolvedReference)]
+
+
 def _child(state, parent: int, kind, name: str, plugin: str) -> int:
     """Index of node ``parent``'s child of type ``kind``, added as ``plugin`` (under
     the property ``name``) when missing."""
@@ -397,5 +445,17 @@ def _free_key(description: dict, key: str) -> str:
     return candidate
 
 
+def _changing_hint(shape_id: str) -> str:
+    """How to declare a shape's topology as changing, in Python and on the command line."""
+    return (f"if its topology changes, pass topology={{{shape_id!r}: 'changing'}} "
+            f"(hlbvh render: --topology {shape_id}=changing)")
+
+
 def _first_line(error: Exception) -> str:
-    return str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+    """The first line of a loader error. Mitsuba's message about a corrupt file can
+    quote its bytes, which Python then fails to decode: those are replaced."""
+    if isinstance(error, UnicodeDecodeError):
+        text = bytes(error.object).decode("utf-8", "replace")
+    else:
+        text = str(error)
+    return text.strip().splitlines()[0] if text.strip() else type(error).__name__

@@ -1,0 +1,478 @@
+"""``hlbvh render`` (and compare, sweep, bench) as a careless or hostile user drives
+it: a full disk, files truncated behind its back, a kill between two writes, two
+writers on one folder, huge numbers, bad paths, Ctrl-C inside a Dr.Jit loop, instanced
+scenes, corrupt meshes. Every case ends in complete frames only and, for a user error,
+one line naming the flag or file, exit status 2."""
+
+import csv
+import errno
+import fcntl
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from hlbvh import cli, images, render as render_module, scenes
+from hlbvh.render import LOCK_NAME, RenderSettings, render_animation
+from hlbvh.scenes.procedural import mesh_object
+
+TINY = ["--triangles", "200", "--resolution", "16", "--spp", "1", "--accel", "native",
+        "--quiet"]
+
+
+def run_cli(capsys, *argv):
+    """``hlbvh argv`` in this process: (exit status, stdout, non-empty stderr lines)."""
+    status = cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return status, out, [line for line in err.splitlines() if line.strip()]
+
+
+def stats(directory):
+    document = json.loads((directory / "stats.json").read_text())
+    with open(directory / "stats.csv", newline="") as f:
+        table = list(csv.DictReader(f))
+    return [row["frame"] for row in document["frames"]], [int(r["frame"]) for r in table]
+
+
+def frame_path(directory, i, ext):
+    return directory / f"frame_{i:04d}.{ext}"
+
+
+def assert_only_complete_frames(directory):
+    """Every frame file decodes whole, every row's frame has both files, json and csv
+    agree, no temporary file is left."""
+    assert not list(directory.glob(".*.tmp")), list(directory.glob(".*.tmp"))
+    rows = set()
+    if (directory / "stats.json").exists():
+        json_rows, csv_rows = stats(directory)
+        assert json_rows == csv_rows
+        rows = set(json_rows)
+    for path in [*directory.glob("frame_*.exr"), *directory.glob("frame_*.png")]:
+        images.check_image(path)
+    for i in rows:
+        assert frame_path(directory, i, "exr").is_file() and frame_path(directory, i, "png").is_file()
+
+
+def mtimes(directory):
+    return {p.name: p.stat().st_mtime_ns for p in directory.iterdir()}
+
+
+def mount_tmpfs(path, options):
+    """Mount a tmpfs (as root); skip the test where that is not allowed."""
+    path.mkdir(parents=True, exist_ok=True)
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("mounting a tmpfs needs root")
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(path)],
+                          capture_output=True, text=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.strip()}")
+
+
+def write_scene(root, instances=False, frames=3):
+    """A twisting bar (PLY frames) over a floor; with ``instances`` also a shape group
+    instanced once. Box filter, ``path`` with max depth 8: what ``hlbvh render`` renders."""
+    twist = scenes.get("twist", triangles=400, frames=frames)
+    faces = twist.parts["bar"].faces
+    frames_dir = root / "frames" / "bar"
+    frames_dir.mkdir(parents=True)
+    for i in range(frames):
+        positions = twist.frame(i)["bar"].positions.reshape(-1, 3)
+        mesh_object("bar", positions, faces, {"type": "diffuse"}).write_ply(
+            str(frames_dir / f"frame_{i + 1:04d}.ply"))
+    shutil.copy(frames_dir / "frame_0001.ply", root / "bar.ply")
+    group = """
+  <shape type="shapegroup" id="grp"><shape type="sphere"><float name="radius" value="0.8"/></shape></shape>
+  <shape type="instance" id="inst"><ref id="grp"/><transform name="to_world"><translate x="-1.5" y="1"/></transform></shape>"""
+    (root / "scene.xml").write_text(f"""<scene version="3.0.0">
+  <integrator type="path"><integer name="max_depth" value="8"/></integrator>
+  <sensor type="perspective">
+    <transform name="to_world"><lookat origin="4,2.5,6" target="0,1.5,0" up="0,1,0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="16"/>
+      <rfilter type="box"/></film>
+    <sampler type="independent"><integer name="sample_count" value="1"/></sampler>
+  </sensor>
+  <shape type="ply" id="bar"><string name="filename" value="bar.ply"/></shape>{group if instances else ""}
+  <shape type="rectangle" id="floor">
+    <transform name="to_world"><rotate x="1" angle="-90"/><scale value="10"/></transform></shape>
+  <emitter type="constant"/>
+</scene>""")
+    return root / "scene.xml", root / "frames"
+
+
+# ---------------------------------------------------------------------------------------
+# 1. A full disk, a short write
+# ---------------------------------------------------------------------------------------
+
+
+def test01_full_disk_leaves_only_complete_frames_and_one_line(tmp_path, capsys):
+    disk = tmp_path / "disk"
+    mount_tmpfs(disk, "size=24k")
+    try:
+        status, _, err = run_cli(capsys, "render", "cloth", "--frames", "0:12", "--out", disk,
+                                 *TINY[:2], "--resolution", "48", *TINY[4:])
+        assert status == 2 and len(err) == 1, err
+        assert "could not be written" in err[0] and "--out" in err[0]
+        assert_only_complete_frames(disk)
+        kept = tmp_path / "kept"
+        shutil.copytree(disk, kept)
+    finally:
+        subprocess.run(["umount", str(disk)], check=True)
+    # The same command on a disk with room finishes the frames.
+    status, out, _ = run_cli(capsys, "render", "cloth", "--frames", "0:12", "--out", kept,
+                             *TINY[:2], "--resolution", "48", *TINY[4:])
+    assert status == 0 and "already complete" in out
+    assert stats(kept)[0] == list(range(12))
+    assert_only_complete_frames(kept)
+
+
+def test02_a_short_write_reported_as_success_is_caught(tmp_path, capsys, monkeypatch):
+    """A writer that says it succeeded while its file was cut short (what OpenImageIO
+    does on a full disk) never puts the file in place."""
+    create = images.oiio.ImageOutput.create
+    written = []
+
+    class Short:
+        def __init__(self, output):
+            self.output = output
+
+        def open(self, path, spec):
+            self.path = path
+            return self.output.open(path, spec)
+
+        def write_image(self, pixels):
+            return self.output.write_image(pixels)
+
+        def geterror(self):
+            return self.output.geterror()
+
+        def close(self):
+            closed = self.output.close()
+            written.append(self.path)
+            if len(written) == 3:  # frame 1's EXR
+                with open(self.path, "r+b") as f:
+                    f.truncate(os.path.getsize(self.path) // 2)
+            return closed
+
+    monkeypatch.setattr(images.oiio.ImageOutput, "create",
+                        staticmethod(lambda name: Short(create(name))))
+    out = tmp_path / "out"
+    status, _, err = run_cli(capsys, "render", "cloth", "--frames", "0:3", "--out", out, *TINY)
+    assert status == 2 and len(err) == 1 and "frame 1 could not be written" in err[0], err
+    assert "does not decode whole" in err[0]
+    assert not frame_path(out, 1, "exr").exists() and stats(out) == ([0], [0])
+    assert_only_complete_frames(out)
+
+
+def test03_a_failed_statistics_write_stops_and_the_next_run_heals(tmp_path, capsys,
+                                                                  monkeypatch):
+    out = tmp_path / "out"
+    real = render_module._Statistics._write_csv
+    calls = []
+
+    def failing(self):
+        calls.append(1)
+        if len(calls) == 2:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real(self)
+
+    monkeypatch.setattr(render_module._Statistics, "_write_csv", failing)
+    status, _, err = run_cli(capsys, "render", "cloth", "--frames", "0:3", "--out", out, *TINY)
+    assert status == 2 and len(err) == 1 and "No space left on device" in err[0], err
+    monkeypatch.undo()
+    status, out_text, _ = run_cli(capsys, "render", "cloth", "--frames", "0:3", "--out", out,
+                                  *TINY)
+    assert status == 0 and "1 rendered, 2 already complete" in out_text
+    assert stats(out) == ([0, 1, 2], [0, 1, 2])
+
+
+# ---------------------------------------------------------------------------------------
+# 2, 3. Resume checks the files, and heals the csv
+# ---------------------------------------------------------------------------------------
+
+
+def test04_resume_rerenders_truncated_and_empty_frames(tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["render", "cloth", "--frames", "0:5", "--out", out, *TINY]
+    assert run_cli(capsys, *argv)[0] == 0
+    with open(frame_path(out, 3, "exr"), "r+b") as f:
+        f.truncate(100)
+    frame_path(out, 4, "png").write_bytes(b"")
+    status, out_text, _ = run_cli(capsys, *argv)
+    assert status == 0 and "2 rendered, 3 already complete" in out_text
+    assert_only_complete_frames(out)
+    assert stats(out)[0] == [0, 1, 2, 3, 4]
+
+
+def test05_a_kill_between_json_and_csv_is_healed(tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["render", "cloth", "--frames", "0:3", "--out", out, *TINY]
+    assert run_cli(capsys, *argv)[0] == 0
+    lines = (out / "stats.csv").read_text().splitlines(keepends=True)
+    (out / "stats.csv").write_text("".join(lines[:-1]))  # the last frame's row not yet written
+    status, out_text, _ = run_cli(capsys, *argv)
+    assert status == 0 and "0 rendered, 3 already complete" in out_text
+    assert stats(out) == ([0, 1, 2], [0, 1, 2])
+
+
+# ---------------------------------------------------------------------------------------
+# 4. One writer per folder
+# ---------------------------------------------------------------------------------------
+
+
+def test06_a_second_writer_is_refused_and_changes_nothing(tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["render", "cloth", "--frames", "0:2", "--out", out, *TINY]
+    assert run_cli(capsys, *argv)[0] == 0
+    in_flight = out / ".frame_0002.exr.0123abcd.tmp"  # the other run's temporary file
+    in_flight.write_bytes(b"half")
+    with open(out / LOCK_NAME, "a+") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        lock.write(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+        lock.flush()
+        before = mtimes(out)
+        status, _, err = run_cli(capsys, "render", "cloth", "--frames", "0:4", "--out", out,
+                                 *TINY[:4], "--spp", "4", *TINY[6:])
+        assert status == 2 and len(err) == 1, err
+        assert "another render" in err[0] and f"process {os.getpid()}" in err[0]
+        assert mtimes(out) == before and in_flight.exists()
+
+
+def test07_a_lock_left_by_a_dead_process_is_taken_over(tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    (out / LOCK_NAME).write_text(json.dumps({"pid": dead.pid, "host": socket.gethostname()}))
+    status, _, err = run_cli(capsys, "render", "cloth", "--frames", "0:1", "--out", out, *TINY)
+    assert status == 0
+    assert any("taking over" in line and f"process {dead.pid}" in line for line in err), err
+    assert not (out / LOCK_NAME).exists()
+
+
+# ---------------------------------------------------------------------------------------
+# 5. Big numbers
+# ---------------------------------------------------------------------------------------
+
+
+class Frames:
+    """A frame range that fails the test when more than ``limit`` frames are drawn from
+    it: a billion frames must be iterated, never listed."""
+
+    def __init__(self, frames, limit):
+        self.frames, self.limit = frames, limit
+
+    def __len__(self):
+        return len(self.frames)
+
+    def __getitem__(self, k):
+        return self.frames[k]
+
+    def __iter__(self):
+        for count, i in enumerate(self.frames):
+            assert count < self.limit, "the frame range is being listed"
+            yield i
+
+
+def test08_a_billion_frames_are_iterated_not_listed(tmp_path, monkeypatch):
+    animation = scenes.get("cloth", triangles=200, frames=10**9)
+    settings = RenderSettings(resolution=(8, 8), spp=1, accel="native")
+    real = render_module.FrameRenderer.render
+    calls = []
+
+    def render_twice(self, i, spp=None):
+        calls.append(i)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(self, i, spp)
+
+    monkeypatch.setattr(render_module.FrameRenderer, "render", render_twice)
+    with pytest.raises(KeyboardInterrupt):
+        render_animation(animation, Frames(range(0, 10**9), 5), tmp_path, settings,
+                         progress=False)
+    assert calls == [0, 1] and stats(tmp_path) == ([0], [0])
+    assert not (tmp_path / LOCK_NAME).exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--resolution", "100000x100000"], "4294967295"),
+    (["--seed", "4294967295", "--frames", "0:3"], "--seed 4294967293 or less"),
+    (["--seed", "5000000000"], "--seed '5000000000'"),
+])
+def test09_sizes_and_seeds_past_their_limits_are_refused_before_any_frame(
+        tmp_path, capsys, argv, message):
+    out = tmp_path / "out"
+    status, _, err = run_cli(capsys, "render", "cloth", "--out", out, *TINY, *argv)
+    assert status == 2 and len(err) == 1 and message in err[0], err
+    assert not list(out.glob("frame_*"))
+
+
+def test10_a_frame_larger_than_the_memory_limit_is_refused(tmp_path):
+    """12000² under an address-space limit: refused with the limit, not a crash."""
+    code = f"""
+import resource, sys
+from hlbvh import cli
+vm = [int(l.split()[1]) * 1024 for l in open("/proc/self/status") if l.startswith("VmSize")][0]
+resource.setrlimit(resource.RLIMIT_AS, (vm + 2 * 2**30, resource.RLIM_INFINITY))
+sys.exit(cli.main(["render", "cloth", "--triangles", "200", "--frames", "0:1", "--resolution",
+                   "12000", "--spp", "1", "--accel", "native", "--quiet", "--out", {str(tmp_path)!r}]))
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.count("\n") == 1 and "GiB" in done.stderr and "--resolution" in done.stderr
+    assert not list(tmp_path.glob("frame_*"))
+
+
+# ---------------------------------------------------------------------------------------
+# 6. User errors of every verb: one line, exit status 2
+# ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("verb", ["render", "compare", "sweep"])
+@pytest.mark.parametrize("out, message", [
+    ("{file}", "is not a directory"),
+    ("{file}/sub", "cannot create it"),
+    ("/dev/null", "is not a directory"),
+    ("", "--out '': an empty path"),
+])
+def test11_bad_out_paths(tmp_path, capsys, verb, out, message):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    argv = [verb, "cloth", "--frames", "0:2", "--out", out.format(file=afile), *TINY]
+    if verb != "render":
+        argv.remove("--accel")
+        argv.remove("native")
+    status, _, err = run_cli(capsys, *argv)
+    assert status == 2 and len(err) == 1 and "--out" in err[0] and message in err[0], err
+
+
+def test12_read_only_out_and_a_frame_path_that_is_a_directory(tmp_path, capsys):
+    frozen = tmp_path / "frozen"
+    if os.geteuid() == 0:
+        mount_tmpfs(frozen, "ro,size=64k")
+    else:
+        frozen.mkdir()
+        frozen.chmod(0o500)
+    try:
+        status, _, err = run_cli(capsys, "render", "cloth", "--out", frozen / "x", *TINY)
+        assert status == 2 and len(err) == 1 and f"--out {frozen / 'x'}" in err[0], err
+        status, _, err = run_cli(capsys, "render", "cloth", "--out", frozen, *TINY)
+        assert status == 2 and len(err) == 1 and "cannot be written" in err[0], err
+    finally:
+        if os.geteuid() == 0:
+            subprocess.run(["umount", str(frozen)], check=True)
+    out = tmp_path / "out"
+    frame_path(out, 1, "exr").mkdir(parents=True)
+    status, _, err = run_cli(capsys, "render", "cloth", "--frames", "0:3", "--out", out, *TINY)
+    assert status == 2 and len(err) == 1 and "frame 1 could not be written" in err[0], err
+    assert "frame_0001.exr" in err[0] and stats(out)[0] == [0]
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["bench", "build", "--sizes", "0"], "--sizes"),
+    (["bench", "build", "--sizes", "-5"], "--sizes"),
+    (["bench", "build", "--sizes", "abc"], "--sizes"),
+    (["bench", "build", "--repeats", "-1"], "--repeats"),
+    (["bench", "trace", "--resolution", "0"], "--resolution"),
+    (["bench", "trace", "--builder", "bvh"], "--builder"),
+    (["compare", "cloth", "--seed", "5e9"], "--seed"),
+    (["compare", "cloth", "--seed", "5000000000"], "--seed"),
+    (["sweep", "cloth", "--triangles", "200", "--seed", "4294967295"], "--seed"),
+])
+def test13_bench_compare_and_sweep_flags(tmp_path, capsys, argv, flag):
+    status, _, err = run_cli(capsys, *argv, *(["--out", tmp_path / "o"] if argv[0] != "bench" else []))
+    assert status == 2 and len(err) == 1 and err[0].startswith(f"hlbvh {argv[0]}: {flag}"), err
+    assert not (tmp_path / "o").exists()
+
+
+def test14_ctrl_c_inside_a_dr_jit_loop_exits_130_with_complete_frames(tmp_path, capsys,
+                                                                       monkeypatch):
+    """Dr.Jit turns a KeyboardInterrupt inside a traced loop into a RuntimeError."""
+    real = render_module.FrameRenderer._follow
+    calls = []
+
+    def follow(self):
+        calls.append(1)
+        if len(calls) == 2:
+            def body(k):
+                raise KeyboardInterrupt
+            dr.while_loop((mi.UInt32(0),), lambda k: k < 3, body)
+        return real(self)
+
+    monkeypatch.setattr(render_module.FrameRenderer, "_follow", follow)
+    out = tmp_path / "out"
+    argv = [a for a in TINY if a not in ("--accel", "native")]
+    status, _, err = run_cli(capsys, "render", "cloth", "--frames", "0:3", "--out", out, *argv)
+    assert status == 130 and err == ["hlbvh render: interrupted"]
+    assert stats(out) == ([0], [0]) and not frame_path(out, 1, "exr").exists()
+    assert_only_complete_frames(out)
+    assert not (out / LOCK_NAME).exists()
+
+
+# ---------------------------------------------------------------------------------------
+# 7. Instances
+# ---------------------------------------------------------------------------------------
+
+
+def test15_instances_render_natively_and_hlbvh_refuses_them_in_one_line(tmp_path, capsys):
+    xml, frames = write_scene(tmp_path, instances=True)
+    out = tmp_path / "native"
+    status, _, err = run_cli(capsys, "render", xml, "--frames-dir", frames, "--frames", "0:2",
+                             "--accel", "native", "--out", out, "--quiet")
+    assert status == 0, err
+    ours = images.read_exr(frame_path(out, 0, "exr"), ["R", "G", "B"])
+    reference = np.asarray(mi.render(mi.load_file(str(xml)), seed=0))
+    np.testing.assert_allclose(ours, reference, atol=1e-4)
+    plain_xml, _ = write_scene(tmp_path / "plain")
+    plain = np.asarray(mi.render(mi.load_file(str(plain_xml)), seed=0))
+    assert np.abs(plain - ours).max() > 0.05  # the instance is in the picture
+
+    status, _, err = run_cli(capsys, "render", xml, "--frames-dir", frames, "--accel", "hlbvh",
+                             "--out", tmp_path / "hlbvh", "--quiet")
+    assert status == 2 and len(err) == 1, err
+    assert "'inst'" in err[0] and "--accel native" in err[0] and "accel='native'" not in err[0]
+    assert not list((tmp_path / "hlbvh").glob("frame_*"))
+
+
+# ---------------------------------------------------------------------------------------
+# 8. Minor ones
+# ---------------------------------------------------------------------------------------
+
+
+def test16_random_bytes_in_a_ply_name_the_file_and_frame(tmp_path, capsys):
+    xml, frames = write_scene(tmp_path)
+    garbage = b"ply\nformat ascii 1.0\n" + bytes(range(128, 256)) * 3
+    (frames / "bar" / "frame_0002.ply").write_bytes(garbage)
+    status, _, err = run_cli(capsys, "render", xml, "--frames-dir", frames, "--out",
+                             tmp_path / "out", *TINY[2:])
+    assert status == 2 and len(err) == 1, err
+    assert "frame 1 of shape 'bar'" in err[0] and "frame_0002.ply" in err[0]
+    (tmp_path / "bar.ply").write_bytes(garbage)
+    status, _, err = run_cli(capsys, "render", xml, "--frames-dir", frames, "--out",
+                             tmp_path / "out", *TINY[2:])
+    assert status == 2 and len(err) == 1 and "scene.xml" in err[0], err
+
+
+def test17_the_changing_topology_hint_is_a_flag_the_cli_takes(tmp_path, capsys):
+    xml, frames = write_scene(tmp_path)
+    smaller = scenes.get("twist", triangles=100, frames=1)
+    mesh_object("bar", smaller.frame(0)["bar"].positions.reshape(-1, 3),
+                smaller.parts["bar"].faces, {"type": "diffuse"}).write_ply(
+        str(frames / "bar" / "frame_0002.ply"))
+    argv = ["render", xml, "--frames-dir", frames, *TINY[2:]]
+    status, _, err = run_cli(capsys, *argv, "--out", tmp_path / "fixed")
+    assert status == 2 and len(err) == 1 and "--topology bar=changing" in err[0], err
+    for topology in ("bar=changing", "changing"):
+        out = tmp_path / topology
+        status, _, err = run_cli(capsys, *argv, "--topology", topology, "--out", out)
+        assert status == 0, err
+        assert stats(out)[0] == [0, 1, 2]
+    status, _, err = run_cli(capsys, *argv, "--topology", "bar:changing", "--out", tmp_path / "x")
+    assert status == 2 and len(err) == 1 and err[0].startswith("hlbvh render: --topology"), err
