@@ -416,17 +416,17 @@ class _Statistics:
         self.resolution = resolution
         self.rows: dict[int, dict] = {}
         path = directory / "stats.json"
-        if not path.exists():
-            return
-        try:
-            stored = json.loads(path.read_text())
-            stored_settings, rows = stored["settings"], stored["frames"]
-            self.rows = {int(row["frame"]): row for row in rows}
-        except (OSError, ValueError, KeyError, TypeError) as error:
-            raise UserError(
-                f"{path}: unreadable ({type(error).__name__}: {error}); remove it to "
-                f"render this directory's frames again, or choose another --out"
-            ) from None
+        stored_settings = settings
+        if path.exists():
+            try:
+                stored = json.loads(path.read_text())
+                stored_settings, rows = stored["settings"], stored["frames"]
+                self.rows = {int(row["frame"]): row for row in rows}
+            except (OSError, ValueError, KeyError, TypeError) as error:
+                raise UserError(
+                    f"{path}: unreadable ({type(error).__name__}: {error}); remove it to "
+                    f"render this directory's frames again, or choose another --out"
+                ) from None
         if stored_settings != settings and self.rows:
             differ = sorted(k for k in set(settings) | set(stored_settings)
                             if settings.get(k) != stored_settings.get(k))
@@ -436,32 +436,34 @@ class _Statistics:
                 f"{directory} holds frames rendered with other settings ({changes}); "
                 f"choose another --out, or remove the directory to start over"
             )
-        if self.rows:
+        # Rows that cluster workers left beside their frames (a run that stopped before
+        # writing its statistics) join the record here.
+        found = [row for row in map(read_row, directory.glob(".frame_*.row.json"))
+                 if row is not None]
+        if found:
+            self.add_rows(found)
+        elif self.rows:
             self._write_csv()
 
     def complete(self, i: int) -> bool:
-        """Whether frame ``i`` has its row, and an EXR and a PNG that decode whole, of
-        one size (``resolution`` when given), the PNG with the EXR's colour channels."""
-        if i not in self.rows:
-            return False
-        name = frame_name(i)
-        width, height = self.resolution or (None, None)
-        try:
-            width, height, channels = images.check_image(
-                self.directory / f"{name}.exr", width, height)
-            images.check_image(self.directory / f"{name}.png", width, height,
-                               min(channels, 3))
-        except OSError:
-            return False
-        return True
+        """Whether frame ``i`` has its row and its images (:func:`frame_images_complete`)."""
+        return i in self.rows and frame_images_complete(self.directory, i, self.resolution)
 
     def add(self, row: dict) -> None:
         """Record frame ``row["frame"]``'s row: ``stats.json``, then ``stats.csv``."""
-        self.rows[row["frame"]] = row
+        self.add_rows([row])
+
+    def add_rows(self, rows: list[dict]) -> None:
+        """Record rows (one write of ``stats.json``, then of ``stats.csv``), then remove
+        the row files (:func:`row_path`) of their frames."""
+        for row in rows:
+            self.rows[int(row["frame"])] = row
         document = {"settings": self.settings, "frames": self.ordered()}
         with images.atomic_output(self.directory / "stats.json") as temporary:
             temporary.write_text(json.dumps(document, indent=1) + "\n")
         self._write_csv()
+        for row in rows:
+            row_path(self.directory, int(row["frame"])).unlink(missing_ok=True)
 
     def ordered(self) -> list[dict]:
         """Every row, in frame order."""
@@ -469,8 +471,9 @@ class _Statistics:
 
     def _write_csv(self) -> None:
         ordered = self.ordered()
+        fields = STATS_FIELDS + (("worker",) if any("worker" in r for r in ordered) else ())
         table = io.StringIO()
-        writer = csv.DictWriter(table, fieldnames=STATS_FIELDS, extrasaction="ignore",
+        writer = csv.DictWriter(table, fieldnames=fields, extrasaction="ignore",
                                 lineterminator="\n")
         writer.writeheader()
         writer.writerows(ordered)
@@ -481,6 +484,42 @@ class _Statistics:
 def frame_name(i: int) -> str:
     """File name (without extension) of frame ``i``: ``frame_0007``."""
     return f"frame_{i:04d}"
+
+
+def frame_images_complete(directory: Path, i: int, resolution=None) -> bool:
+    """Whether frame ``i``'s EXR and PNG decode whole, at one size (``resolution``,
+    ``(width, height)``, when given), the PNG with the EXR's colour channels."""
+    name = frame_name(i)
+    width, height = resolution or (None, None)
+    try:
+        width, height, channels = images.check_image(directory / f"{name}.exr", width, height)
+        images.check_image(directory / f"{name}.png", width, height, min(channels, 3))
+    except OSError:
+        return False
+    return True
+
+
+def row_path(directory: Path, i: int) -> Path:
+    """Where a cluster worker keeps frame ``i``'s row until the client records it:
+    ``.frame_0007.row.json`` (hidden; :func:`remove_stale_files` keeps it)."""
+    return directory / f".{frame_name(i)}.row.json"
+
+
+def write_row(directory: Path, row: dict) -> None:
+    """Write a frame's row file (:func:`row_path`), atomically."""
+    with images.atomic_output(row_path(directory, int(row["frame"]))) as temporary:
+        temporary.write_text(json.dumps(row) + "\n")
+
+
+def read_row(path: Path) -> dict | None:
+    """The row in a row file, or ``None`` (and the file removed) if it is unreadable."""
+    try:
+        row = json.loads(path.read_text())
+        int(row["frame"])
+        return row
+    except (OSError, ValueError, KeyError, TypeError):
+        path.unlink(missing_ok=True)
+        return None
 
 
 def remove_stale_files(directory: Path) -> list[Path]:
@@ -629,7 +668,7 @@ def render_animation(animation, frames, out_dir, settings: RenderSettings,
                 if not statistics.complete(i):
                     renderer = renderer or FrameRenderer(animation, settings)
                     image, row = renderer.render(i)
-                    write_frame(directory, i, image, renderer, row, statistics)
+                    write_frame(directory, i, image, renderer, row, statistics.add)
                     rendered.append(i)
                     bar.set_postfix(build=f"{row['build_ms']:.0f}ms",
                                     render=f"{row['render_ms']:.0f}ms")
@@ -638,8 +677,9 @@ def render_animation(animation, frames, out_dir, settings: RenderSettings,
 
 
 def write_frame(directory: Path, i: int, image, renderer: FrameRenderer, row: dict,
-                statistics: _Statistics) -> None:
-    """Frame ``i``'s EXR and PNG, then its row: the frame is complete once this returns.
+                record) -> None:
+    """Frame ``i``'s EXR and PNG, then ``record(row)`` (the statistics, or a cluster
+    worker's row file): the frame is complete once this returns.
 
     Raises:
         UserError: a write failed or came out short (a full disk, a directory where the
@@ -650,7 +690,7 @@ def write_frame(directory: Path, i: int, image, renderer: FrameRenderer, row: di
         images.write_exr(directory / f"{frame_name(i)}.exr", pixels,
                          channel_names=renderer.channel_names(pixels))
         images.write_png(directory / f"{frame_name(i)}.png", pixels[..., :3])
-        statistics.add(row)
+        record(row)
     except OSError as error:
         named = error.filename2 or error.filename
         where = f"{named}: " if named else ""
@@ -672,6 +712,13 @@ def configure(parser) -> None:
     parser.add_argument("--integrator", default="path",
                         help="path (hlbvh_path, default) or aov (hlbvh_aov)")
     parser.add_argument("--accel", default="hlbvh", help="hlbvh (default) or native")
+    parser.add_argument("--cluster", help="local:N: render on a Dask LocalCluster of N worker "
+                                          "processes on this machine")
+    parser.add_argument("--scheduler", help="ADDRESS (tcp://host:8786) of a running Dask "
+                                            "scheduler whose workers see --out and the scene")
+    parser.add_argument("--chunk-size", help="frames per task with --cluster/--scheduler "
+                                             "(default: at least two chunks per worker, at "
+                                             "most 16 frames)")
 
 
 def add_scene_options(parser, out: str, *, builder_options: bool = True,
@@ -724,8 +771,23 @@ def run(args) -> int:
     animation, source, frames = open_animation(args.scene, args.frames_dir, args.triangles,
                                                args.frames, args.topology)
     out = out_flag(args.out, Path("out/render") / f"{Path(args.scene).stem}-{settings.accel}")
-    rows, rendered = render_animation(animation, frames, out, settings, source,
-                                      progress=not args.quiet)
+    if args.cluster is None and args.scheduler is None:
+        if args.chunk_size is not None:
+            raise UserError("--chunk-size cuts the frames of --cluster or --scheduler runs")
+        rows, rendered = render_animation(animation, frames, out, settings, source,
+                                          progress=not args.quiet)
+    else:
+        try:
+            from hlbvh import cluster
+        except ModuleNotFoundError as error:
+            raise UserError(f"--cluster and --scheduler need Dask's distributed ({error}): "
+                            f"pip install 'hlbvh[cluster]'") from None
+        chunk = None if args.chunk_size is None else _int_flag("--chunk-size", args.chunk_size, 1)
+        spec = cluster.SceneSpec.of(args.scene, args.frames_dir, args.triangles, frames,
+                                    args.topology)
+        rows, rendered = cluster.render_on_cluster(
+            animation, spec, frames, out, settings, source, cluster=args.cluster,
+            scheduler=args.scheduler, chunk_size=chunk, progress=not args.quiet)
     ours = [row for row in rows if row["frame"] in frames]
     print(f"{out}: frames {frames.start}..{frames.stop - 1} of {animation.name} with "
           f"{settings.accel}: {len(rendered)} rendered, {len(frames) - len(rendered)} "

@@ -1,0 +1,343 @@
+"""``hlbvh render --cluster local:N`` and ``--scheduler ADDRESS``: the frames of an
+animation rendered by the workers of a Dask ``distributed`` cluster, written into one
+``--out`` folder that every worker sees.
+
+How the work is cut and written
+-------------------------------
+- The client (the ``hlbvh render`` process) checks everything a local render checks
+  (the options, the folder, its lock, the settings recorded there, the seeds, that the
+  frame fits in memory and that the accelerator takes the scene) and skips the frames
+  already complete.
+- The missing frames go out in contiguous chunks (``--chunk-size``; by default the
+  range split in at least two chunks per worker, at most :data:`MAX_CHUNK` frames each),
+  a few chunks per worker in flight at a time, so a billion frames are never listed.
+  A chunk is one task, :func:`render_chunk`: its worker loads the scene (once per
+  process), makes a :class:`hlbvh.render.FrameRenderer` whose first frame is a fresh
+  build, and renders the chunk's frames in order, so the accelerator's policy (seeded
+  rebuilds, refits) works inside the chunk as in one process.
+- Each frame is written as in a local render (EXR, PNG, atomically, read back), then
+  its row to a hidden row file beside it (:func:`hlbvh.render.row_path`). A chunk whose
+  worker dies is retried by Dask elsewhere and resumes after its last complete frame.
+- The rows come back to the client, which writes ``stats.json`` and ``stats.csv`` once,
+  in frame order, when the work ends (also after an error or Ctrl-C, for the frames
+  that are complete), with a ``worker`` column (the worker's address); the next run,
+  local or not, records row files that a killed client left.
+- Each worker process runs one chunk at a time with as many Dr.Jit threads as the
+  worker has threads (a local cluster: the machine's cores shared among its workers),
+  so nothing is oversubscribed.
+- Ctrl-C sets a Dask ``Event`` that every chunk checks before each frame, cancels the
+  tasks and closes a local cluster: only complete frames are left.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+import secrets
+import sys
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import drjit as dr
+from distributed import Client, Event, KilledWorker, LocalCluster, as_completed, get_worker
+
+from hlbvh.errors import UserError
+from hlbvh.render import (
+    FrameRenderer,
+    RenderSettings,
+    _Statistics,
+    check_seed,
+    frame_images_complete,
+    open_animation,
+    output_directory,
+    output_lock,
+    read_row,
+    remove_stale_files,
+    row_path,
+    write_frame,
+    write_row,
+)
+
+#: Most frames in a chunk unless ``--chunk-size`` says otherwise.
+MAX_CHUNK = 16
+
+#: Chunks in flight per worker: one running, one queued behind it.
+IN_FLIGHT = 2
+
+#: Seconds to wait for a scheduler to answer, and for its first worker.
+CONNECT_TIMEOUT = 20
+
+# One chunk at a time per worker process: Dr.Jit's thread pool is the process's.
+_ONE_CHUNK = threading.Lock()
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """What a worker needs to open the animation as the client did: the command line's
+    strings (paths absolute) for :func:`hlbvh.render.open_animation`."""
+
+    scene: str
+    frames_dir: str | None
+    triangles: str | None
+    frames: str
+    topology: str | None = None
+
+    @classmethod
+    def of(cls, scene, frames_dir, triangles, frames: range, topology=None) -> SceneSpec:
+        """The spec of the command line's ``SCENE --frames-dir --triangles --topology``
+        and the frame range, files made absolute (a worker's working directory is its
+        own)."""
+        if Path(scene).suffix.lower() == ".xml":
+            scene = str(Path(scene).resolve())
+        if frames_dir is not None:
+            frames_dir = str(Path(frames_dir).resolve())
+        return cls(scene, frames_dir, triangles, f"{frames.start}:{frames.stop}", topology)
+
+
+@dataclass(frozen=True)
+class ChunkJob:
+    """Everything a chunk needs but its frames."""
+
+    spec: SceneSpec
+    settings: RenderSettings
+    out: str
+    cancel: str
+    threads: int | None = None
+
+
+# ---------------------------------------------------------------------------------------
+# On a worker
+# ---------------------------------------------------------------------------------------
+
+
+def render_chunk(job: ChunkJob, frames: list[int]) -> list[dict]:
+    """Render the frames of one chunk into ``job.out`` on this worker; frames already
+    complete (images whole and their row file there: a retried chunk) are skipped.
+
+    Returns:
+        The rows of the chunk's frames, each with ``worker`` (this worker's address).
+    Raises:
+        UserError: this worker does not see the scene's files or the output folder.
+        ValueError: a frame cannot be read or applied.
+    """
+    worker = get_worker()
+    with _ONE_CHUNK:
+        dr.set_thread_count(job.threads or worker.state.nthreads)
+        animation = _animation(job.spec, worker.address)
+        directory = Path(job.out)
+        if not directory.is_dir():
+            raise UserError(f"worker {worker.address} does not see --out {directory}: every "
+                            f"worker needs the output folder at the same path (a shared "
+                            f"file system)")
+        cancel = Event(job.cancel)
+        renderer, rows = None, []
+        for i in frames:
+            if cancel.is_set():
+                break
+            row = read_row(row_path(directory, i)) if row_path(directory, i).exists() else None
+            if row is None or not frame_images_complete(directory, i, job.settings.resolution):
+                renderer = renderer or FrameRenderer(animation, job.settings)
+                image, row = renderer.render(i)
+                row["worker"] = worker.address
+                write_frame(directory, i, image, renderer, row,
+                            functools.partial(write_row, directory))
+            rows.append(row)
+        return rows
+
+
+@functools.lru_cache(maxsize=1)
+def _animation(spec: SceneSpec, worker: str):
+    """The spec's animation, opened once per worker process."""
+    try:
+        return open_animation(spec.scene, spec.frames_dir, spec.triangles, spec.frames,
+                              spec.topology)[0]
+    except (UserError, ValueError) as error:
+        raise UserError(f"worker {worker}: {error} (every worker needs the scene's files at "
+                        f"the same path)") from None
+
+
+# ---------------------------------------------------------------------------------------
+# On the client
+# ---------------------------------------------------------------------------------------
+
+
+def render_on_cluster(animation, spec: SceneSpec, frames: range, out_dir,
+                      settings: RenderSettings, source: dict | None = None, *, cluster: str | None = None,
+                      scheduler: str | None = None, chunk_size: int | None = None,
+                      progress: bool = True) -> tuple[list[dict], list[int]]:
+    """Render ``frames`` of the animation of ``spec`` on a Dask cluster into ``out_dir``,
+    resuming a previous run (local or not); see the module docstring.
+
+    Args:
+        animation: the animation as the client opened it (from ``spec``).
+        spec: the scene, as :class:`SceneSpec`.
+        frames: the frame range.
+        out_dir: the output folder, seen by every worker at the same path.
+        settings: the :class:`hlbvh.render.RenderSettings`.
+        source: what identifies the scene, recorded with the settings.
+        cluster: ``"local:N"``: a ``LocalCluster`` of N worker processes on this machine.
+        scheduler: the address of a running Dask scheduler (exclusive with ``cluster``).
+        chunk_size: frames per chunk; ``None``: see the module docstring.
+        progress: one progress bar over all frames on stderr.
+    Returns:
+        ``(rows, rendered)`` as :func:`hlbvh.render.render_animation` returns them.
+    Raises:
+        UserError: what a local render refuses; a bad ``cluster``, a scheduler that
+            cannot be reached or has no workers; a worker that cannot import hlbvh, does
+            not see the files, or died rendering a chunk too often. Frames finished
+            before are kept and recorded.
+        ValueError: a frame cannot be read or applied.
+    """
+    from tqdm import tqdm
+
+    directory = output_directory(out_dir)
+    check_seed(settings.seed, frames)
+    with output_lock(directory):
+        remove_stale_files(directory)
+        statistics = _Statistics(directory, {**(source or {}), **settings.as_dict()},
+                                 settings.resolution)
+        statistics.add_rows([])  # the settings on record before any worker writes a row
+        FrameRenderer(animation, settings)  # refuses what every worker would refuse
+        with _connected(cluster, scheduler) as (client, workers, threads):
+            size = chunk_size or max(1, min(MAX_CHUNK, math.ceil(len(frames) / (2 * workers))))
+            job = ChunkJob(spec, settings, str(directory.resolve()),
+                           f"hlbvh-cancel-{secrets.token_hex(6)}", threads)
+            rows, submitted = [], []
+            with tqdm(total=len(frames), desc=f"{animation.name} {settings.accel} on "
+                      f"{workers} workers", unit="frame", file=sys.stderr,
+                      disable=not progress, dynamic_ncols=True) as bar:
+                try:
+                    _run_chunks(client, job, _chunks(frames, statistics, size, bar),
+                                workers * IN_FLIGHT, rows, submitted, bar)
+                except KeyboardInterrupt:
+                    _cancel(client, job, submitted)
+                    raise
+                finally:
+                    statistics.add_rows(rows)
+            rendered = sorted(int(row["frame"]) for row in rows)
+    return statistics.ordered(), rendered
+
+
+def _chunks(frames: range, statistics, size: int, bar):
+    """Contiguous runs of at most ``size`` incomplete frames, the range iterated once;
+    complete frames count on the progress bar as they are passed."""
+    chunk = []
+    for i in frames:
+        if statistics.complete(i):
+            bar.update()
+            if chunk:
+                yield chunk
+                chunk = []
+            continue
+        chunk.append(i)
+        if len(chunk) == size:
+            yield chunk
+            chunk = []
+    if chunk:
+        yield chunk
+
+
+def _run_chunks(client, job: ChunkJob, chunks, window: int, rows: list, submitted: list,
+                bar) -> None:
+    """Submit chunks, at most ``window`` in flight, collecting their rows as they end
+    (``submitted``: the futures of the chunks not yet done)."""
+    def submit(chunk):
+        future = client.submit(render_chunk, job, chunk, pure=False,
+                               key=f"hlbvh-frames-{chunk[0]}-{chunk[-1]}-{secrets.token_hex(4)}")
+        submitted.append(future)
+        running.add(future)
+
+    running = as_completed()
+    for chunk in chunks:
+        submit(chunk)
+        if len(submitted) >= window:
+            break
+    for future in running:
+        submitted.remove(future)
+        done = _result(future)
+        rows.extend(done)
+        bar.update(len(done))
+        following = next(chunks, None)
+        if following is not None:
+            submit(following)
+
+
+def _result(future) -> list[dict]:
+    """A chunk's rows, its errors turned into one line."""
+    try:
+        return future.result()
+    except KilledWorker as error:
+        raise UserError(f"the workers rendering {_frames_of(future)} died repeatedly "
+                        f"({error}); finished frames are kept: run again to resume") from None
+    except ImportError as error:
+        if (error.name or "").split(".")[0] in ("hlbvh", "mitsuba", "drjit"):
+            raise UserError(f"a worker cannot import {error.name} ({error}): install hlbvh "
+                            f"('pip install hlbvh[cluster]') in every worker's environment"
+                            ) from None
+        raise
+
+
+def _frames_of(future) -> str:
+    """``frames A..B`` from a chunk's key."""
+    _, _, first, last, _ = future.key.split("-")
+    return f"frames {first}..{last}"
+
+
+def _cancel(client, job: ChunkJob, submitted: list) -> None:
+    """Tell every chunk to stop before its next frame, and cancel the queued ones."""
+    Event(job.cancel, client=client).set()
+    client.cancel(submitted, force=True)
+
+
+class _connected:
+    """A Dask client of a new ``LocalCluster`` (``"local:N"``) or of the scheduler at an
+    address: ``(client, workers, Dr.Jit threads per worker or None)``; closed on exit
+    (a local cluster's workers are stopped)."""
+
+    def __init__(self, cluster: str | None, scheduler: str | None):
+        if (cluster is None) == (scheduler is None):
+            raise UserError("give one of --cluster local:N and --scheduler ADDRESS")
+        self.cluster_text, self.scheduler = cluster, scheduler
+        self.cluster = self.client = None
+
+    def __enter__(self):
+        threads = None
+        if self.cluster_text is not None:
+            workers = parse_cluster(self.cluster_text)
+            threads = max(1, (os.cpu_count() or 1) // workers)
+            self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1,
+                                        processes=True, host="127.0.0.1",
+                                        dashboard_address=None, silence_logs=40)
+            self.client = Client(self.cluster)
+        else:
+            try:
+                self.client = Client(self.scheduler, timeout=CONNECT_TIMEOUT)
+            except (OSError, TimeoutError, ValueError) as error:
+                raise UserError(f"--scheduler {self.scheduler}: no Dask scheduler answers "
+                                f"there ({error}); start one with 'dask scheduler' or check "
+                                f"the address") from None
+            try:
+                self.client.wait_for_workers(1, timeout=CONNECT_TIMEOUT)
+            except TimeoutError:
+                self.client.close()
+                raise UserError(f"--scheduler {self.scheduler}: no worker joined within "
+                                f"{CONNECT_TIMEOUT} s; start workers with 'dask worker "
+                                f"{self.scheduler}'") from None
+        workers = len(self.client.scheduler_info()["workers"])
+        return self.client, workers, threads
+
+    def __exit__(self, *exc):
+        self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+
+def parse_cluster(text: str) -> int:
+    """``--cluster local:N`` -> N (>= 1)."""
+    kind, _, count = text.partition(":")
+    if kind != "local" or not count.isdigit() or int(count) < 1:
+        raise UserError(f"--cluster {text!r}: expected local:N (N worker processes on this "
+                        f"machine); for other machines use --scheduler ADDRESS")
+    return int(count)
