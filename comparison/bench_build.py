@@ -1,26 +1,38 @@
-"""``hlbvh bench build``: our builders against Mitsuba's native rebuild, side by side.
+"""``hlbvh bench build``: what a user pays per frame to get a tree ready to trace, ours
+against Mitsuba's native rebuild and Embree 4's builders, side by side in one process.
 
-For each mesh (a displaced grid and a random triangle soup) and size, in one process:
+For each mesh (a displaced 1M grid, a 1M random soup, a rounded box subdivided to 1M
+triangles, a 100k grid; or every mesh at the ``sizes`` given):
 
-- our build per builder: cold (the first build of the process, kernels compiled or
-  loaded from Dr.Jit's disk cache, compile seconds from the kernel history), warm (min
-  and median over repeats), per-stage warm times, kernel launches, SAH cost;
-- our build seeded with the previous order (temporal coherence) and a refit;
-- Mitsuba's native rebuild: ``params.update()`` after new vertex positions (genuinely
-  new arrays every time, DRJIT_NOTES pitfall 9), Embree at high quality;
-- the ratio native / ours (higher is better for us).
+- **ready** (the headline): ``hlbvh.build`` plus
+  :func:`hlbvh.kernels.traversal.packed_records` (what traversal reads), each timed,
+  and their sum; cold (the first of the process: kernels compiled or loaded from Dr.Jit's
+  disk cache) and warm (min and median over repeats), kernel launches of a warm call;
+- the same seeded with the previous frame's order (``previous=``), and a refit;
+- Mitsuba's native rebuild: ``params.update()`` after genuinely new vertex arrays
+  (Mitsuba skips the rebuild when handed the array it already holds), Embree HIGH;
+- when ``embreex`` is installed (``pip install hlbvh[bench]``), Embree 4 through its C
+  API: a LOW and a MEDIUM build of a new scene on the same buffers, and a refit
+  (``RTC_BUILD_QUALITY_REFIT`` on a dynamic scene), on all cores;
+- ``Mtris/s/core``: triangles per second of the ready time, divided by the cores.
 """
 
 from __future__ import annotations
 
+import ctypes
+import os
+import platform
 import statistics
 import time
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 import hlbvh
 from hlbvh.comparison.bench_trace import displaced_grid, mesh_scene
+from hlbvh.kernels.traversal import packed_records
+from hlbvh.scenes import meshes as scene_meshes
 
 
 def random_soup(triangles: int, seed: int = 7, size: float = 0.02):
@@ -38,38 +50,80 @@ def random_soup(triangles: int, seed: int = 7, size: float = 0.02):
     return vertices, faces
 
 
-MESHES = {"grid": displaced_grid, "soup": random_soup}
+def subdivided_box(triangles: int, exponent: float = 4.0):
+    """A rounded box (``scenes.meshes.rounded_box``) midpoint-subdivided (each triangle
+    into four, new vertices pushed onto the surface) until it has at least
+    ``triangles / 4`` triangles: a mesh whose vertex order is not its spatial order,
+    as a modelled mesh after subdivision. Flat ``mi.Float`` / ``mi.UInt32``."""
+    levels, base = 0, triangles
+    while base > 1000:
+        base, levels = base / 4, levels + 1
+    n = max(1, round((base / 12) ** 0.5))
+    v, f = scene_meshes.rounded_box(n, exponent)
+    for _ in range(levels):
+        edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        unique, inverse = np.unique(edges, axis=0, return_inverse=True)
+        mid = (v[unique[:, 0]] + v[unique[:, 1]]) / 2
+        mid /= ((np.abs(mid) ** exponent).sum(1) ** (1 / exponent))[:, None]
+        m = inverse.reshape(3, -1) + len(v)  # the midpoints of edges 01, 12, 20
+        a, b, c = f.T
+        f = np.concatenate([np.stack(t, 1) for t in (
+            (a, m[0], m[2]), (m[0], b, m[1]), (m[2], m[1], c), (m[0], m[1], m[2]))])
+        v = np.concatenate([v, mid])
+    return mi.Float(v.astype(np.float32).ravel()), mi.UInt32(f.astype(np.uint32).ravel())
 
 
-def _timed(fn, repeats: int):
-    """(cold ms, [warm ms...], last output) of ``fn``, outputs evaluated, device synced."""
-    times, out = [], None
-    for _ in range(repeats + 1):
-        dr.sync_thread()
-        start = time.perf_counter()
-        out = fn()
-        dr.sync_thread()
-        times.append(1e3 * (time.perf_counter() - start))
-    return times[0], times[1:], out
+MESHES = {"grid": displaced_grid, "soup": random_soup, "box": subdivided_box}
+#: (mesh, triangles) measured when no sizes are given.
+DEFAULT_CASES = (("grid", 1_000_000), ("soup", 1_000_000), ("box", 1_000_000), ("grid", 100_000))
 
 
-def _stats_of(fn, repeats: int):
-    """(cold ms, warm min ms, warm median ms, launches of one warm call, compile s of the
-    cold call, the last result)."""
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``; ``platform.processor()`` elsewhere)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown CPU"
+
+
+def _timed(fn):
+    """(wall ms, process CPU ms, result) of ``fn``, the device synchronised."""
+    dr.sync_thread()
+    start, cpu = time.perf_counter(), time.process_time()
+    out = fn()
+    dr.sync_thread()
+    return 1e3 * (time.perf_counter() - start), 1e3 * (time.process_time() - cpu), out
+
+
+def _summary(times: list[float]) -> dict:
+    """Cold (the first), warm min and median (the rest) of a list of ms."""
+    return {"cold": times[0], "min": min(times[1:]), "median": statistics.median(times[1:])}
+
+
+def _ready(vertices, faces, builder: str, repeats: int, previous=None):
+    """Build + pack ``repeats + 1`` times: per part and summed, the :func:`_summary` of
+    wall ms, the warm minimum of CPU ms, launches of a warm call, the last tree."""
+    build_ms, pack_ms, ready_ms, cpu_ms, launches, bvh = [], [], [], [], 0, None
     dr.set_flag(dr.JitFlag.KernelHistory, True)
-    dr.kernel_history()
-    cold, warm, out = _timed(fn, repeats)
-    history = dr.kernel_history()
-    per_call = len(history) // (repeats + 1)
-    compile_s = 0.0
-    for k in history:
-        compile_s += (k.get("codegen_time", 0) + k.get("backend_time", 0)) / 1e3
+    for r in range(repeats + 1):
+        dr.kernel_history()
+        b_ms, b_cpu, bvh = _timed(lambda: hlbvh.build(vertices, faces, builder=builder,
+                                                      previous=previous))
+        p_ms, p_cpu, _ = _timed(lambda: packed_records(bvh))
+        launches = len(dr.kernel_history())
+        build_ms.append(b_ms), pack_ms.append(p_ms), ready_ms.append(b_ms + p_ms)
+        cpu_ms.append(b_cpu + p_cpu)
     dr.set_flag(dr.JitFlag.KernelHistory, False)
-    return cold, min(warm), statistics.median(warm), per_call, compile_s, out
+    return {"build": _summary(build_ms), "pack": _summary(pack_ms), "ready": _summary(ready_ms),
+            "ready_cpu_min": min(cpu_ms[1:]), "launches": launches}, bvh
 
 
-def _native_rebuild(vertices, faces, repeats: int):
-    """(cold, warm min, warm median) ms of Mitsuba's rebuild after new positions."""
+def _native_rebuild(vertices, faces, repeats: int) -> dict:
+    """:func:`_summary` of Mitsuba's rebuild after genuinely new vertex arrays."""
     scene = mesh_scene(vertices, faces)
     params = mi.traverse(scene)
     key = next(k for k in params.keys() if k.endswith("vertex_positions"))
@@ -78,65 +132,156 @@ def _native_rebuild(vertices, faces, repeats: int):
     times = []
     for v in variants:
         params[key] = v
-        dr.sync_thread()
-        t0 = time.perf_counter()
-        params.update()
-        dr.sync_thread()
-        times.append((time.perf_counter() - t0) * 1e3)
-    return times[0], min(times[1:]), statistics.median(times[1:])
+        times.append(_timed(params.update)[0])
+    return _summary(times)
 
 
-def run(sizes=(100_000, 1_000_000), meshes=("grid", "soup"), builders=("hlbvh", "lbvh", "sah"),
-        repeats: int = 5, sah_max: int = 1_000_000) -> list[dict]:
-    """Measure every (mesh, size, builder); one dict per row (see module docstring)."""
+class _Embree:
+    """Embree 4's C API through ctypes, from the library ``embreex`` ships."""
+
+    LOW, MEDIUM, HIGH, REFIT = 0, 1, 2, 3
+    _DYNAMIC = 1
+    _TRIANGLE, _INDEX, _VERTEX = 0, 0, 1
+    _UINT3, _FLOAT3 = 0x5003, 0x9003
+
+    def __init__(self):
+        import embreex  # noqa: F401  (loads its libembree4)
+
+        libs = os.path.join(os.path.dirname(os.path.dirname(embreex.__file__)), "embreex.libs")
+        name = next(n for n in sorted(os.listdir(libs)) if n.startswith("libembree4"))
+        lib = ctypes.CDLL(os.path.join(libs, name))
+        p, u, s = ctypes.c_void_p, ctypes.c_uint, ctypes.c_size_t
+        for fn, args, res in (
+            ("rtcNewDevice", [ctypes.c_char_p], p), ("rtcReleaseDevice", [p], None),
+            ("rtcNewScene", [p], p), ("rtcReleaseScene", [p], None),
+            ("rtcSetSceneBuildQuality", [p, ctypes.c_int], None),
+            ("rtcSetSceneFlags", [p, ctypes.c_int], None), ("rtcCommitScene", [p], None),
+            ("rtcNewGeometry", [p, ctypes.c_int], p), ("rtcReleaseGeometry", [p], None),
+            ("rtcSetSharedGeometryBuffer", [p, ctypes.c_int, u, ctypes.c_int, p, s, s, s], None),
+            ("rtcSetGeometryBuildQuality", [p, ctypes.c_int], None),
+            ("rtcCommitGeometry", [p], None), ("rtcAttachGeometry", [p, p], u),
+            ("rtcUpdateGeometryBuffer", [p, ctypes.c_int, u], None),
+        ):
+            getattr(lib, fn).argtypes, getattr(lib, fn).restype = args, res
+        self.lib = lib
+        self.device = lib.rtcNewDevice(None)
+
+    def _scene(self, vertices: np.ndarray, faces: np.ndarray, quality: int, refit: bool):
+        lib = self.lib
+        scene = lib.rtcNewScene(self.device)
+        lib.rtcSetSceneBuildQuality(scene, self.LOW if refit else quality)
+        if refit:
+            lib.rtcSetSceneFlags(scene, self._DYNAMIC)
+        geom = lib.rtcNewGeometry(self.device, self._TRIANGLE)
+        lib.rtcSetSharedGeometryBuffer(geom, self._VERTEX, 0, self._FLOAT3, vertices.ctypes.data,
+                                       0, 12, len(vertices) // 3)
+        lib.rtcSetSharedGeometryBuffer(geom, self._INDEX, 0, self._UINT3, faces.ctypes.data,
+                                       0, 12, len(faces) // 3)
+        lib.rtcSetGeometryBuildQuality(geom, self.REFIT if refit else quality)
+        lib.rtcCommitGeometry(geom)
+        lib.rtcAttachGeometry(scene, geom)
+        return scene, geom
+
+    def build(self, vertices, faces, quality: int, repeats: int) -> dict:
+        """:func:`_summary` of committing a new scene of this quality."""
+        times = []
+        for _ in range(repeats + 1):
+            scene, geom = self._scene(vertices, faces, quality, refit=False)
+            start = time.perf_counter()
+            self.lib.rtcCommitScene(scene)
+            times.append(1e3 * (time.perf_counter() - start))
+            self.lib.rtcReleaseGeometry(geom), self.lib.rtcReleaseScene(scene)
+        return _summary(times)
+
+    def refit(self, vertices, faces, repeats: int) -> dict:
+        """:func:`_summary` of refitting a built dynamic scene to moved vertices."""
+        buffer = vertices.copy()
+        scene, geom = self._scene(buffer, faces, self.MEDIUM, refit=True)
+        self.lib.rtcCommitScene(scene)
+        times = []
+        for k in range(repeats + 1):
+            buffer[:] = vertices * np.float32(1 + 1e-4 * (k + 1))
+            start = time.perf_counter()
+            self.lib.rtcUpdateGeometryBuffer(geom, self._VERTEX, 0)
+            self.lib.rtcCommitGeometry(geom)
+            self.lib.rtcCommitScene(scene)
+            times.append(1e3 * (time.perf_counter() - start))
+        self.lib.rtcReleaseGeometry(geom), self.lib.rtcReleaseScene(scene)
+        return _summary(times)
+
+
+def _embree():
+    """An :class:`_Embree`, or None when ``embreex`` is not installed."""
+    try:
+        return _Embree()
+    except ImportError:
+        return None
+
+
+def run(sizes=None, meshes=("grid", "soup", "box"), builders=("hlbvh", "lbvh", "sah"),
+        repeats: int = 5, sah_max: int = 100_000) -> list[dict]:
+    """Measure every case (``DEFAULT_CASES``, or each mesh at each of ``sizes``) and
+    builder (``"sah"`` only up to ``sah_max`` triangles); one dict per row (see the
+    module docstring)."""
+    cases = DEFAULT_CASES if sizes is None else [(m, s) for m in meshes for s in sizes]
+    cores = os.cpu_count() or 1
+    embree = _embree()
     rows = []
-    for mesh in meshes:
-        for size in sizes:
-            vertices, faces = MESHES[mesh](size)
-            dr.eval(vertices, faces)
-            native = _native_rebuild(vertices, faces, repeats)
-            moved = vertices * 1.0001
-            dr.eval(moved)
-            for builder in builders:
-                if builder == "sah" and size > sah_max:
-                    continue
-                cold, wmin, wmed, launches, compile_s, bvh = _stats_of(
-                    lambda: hlbvh.build(vertices, faces, builder=builder), repeats
-                )
-                stages = dict(bvh.stats.stage_ms)
-                _, seeded_min, _, _, _, seeded = _stats_of(
-                    lambda: hlbvh.build(moved, faces, builder=builder, previous=bvh), repeats
-                )
-                _, refit_min, _, _, _, _ = _stats_of(lambda: bvh.refit(moved), repeats)
-                rows.append({
-                    "mesh": mesh, "triangles": len(faces) // 3, "builder": builder,
-                    "cold_ms": cold, "warm_min_ms": wmin, "warm_median_ms": wmed,
-                    "seeded_min_ms": seeded_min, "refit_min_ms": refit_min,
-                    "launches": launches, "compile_s": compile_s,
-                    "stage_ms": stages, "sah_cost": bvh.stats.sah_cost,
-                    "csd_runs": bvh.stats.csd_runs, "csd_runs_seeded": seeded.stats.csd_runs,
-                    "native_cold_ms": native[0], "native_min_ms": native[1],
-                    "native_median_ms": native[2],
-                    "native_over_ours": native[1] / wmin,
-                })
+    for mesh, size in cases:
+        vertices, faces = MESHES[mesh](size)
+        dr.eval(vertices, faces)
+        triangles = len(faces) // 3
+        native = _native_rebuild(vertices, faces, repeats)
+        others = {}
+        if embree is not None:
+            v_np, f_np = np.ascontiguousarray(vertices.numpy()), np.ascontiguousarray(faces.numpy())
+            others = {"embree_low": embree.build(v_np, f_np, embree.LOW, repeats),
+                      "embree_medium": embree.build(v_np, f_np, embree.MEDIUM, repeats),
+                      "embree_refit": embree.refit(v_np, f_np, repeats)}
+        moved = vertices * 1.0001
+        dr.eval(moved)
+        for builder in builders:
+            if builder == "sah" and triangles > sah_max:
+                continue
+            fresh, bvh = _ready(vertices, faces, builder, repeats)
+            seeded, seeded_bvh = _ready(moved, faces, builder, repeats, previous=bvh)
+            refit = [_timed(lambda: bvh.refit(moved * (1 + 1e-5 * k)))[0] for k in range(repeats + 1)]
+            ready = fresh["ready"]["min"]
+            rows.append({
+                "mesh": mesh, "triangles": triangles, "builder": builder, "cpu": cpu_model(),
+                "cores": cores, **fresh, "seeded": seeded["ready"], "refit": _summary(refit),
+                "stage_ms": dict(seeded_bvh.stats.stage_ms), "sah_cost": bvh.stats.sah_cost,
+                "csd_runs": bvh.stats.csd_runs, "csd_runs_seeded": seeded_bvh.stats.csd_runs,
+                "native": native, **others,
+                "native_over_ready": native["min"] / ready,
+                "mtris_per_s_per_core": triangles / ready / 1e3 / cores,
+            })
     return rows
 
 
 def format_table(rows: list[dict]) -> str:
-    head = (
-        f"{'mesh':5} {'tris':>8} {'builder':7} {'cold':>8} {'warm':>8} {'median':>8} "
-        f"{'seeded':>8} {'refit':>7} {'native':>8} {'native/ours':>11} {'SAH':>7} "
-        f"{'launch':>6}  stages (warm ms)"
-    )
+    """The rows as a text table: warm min ms (median in parentheses where it matters)."""
+    head = (f"{'mesh':4} {'tris':>7} {'builder':6} {'build':>6} {'pack':>6} {'ready':>13} "
+            f"{'cold':>6} {'seeded':>6} {'refit':>6} {'native':>13} {'E.low':>6} {'E.med':>6} "
+            f"{'E.refit':>7} {'nat/rdy':>7} {'Mtri/s/c':>8} {'launch':>6} {'SAH':>6}")
     lines = [head, "-" * len(head)]
+    fmt = lambda r, k: f"{r[k]['min']:6.1f}" if k in r else f"{'-':>6}"
     for r in rows:
-        stages = " ".join(f"{k}={v:.1f}" for k, v in r["stage_ms"].items())
         lines.append(
-            f"{r['mesh']:5} {r['triangles']:>8} {r['builder']:7} {r['cold_ms']:8.1f} "
-            f"{r['warm_min_ms']:8.1f} {r['warm_median_ms']:8.1f} {r['seeded_min_ms']:8.1f} "
-            f"{r['refit_min_ms']:7.1f} {r['native_min_ms']:8.1f} {r['native_over_ours']:10.2f}x "
-            f"{r['sah_cost']:7.2f} {r['launches']:6}  {stages}"
-        )
-    lines.append("times in ms; warm = min over repeats; native = Mitsuba params.update() "
-                 f"(Embree); variant {mi.variant()}")
+            f"{r['mesh']:4} {r['triangles']:>7} {r['builder']:6} {r['build']['min']:6.1f} "
+            f"{r['pack']['min']:6.1f} {r['ready']['min']:6.1f} ({r['ready']['median']:5.1f}) "
+            f"{r['ready']['cold']:6.0f} {r['seeded']['min']:6.1f} {r['refit']['min']:6.1f} "
+            f"{r['native']['min']:6.1f} ({r['native']['median']:5.1f}) {fmt(r, 'embree_low')} "
+            f"{fmt(r, 'embree_medium')} {fmt(r, 'embree_refit'):>7} "
+            f"{r['native_over_ready']:6.2f}x {r['mtris_per_s_per_core']:8.2f} "
+            f"{r['launches']:6} {r['sah_cost']:6.2f}")
+    for r in rows[:1]:
+        stages = " ".join(f"{k}={v:.1f}" for k, v in r["stage_ms"].items())
+        lines.append(f"stages of the first row's seeded build (ms): {stages}")
+    cpu = rows[0]["cpu"] if rows else cpu_model()
+    cores = rows[0]["cores"] if rows else os.cpu_count()
+    lines.append(
+        f"ms, warm min over repeats (median); ready = build + pack (packed_records); "
+        f"native = Mitsuba params.update() (Embree HIGH); E.* = Embree 4 LOW/MEDIUM build "
+        f"and refit; {cpu}, {cores} cores, load {os.getloadavg()[0]:.2f}; variant {mi.variant()}")
     return "\n".join(lines)

@@ -3,7 +3,9 @@
 Boxes are computed level by level from the deepest internal nodes to the root, one
 gather kernel and one scatter kernel per level, so no kernel ever waits on another lane
 (no atomics, no in-kernel synchronisation). Leaves take the union of their triangles'
-boxes; an internal node the union of its two children's.
+boxes; an internal node the union of its two children's. (One bottom-up pass in which
+the second child to arrive at a node carries on, as Karras 2012 and Apetrei 2014 do,
+was measured slower here; see docs/decisions.md.)
 """
 
 from __future__ import annotations
@@ -13,17 +15,12 @@ import drjit as dr
 from .arrays import namespace_of
 
 
-def triangle_boxes(tri):
-    """Array3f[F] lower and upper corners of each triangle's box; ``tri`` a Matrix3f
-    whose rows are the vertices (see kernels/geometry.py)."""
-    return dr.minimum(dr.minimum(tri[0], tri[1]), tri[2]), dr.maximum(dr.maximum(tri[0], tri[1]), tri[2])
-
-
 def internal_levels(node_count, node_depth) -> list:
     """The internal nodes of each depth, root first: a list of UInt32 arrays.
 
-    A counting sort by depth: an atomic counter per depth gives every internal node its
-    rank within its level (the order inside a level is irrelevant to every user).
+    A counting sort by depth (``dr.detail.block_mkperm``, the stable bucketing under
+    Dr.Jit's radix sort), leaves in a last bucket that is dropped; a histogram gives the
+    level sizes, the one host read. The order inside a level is the node order.
 
     Args:
         node_count: UInt32[N] 0 for internal nodes (see kernels/bvh.py).
@@ -32,20 +29,16 @@ def internal_levels(node_count, node_depth) -> list:
     ns = namespace_of(node_count)
     UInt32 = ns.UInt32
     internal = node_count == 0
-    if not dr.any(internal)[0]:
+    levels_n = int(dr.max(dr.select(internal, node_depth + 1, 0))[0])
+    if levels_n == 0:
         return []
-    levels_n = int(dr.max(dr.select(internal, node_depth, 0))[0]) + 1
-    per_level = dr.zeros(UInt32, levels_n)
-    rank = dr.scatter_inc(per_level, node_depth, internal)
-    dr.eval(rank, per_level)
-    sizes = per_level.numpy().tolist()  # a few dozen counts
-    offset = dr.prefix_sum(per_level)
-    order = dr.zeros(UInt32, sum(sizes))
-    nodes = dr.arange(UInt32, len(node_count))
-    dr.scatter(order, nodes, dr.gather(UInt32, offset, node_depth, internal) + rank, internal)
-    dr.eval(order)
+    bucket = dr.select(internal, node_depth, dr.opaque(UInt32, levels_n))
+    dr.eval(bucket)
+    per_level = dr.zeros(UInt32, levels_n + 1)
+    dr.scatter_reduce(dr.ReduceOp.Add, per_level, UInt32(1), bucket, mode=dr.ReduceMode.Local)
+    order = dr.detail.block_mkperm(bucket, dr.width(bucket), levels_n + 1)
     levels, start = [], 0
-    for size in sizes:
+    for size in per_level.numpy().tolist()[:-1]:  # a few dozen counts
         levels.append(dr.gather(UInt32, order, dr.arange(UInt32, size) + dr.opaque(UInt32, start)))
         start += size
     dr.eval(levels)
@@ -82,7 +75,7 @@ def node_bounds(node_first, node_count, tri_lo, tri_hi, levels, leaf_size: int):
         left = dr.gather(type(node_first), node_first, nodes)
         lo = dr.minimum(dr.gather(Array3f, node_min, left), dr.gather(Array3f, node_min, left + 1))
         hi = dr.maximum(dr.gather(Array3f, node_max, left), dr.gather(Array3f, node_max, left + 1))
-        dr.eval(lo, hi)  # read before writing into the same arrays (pitfall 5)
+        dr.eval(lo, hi)  # a pending read of the arrays would make the scatter copy them
         dr.scatter(node_min, lo, nodes)
         dr.scatter(node_max, hi, nodes)
         dr.eval(node_min, node_max)

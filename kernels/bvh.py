@@ -145,7 +145,10 @@ class BuildStats:
 
 @dataclass
 class BVH:
-    """A built hierarchy over a triangle mesh (layout in the module docstring)."""
+    """A built hierarchy over a triangle mesh (layout in the module docstring): a plain
+    record of arrays, what the builder writes and traversal reads. The methods are
+    conveniences that hand the record to the stage that does the work (imported when
+    called, so this module imports no stage)."""
 
     node_min: Any
     node_max: Any
@@ -170,27 +173,23 @@ class BVH:
         return len(self.prim_ids)
 
     def refit(self, vertices) -> "BVH":
-        """Recompute the boxes for new vertex positions (same faces, same tree), in place.
-
-        Args:
-            vertices: flat Float (3·V) or Array3f (V) of the new positions.
-        Returns:
-            self, with ``stats.sah_cost`` and ``stats.stage_ms['refit']`` updated.
-        """
+        """:func:`hlbvh.kernels.refit.refit`: new boxes for new vertex positions (same
+        faces, same tree), in place; returns self."""
         from .refit import refit
 
         return refit(self, vertices)
 
     def intersect(self, ray, active=True):
-        """Closest hit of ``ray`` (anything with ``o``, ``d``, ``maxt``) as a
-        ``mi.PreliminaryIntersection3f`` with ``prim_index`` the input face index and
-        the shape fields null."""
+        """:func:`hlbvh.kernels.traversal.intersect`: closest hit of ``ray`` (anything
+        with ``o``, ``d``, ``maxt``) as a ``mi.PreliminaryIntersection3f`` with
+        ``prim_index`` the input face index and the shape fields null."""
         from .traversal import intersect
 
         return intersect(self, ray, active)
 
     def occluded(self, ray, active=True):
-        """Whether anything lies on ``ray`` in (0, maxt): a Bool per ray."""
+        """:func:`hlbvh.kernels.traversal.occluded`: whether anything lies on ``ray`` in
+        (0, maxt), a Bool per ray."""
         from .traversal import occluded
 
         return occluded(self, ray, active)

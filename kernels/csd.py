@@ -62,6 +62,8 @@ class CsdResult:
             length; about N when nothing is coherent, the number of occupied voxels
             when the start order already groups them).
         coarse_clusters: number of distinct coarse keys (occupied coarse voxels).
+        cluster_start: UInt32[coarse_clusters], the first slot of each coarse voxel in
+            sorted order, ascending: the clusters of the HLBVH top level.
         resorted: number of keys the fine sort had to sort: those in coarse voxels
             not in key order after decompression (0 when the start order already
             sorts the keys; N when the keys were sorted directly).
@@ -72,6 +74,7 @@ class CsdResult:
     runs: int
     coarse_clusters: int
     resorted: int
+    cluster_start: Any = None
 
 
 def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResult:
@@ -105,7 +108,8 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
     n = dr.width(keys)
     start = dr.arange(UInt32, n) if start_order is None else _checked_order(ns, start_order, n)
     if n == 0:
-        return CsdResult(start, keys, runs=0, coarse_clusters=0, resorted=0)
+        return CsdResult(start, keys, runs=0, coarse_clusters=0, resorted=0,
+                         cluster_start=dr.zeros(UInt32, 0))
 
     # ---- Compress: run-length encode the coarse keys in start order ----
     key = dr.gather(Key, keys, start)
@@ -116,21 +120,21 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
     run_head = (slot == 0) | (coarse != dr.gather(Coarse, coarse, before))
     descent = (slot > 0) & (key < dr.gather(Key, key, before))
     dr.eval(key, run_head, descent)
-    if not dr.any(descent)[0]:
-        # Already sorted in start order: each run is a whole voxel, nothing moves.
-        runs = int(dr.count(run_head)[0])
-        return CsdResult(start, key, runs=runs, coarse_clusters=runs, resorted=0)
     run_start = dr.compress(run_head)  # UInt32[R]
     runs = dr.width(run_start)
+    if not dr.any(descent)[0]:
+        # Already sorted in start order: each run is a whole voxel, nothing moves.
+        return CsdResult(start, key, runs, coarse_clusters=runs, resorted=0, cluster_start=run_start)
     if runs > n // 2:
         # Incoherent keys (a random soup): the runs are about as many as the keys, and
         # sorting and decoding them would cost more than sorting the keys themselves.
         order, sorted_keys = _sorted_whole(key, key_bits, start)
         sorted_coarse = _coarse_keys(sorted_keys, key_bits, coarse_bits)
-        voxels = dr.count(
+        voxel_start = dr.compress(
             (slot == 0) | (sorted_coarse != dr.gather(Coarse, sorted_coarse, before))
         )
-        return CsdResult(order, sorted_keys, runs, coarse_clusters=int(voxels[0]), resorted=n)
+        return CsdResult(order, sorted_keys, runs, coarse_clusters=dr.width(voxel_start),
+                         resorted=n, cluster_start=voxel_start)
     # Sizes enter kernels as opaque values, so a new run count compiles nothing.
     end = dr.opaque(UInt32, n)
     run_end = _next_or(run_start, end)
@@ -174,7 +178,8 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
         # Most voxels need their fine sort: sorting all keys in start order gives the
         # same stable order, for less than decoding the runs and gathering those keys.
         order, sorted_keys = _sorted_whole(key, key_bits, start)
-        return CsdResult(order, sorted_keys, runs, coarse_clusters, resorted=n)
+        return CsdResult(order, sorted_keys, runs, coarse_clusters, resorted=n,
+                         cluster_start=voxel_start)
 
     # ---- Decompress: run-length decode the sorted runs into slots ----
     is_dst_start = dr.zeros(UInt32, n)
@@ -192,8 +197,8 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
         fine, sorted_keys = _voxel_sort(sorted_keys, key_bits, in_unsorted)
         source = dr.gather(UInt32, source, fine)
     order = dr.gather(UInt32, start, source)
-    dr.eval(order, sorted_keys)
-    return CsdResult(order, sorted_keys, runs, coarse_clusters, resorted)
+    dr.eval(order, sorted_keys, voxel_start)
+    return CsdResult(order, sorted_keys, runs, coarse_clusters, resorted, voxel_start)
 
 
 def _sorted_whole(key, key_bits: int, start):

@@ -1,4 +1,5 @@
-"""Triangle input: validation of what users pass, and triangles gathered in slot order."""
+"""Triangle input: validation of what users pass, the centroids the Morton keys are made
+of (input order), and the triangles and their boxes in slot order."""
 
 from __future__ import annotations
 
@@ -77,8 +78,8 @@ def checked_vertices(vertices, faces):
     return points
 
 
-def warn_if_out_of_range(tri_lo, tri_hi, stacklevel: int = 3):
-    """Warn when the triangles' box lies past the scales float32 ray tracing handles.
+def warn_if_out_of_range(lo, hi, stacklevel: int = 3):
+    """Warn when the scene's box lies past the scales float32 ray tracing handles.
 
     - Extent below :data:`SMALLEST_EXTENT` (2**-100, about 7.9e-31): Dr.Jit's CPU
       kernels flush values below 2**-126 (1.2e-38) to zero, and the ray/triangle test
@@ -92,16 +93,14 @@ def warn_if_out_of_range(tri_lo, tri_hi, stacklevel: int = 3):
       zero (the SAH builders then see every box as empty).
 
     Args:
-        tri_lo, tri_hi: Array3f[F], the triangles' boxes.
+        lo, hi: Array3f[1], the scene's box (a built tree's root box: the union of its
+            triangles' boxes).
         stacklevel: passed to ``warnings.warn`` (3: the caller of the function that
             called this one).
     Returns:
         The warning's text, or None when the scene is within range (one host read of
         six floats).
     """
-    from .morton import point_bounds
-
-    lo, hi = point_bounds(tri_lo)[0], point_bounds(tri_hi)[1]
     lo, hi = [float(c[0]) for c in lo], [float(c[0]) for c in hi]
     extent = max(h - l for l, h in zip(lo, hi))  # Python floats: no overflow
     largest = max(extent, *map(abs, lo + hi))
@@ -144,3 +143,20 @@ def gather_triangles(points, faces, prims):
     ns = namespace_of(faces)
     face = dr.gather(ns.Array3u, faces, prims)
     return ns.Matrix3f(*(dr.gather(ns.Array3f, points, face[k]) for k in range(3)))
+
+
+def triangle_boxes(tri):
+    """Array3f lower and upper corners of each triangle's box; ``tri`` a Matrix3f whose
+    rows are the vertices (:func:`gather_triangles`)."""
+    return dr.minimum(dr.minimum(tri[0], tri[1]), tri[2]), dr.maximum(dr.maximum(tri[0], tri[1]), tri[2])
+
+
+def triangle_centroids(points, faces):
+    """Array3f[F], evaluated: the centre of each face's box, in input order (what the
+    Morton keys quantise). Only the centroids are stored: the boxes a build needs are
+    those of its slot order, taken where the triangles are gathered in that order."""
+    ns = namespace_of(faces)
+    lo, hi = triangle_boxes(gather_triangles(points, faces, dr.arange(ns.UInt32, len(faces) // 3)))
+    centroid = (lo + hi) * 0.5
+    dr.eval(centroid)
+    return centroid

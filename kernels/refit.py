@@ -6,8 +6,8 @@ import time
 
 import drjit as dr
 
-from .bounds import node_bounds, sah_cost, triangle_boxes
-from .geometry import checked_vertices, gather_triangles
+from .bounds import node_bounds, sah_cost
+from .geometry import checked_vertices, gather_triangles, triangle_boxes
 
 
 def refit(bvh, vertices):

@@ -1,10 +1,11 @@
 """Binned SAH build (Wald 2007, "On fast construction of SAH-based bounding volume
 hierarchies"), top-down and breadth-first, as Dr.Jit array kernels.
 
-One function serves both builders that need it:
+One function, :func:`binned_sah`, serves both builders that need it:
 
 - ``"hlbvh"`` builds the SAH top level over the coarse clusters (Pantaleoni & Luebke
-  2010, section 4): the items are clusters, each standing for many primitives;
+  2010, section 4; :func:`top_level`): the items are clusters, each standing for many
+  primitives;
 - ``"sah"`` builds the whole tree over the triangles: the quality reference.
 
 The tree grows one level at a time and every open node of a level is split at once:
@@ -180,6 +181,67 @@ def binned_sah(item_min, item_max, item_weight, leaf_items: int, bins: int = 16)
     dr.eval(tree.node_first, tree.node_count, tree.node_min, tree.node_max,
             tree.item_order, tree.leaf_depth)
     return tree
+
+
+@dataclass
+class TopLevel:
+    """The HLBVH top level (Pantaleoni & Luebke 2010, section 4): a binned-SAH tree over
+    the coarse clusters, one cluster per leaf.
+
+    Attributes:
+        tree: the :class:`SahTree` over the clusters (items = clusters).
+        start, end: UInt32[C], each cluster's slot range ``[start, end)``.
+        node, depth: UInt32[C], each cluster's leaf in ``tree`` and that leaf's depth:
+            where the cluster's own sub-tree is rooted.
+        cluster_of: UInt32[N], each slot's cluster.
+    """
+
+    tree: SahTree
+    start: Any
+    end: Any
+    node: Any
+    depth: Any
+    cluster_of: Any
+
+
+def top_level(cluster_start, slot_lo, slot_hi, bins: int = 16) -> TopLevel:
+    """The SAH top level over clusters of contiguous slots.
+
+    Args:
+        cluster_start: UInt32[C], the first slot of each cluster, ascending, the first
+            0 (the CSD sort's ``cluster_start``).
+        slot_lo, slot_hi: Array3f[N], the primitives' boxes in slot order.
+        bins: bins per axis of the binned SAH.
+    Returns:
+        :class:`TopLevel`; the cluster boxes are the unions of their slots' boxes, the
+        split cost weighs each cluster by its primitive count.
+    """
+    ns = namespace_of(cluster_start)
+    UInt32 = ns.UInt32
+    n, clusters = dr.width(slot_lo), dr.width(cluster_start)
+    after = dr.arange(UInt32, clusters) + 1
+    last = after == dr.opaque(UInt32, clusters)
+    end = dr.select(last, dr.opaque(UInt32, n), dr.gather(UInt32, cluster_start, after, ~last))
+    marks = dr.zeros(UInt32, n)
+    dr.scatter(marks, UInt32(1), cluster_start)
+    cluster_of = dr.cumsum(marks) - 1
+
+    # ---- Cluster boxes: unions of their slots' boxes ----
+    boxes = dr.full(ns.Float, dr.inf, 6 * clusters)
+    _reduce_box(boxes, slot_lo, slot_hi, cluster_of)
+    dr.eval(boxes, end)
+    lo, hi = _read_box(ns, boxes, dr.arange(UInt32, clusters))
+
+    # ---- SAH over the clusters; each cluster's leaf is its sub-tree's root ----
+    tree = binned_sah(lo, hi, end - cluster_start, 1, bins)
+    nodes = dr.arange(UInt32, tree.size)
+    leaf = tree.node_count != 0
+    leaf_cluster = dr.gather(UInt32, tree.item_order, tree.node_first, leaf)
+    node, depth = dr.zeros(UInt32, clusters), dr.zeros(UInt32, clusters)
+    dr.scatter(node, nodes, leaf_cluster, leaf)
+    dr.scatter(depth, tree.leaf_depth, leaf_cluster, leaf)
+    dr.eval(node, depth, cluster_of)
+    return TopLevel(tree, cluster_start, end, node, depth, cluster_of)
 
 
 @dataclass
