@@ -29,8 +29,8 @@ from .bounds import internal_levels, leaf_histogram, node_bounds, sah_cost
 from .bvh import BVH, BuildConfig, BuildStats
 from .csd import csd_sort
 from .emission import NodeRecords, emit_hierarchy
-from .geometry import (checked_faces, checked_vertices, gather_triangles, triangle_boxes,
-                       triangle_centroids, warn_if_out_of_range)
+from .geometry import (checked_faces, checked_vertices, gather_triangles, slot_triangles,
+                       triangle_boxes, triangle_centroids, warn_if_out_of_range)
 from .morton import choose_key, morton_codes, point_bounds
 from .sah import binned_sah, top_level
 
@@ -172,9 +172,7 @@ def _morton_topology(config: BuildConfig, stats: BuildStats, clock, points, face
     stats.csd_runs, stats.coarse_clusters = csd.runs, csd.coarse_clusters
 
     with clock("triangles"):
-        tri = gather_triangles(points, faces, csd.order)
-        slot_lo, slot_hi = triangle_boxes(tri)
-        dr.eval(tri, slot_lo, slot_hi)
+        tri, slot_lo, slot_hi = slot_triangles(points, faces, csd.order)
 
     records = NodeRecords(*(dr.zeros(UInt32, 2 * prim_count - 1) for _ in range(3)),
                           total=dr.opaque(UInt32, 1))

@@ -253,7 +253,8 @@ def _emit_treelets(keys, key_bits, level, pe, seg, splits, records: NodeRecords,
     dr.eval(child_base, records.total)
 
     # ---- Node records: internal where a slot splits, leaves where small ranges appear ----
-    s, pos, d, q = positions(2 * P + 1, 0)
+    width = 2 * P + 1
+    s, pos, d, q = positions(width, 0)
     lo, hi, node, depth, reached, created = _descend(
         keys, key_bits, level, pe, seg, splits, child_base, s, d, q, leaf_size
     )
@@ -268,14 +269,15 @@ def _emit_treelets(keys, key_bits, level, pe, seg, splits, records: NodeRecords,
     dr.scatter(records.first, dr.select(is_internal, c0, lo), node, write)
     dr.scatter(records.count, dr.select(is_internal, 0, size), node, write)
     dr.scatter(records.depth, depth, node, write)
-    dr.eval(records.first, records.count, records.depth)
+    # The same lanes' bottom positions (pos >= P) are the next pass's candidates: keep
+    # their ranges rather than walking the treelets a third time.
+    keep = reached & ~is_slot & (size > leaf_size)
+    dr.eval(records.first, records.count, records.depth, lo, hi, node, depth, keep)
 
     # ---- Next pass's segments: ranges still larger than a leaf at the treelet bottom ----
-    s, pos, d, q = positions(P + 1, pe)
-    lo, hi, node, depth, reached, _ = _descend(
-        keys, key_bits, level, pe, seg, splits, child_base, s, d, q, leaf_size
-    )
-    keep = reached & (hi - lo > leaf_size)
+    bottom = dr.arange(UInt32, S * (P + 1))
+    lane = (bottom // (P + 1)) * width + P + bottom % (P + 1)
+    keep = dr.gather(ns.Bool, keep, lane)
     index = dr.prefix_sum(UInt32(keep))
     last = dr.opaque(UInt32, len(index) - 1)
     kept = dr.gather(UInt32, index, last) + UInt32(dr.gather(ns.Bool, keep, last))
@@ -286,6 +288,6 @@ def _emit_treelets(keys, key_bits, level, pe, seg, splits, records: NodeRecords,
     out = Segments(*(dr.empty(UInt32, count) for _ in range(4)))
     if count:
         for target, value in zip((out.start, out.end, out.node, out.depth), (lo, hi, node, depth)):
-            dr.scatter(target, value, index, keep)
+            dr.scatter(target, dr.gather(UInt32, value, lane, keep), index, keep)
     dr.eval(out.start, out.end, out.node, out.depth, remap)
     return out, remap

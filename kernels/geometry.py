@@ -151,6 +151,16 @@ def triangle_boxes(tri):
     return dr.minimum(dr.minimum(tri[0], tri[1]), tri[2]), dr.maximum(dr.maximum(tri[0], tri[1]), tri[2])
 
 
+def slot_triangles(points, faces, prim_ids):
+    """``(tri, lo, hi)``, evaluated together (one kernel): the triangles of faces
+    ``prim_ids`` in slot order (Matrix3f, rows p0, p1, p2) and their boxes (Array3f).
+    Evaluating the boxes separately would run the gathers again for each component."""
+    tri = gather_triangles(points, faces, prim_ids)
+    lo, hi = triangle_boxes(tri)
+    dr.eval(tri, lo, hi)
+    return tri, lo, hi
+
+
 def triangle_centroids(points, faces):
     """Array3f[F], evaluated: the centre of each face's box, in input order (what the
     Morton keys quantise). Only the centroids are stored: the boxes a build needs are

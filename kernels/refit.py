@@ -1,4 +1,5 @@
-"""Refit: new vertex positions, same faces, same tree: recompute the boxes only."""
+"""Refit: new vertex positions, same faces, same tree: recompute the triangles in slot
+order and the boxes only."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import time
 import drjit as dr
 
 from .bounds import node_bounds, sah_cost
-from .geometry import checked_vertices, gather_triangles, triangle_boxes
+from .geometry import checked_vertices, slot_triangles
 
 
 def refit(bvh, vertices):
@@ -23,9 +24,8 @@ def refit(bvh, vertices):
     """
     t0 = time.perf_counter()
     points = checked_vertices(vertices, bvh.faces)
-    tri = gather_triangles(points, bvh.faces, bvh.prim_ids)
+    tri, tri_lo, tri_hi = slot_triangles(points, bvh.faces, bvh.prim_ids)
     bvh.tri_p0, bvh.tri_p1, bvh.tri_p2 = tri[0], tri[1], tri[2]
-    tri_lo, tri_hi = triangle_boxes(tri)
     bvh.node_min, bvh.node_max = node_bounds(
         bvh.node_first, bvh.node_count, tri_lo, tri_hi, bvh.levels, bvh.config.leaf_size
     )
