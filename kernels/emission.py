@@ -11,14 +11,15 @@ all its keys agree on the bit planes above the current ``level``. Each pass cons
    plane and for the ``j`` key bits above it, so it owns the slot ``2^j - 1 + q`` of the
    segment's *treelet*, a complete binary tree of ``P = 2^p - 1`` slots in breadth-first
    order (``q`` = the key's bits on planes ``level .. level+j-1``).
-2. *Treelet emission* (one lane per slot, then one per treelet position): every lane
-   walks from its segment's root down to its own position, at most ``p`` steps. A slot
-   reached by a range of more than ``leaf_size`` primitives and holding a split emits two
-   children; a range without a split at a slot passes to the child its keys' bit selects.
-   Children are numbered by an exclusive prefix sum over the split flags of all slots,
-   two adjacent indices per split. Ranges of at most ``leaf_size`` primitives become
-   leaves where they are created; ranges still larger at the bottom of the treelet
-   become the next pass's segments (with their heads in key order).
+2. *Treelet emission* (one lane per segment, then one per treelet position): a segment's
+   lane walks its treelet top-down in breadth-first order. A slot reached by a range of
+   more than ``leaf_size`` primitives and holding a split emits two children; a range
+   without a split at a slot passes to the child its keys' bit selects. Children are
+   numbered by an exclusive prefix sum over the segments' split counts, two adjacent
+   indices per split, in (segment, slot) order. Then one lane per position writes its
+   record: ranges of at most ``leaf_size`` primitives become leaves where they are
+   created; ranges still larger at the bottom of the treelet become the next pass's
+   segments (with their heads in key order).
 
 Once every bit plane is used, a segment still larger than ``leaf_size`` holds identical
 keys: it is split at its middle index, pass after pass (the same treelet machinery with
@@ -175,119 +176,128 @@ def _next_segment(keys, key_bits: int, level: int, pe: int, sid, remap):
     return dr.select(active, dr.gather(ns.UInt32, remap, sid * (1 << pe) + q, active), ns.UInt32(NONE))
 
 
-def _descend(keys, key_bits, level, pe, seg, splits, child_base, s, depth_target, q_target, leaf_size):
-    """Walk segment ``s``'s treelet from its root to the position at depth
-    ``depth_target`` (0..pe) with path bits ``q_target`` (most significant first).
+def _walk_treelets(keys, key_bits, level, pe, seg, splits, leaf_size):
+    """Evaluate every segment's treelet top-down, one lane per segment, positions in
+    breadth-first order (slots ``0..P-1``, then the ``P+1`` bottom positions).
 
-    ``splits`` is the UInt32[S*P] slot table (for middle splits, ``level == key_bits``
-    and ``pe == 1``: the middle index of each segment). ``child_base`` (UInt32[S*P], or None to skip node
-    numbering) holds the first child index of each slot's split.
+    A slot reached by a range of more than ``leaf_size`` primitives and holding a split
+    gives its two children the halves of the range (they are *created*); without a
+    split, the range passes to the child its keys' bit on that plane selects (for
+    middle splits, ``level == key_bits``, every open slot holds one). The ``k``-th
+    split of a segment's treelet in breadth-first order creates its children
+    ``2k, 2k+1`` of the segment's block of new nodes.
 
-    Returns (lo, hi, node, depth, reached, created): the range reaching the position (if
-    ``reached``), the node owning it and its depth, and whether that node was created by
-    the last step's split.
+    Returns ``(states, splits_at, keeps_at)``: per position the tuple ``(lo, hi,
+    depth, owner, reached, created)`` (``owner``: the created child's offset ``2k +
+    side`` in the block, NONE for a range still owned by the segment's node), per slot
+    whether it splits, and per bottom position whether a range larger than a leaf
+    continues there.
     """
-    ns = namespace_of(s)
+    ns = namespace_of(seg.start)
     UInt32, Bool = ns.UInt32, ns.Bool
     P = (1 << pe) - 1
-    lo = dr.gather(UInt32, seg.start, s)
-    hi = dr.gather(UInt32, seg.end, s)
-    node = dr.gather(UInt32, seg.node, s)
-    depth = dr.gather(UInt32, seg.depth, s)
-    reached = dr.full(Bool, True, dr.width(s))
-    created = dr.full(Bool, False, dr.width(s))
-    middle = level >= key_bits
-    for j in range(pe):
-        step = reached & (j < depth_target) & (hi - lo > leaf_size)
-        reached &= (j >= depth_target) | step
-        below = dr.select(step, depth_target - j, 1)  # keep shift amounts in range
-        go_right = ((q_target >> (below - 1)) & 1) == 1
-        slot = (UInt32(1) << j) - 1 + (q_target >> below)
-        sp = dr.gather(UInt32, splits, s * P + slot, step)
+    s = dr.arange(UInt32, len(seg))
+    lanes = dr.width(s)
+    states = [(dr.gather(UInt32, seg.start, s), dr.gather(UInt32, seg.end, s),
+               dr.gather(UInt32, seg.depth, s), dr.full(UInt32, NONE, lanes),
+               dr.full(Bool, True, lanes), dr.full(Bool, False, lanes))]
+    splits_at, rank = [], dr.zeros(UInt32, lanes)
+    for t in range(P):
+        lo, hi, depth, owner, reached, _ = states[t]
+        plane = level + (t + 1).bit_length() - 1
+        step = reached & (hi - lo > leaf_size)
+        sp = dr.gather(UInt32, splits, s * P + t, step)
         has = step & (sp != 0)
-        # ---- A split at this slot: the path enters one of two new children ----
-        if child_base is not None:
-            c0 = dr.gather(UInt32, child_base, s * P + slot, has)
-            node = dr.select(has, c0 + dr.select(go_right, 1, 0), node)
-        lo = dr.select(has & go_right, sp, lo)
-        hi = dr.select(has & ~go_right, sp, hi)
-        depth = dr.select(has, depth + 1, depth)
-        # ---- No split: the whole range follows its keys' bit on this plane ----
-        passes = step & ~has
-        if not middle:
-            k = dr.gather(type(keys), keys, lo, passes)
-            bit = ((k >> (key_bits - 1 - level - j)) & 1) == 1
-            reached &= ~passes | (bit == go_right)
-        created = dr.select(step, has, created)
-    return lo, hi, node, depth, reached, created
+        splits_at.append(has)
+        if level < key_bits:
+            k = dr.gather(type(keys), keys, lo, step & ~has)
+            bit_right = ((k >> (key_bits - 1 - plane)) & 1) == 1
+        for right in (False, True):
+            follows = has | (step & (bit_right == right if level < key_bits else True))
+            states.append((
+                dr.select(has & right, sp, lo),
+                dr.select(has & (not right), sp, hi),
+                dr.select(has, depth + 1, depth),
+                dr.select(has, 2 * rank + (1 if right else 0), owner),
+                follows,
+                has,
+            ))
+        rank += UInt32(has)
+    keeps_at = [reached & (hi - lo > leaf_size) for lo, hi, _, _, reached, _ in states[P:]]
+    return states, splits_at, keeps_at
 
 
 def _emit_treelets(keys, key_bits, level, pe, seg, splits, records: NodeRecords, leaf_size):
     """emit_treelets of Figure 4: write the nodes of every segment's treelet.
 
+    Two kernels: one lane per segment walks its treelet (:func:`_walk_treelets`) and
+    stores every position's range with the segment's split and continuing-range
+    counts; after a prefix sum over the segments (the first new node and the first
+    next-pass segment of each), one lane per position writes its node record and, at
+    the bottom, its next-pass segment.
+
     Returns the segments of the next pass and UInt32[S * 2^pe] ``remap``: the index
     among them of every treelet bottom position, NONE where no segment continues."""
     ns = namespace_of(seg.start)
-    UInt32 = ns.UInt32
+    UInt32, Bool = ns.UInt32, ns.Bool
     S = len(seg)
     P = (1 << pe) - 1
-
-    def positions(count, first_depth):
-        """Lanes over (segment, position) for ``count`` positions per segment, BFS
-        numbered from ``first_depth``'s first position."""
-        idx = dr.arange(UInt32, S * count)
-        s = idx // count
-        pos = idx % count + ((1 << first_depth) - 1)
-        d = UInt32(31) - dr.lzcnt(pos + 1)
-        q = pos + 1 - (UInt32(1) << d)
-        return s, pos, d, q
-
-    # ---- Which slots split (reached by a range larger than a leaf) ----
-    s, pos, d, q = positions(P, 0)
-    lo, hi, _, _, reached, _ = _descend(keys, key_bits, level, pe, seg, splits, None, s, d, q, leaf_size)
-    sp = dr.gather(UInt32, splits, s * P + pos)
-    splits_here = reached & (hi - lo > leaf_size) & (sp != 0)
-    flag = UInt32(splits_here)
-    child_base = dr.select(splits_here, dr.prefix_sum(flag) * 2 + records.total, 0)
-    records.total = records.total + 2 * dr.sum(flag)
-    dr.eval(child_base, records.total)
-
-    # ---- Node records: internal where a slot splits, leaves where small ranges appear ----
     width = 2 * P + 1
-    s, pos, d, q = positions(width, 0)
-    lo, hi, node, depth, reached, created = _descend(
-        keys, key_bits, level, pe, seg, splits, child_base, s, d, q, leaf_size
-    )
+
+    # ---- One lane per segment: every position's range, the segment's counts ----
+    states, splits_at, keeps_at = _walk_treelets(keys, key_bits, level, pe, seg, splits, leaf_size)
+    flags = [UInt32(reached) | (UInt32(created) << 1) for *_, reached, created in states]
+    flags[:P] = [f | (UInt32(has) << 2) for f, has in zip(flags[:P], splits_at)]
+    keep_rank, kept = [], dr.zeros(UInt32, S)
+    for keep in keeps_at:
+        keep_rank.append(kept)
+        kept = kept + UInt32(keep)
+    n_split = sum((UInt32(h) for h in splits_at), dr.zeros(UInt32, S))
+    s = dr.arange(UInt32, S)
+    columns = [[st[c] for st in states] for c in range(4)] + [flags, [dr.zeros(UInt32, S)] * P + keep_rank]
+    tables = [dr.empty(UInt32, S * width) for _ in columns]
+    for table, column in zip(tables, columns):
+        dr.scatter(table, ns.ArrayXu(column), s)
+    counts = (ns.UInt64(n_split) << 32) | ns.UInt64(kept)
+    dr.eval(tables, counts)
+
+    # ---- First new node and first next-pass segment of every segment ----
+    through = dr.cumsum(counts)
+    total = dr.gather(ns.UInt64, through, dr.opaque(UInt32, S - 1))
+    dr.eval(through, total)
+    count = int((total & 0xFFFFFFFF)[0])
+    before = through - counts
+    node_base = UInt32(before >> 32) * 2 + records.total
+    seg_base = UInt32(before & 0xFFFFFFFF)
+    records.total = records.total + UInt32(total >> 32) * 2
+    dr.eval(node_base, seg_base, records.total)
+
+    # ---- One lane per position: node records, next-pass segments, remap ----
+    lane = dr.arange(UInt32, S * width)
+    ls, pos = lane // width, lane % width
+    lo, hi, depth, owner, flag, rank = (dr.gather(UInt32, t, lane) for t in tables)
+    base = dr.gather(UInt32, node_base, ls)
+    node = dr.select(owner == NONE, dr.gather(UInt32, seg.node, ls), base + owner)
+    reached, created, splits_here = (((flag >> b) & 1) == 1 for b in range(3))
     size = hi - lo
-    is_slot = pos < P
-    slot_index = s * P + dr.minimum(pos, P - 1)
-    c0 = dr.gather(UInt32, child_base, slot_index, is_slot)
-    split_flag = dr.gather(UInt32, UInt32(splits_here), slot_index, is_slot)
-    is_internal = reached & is_slot & (split_flag != 0)
+    # the children of a split slot: the node numbers of positions 2·pos + 1, + 2
+    first_child = base + dr.gather(UInt32, tables[3], ls * width + dr.minimum(2 * pos + 1, width - 1))
+    is_internal = reached & splits_here
     is_leaf = reached & created & (size <= leaf_size)
     write = is_internal | is_leaf
-    dr.scatter(records.first, dr.select(is_internal, c0, lo), node, write)
+    dr.scatter(records.first, dr.select(is_internal, first_child, lo), node, write)
     dr.scatter(records.count, dr.select(is_internal, 0, size), node, write)
     dr.scatter(records.depth, depth, node, write)
-    # The same lanes' bottom positions (pos >= P) are the next pass's candidates: keep
-    # their ranges rather than walking the treelets a third time.
-    keep = reached & ~is_slot & (size > leaf_size)
-    dr.eval(records.first, records.count, records.depth, lo, hi, node, depth, keep)
-
-    # ---- Next pass's segments: ranges still larger than a leaf at the treelet bottom ----
-    bottom = dr.arange(UInt32, S * (P + 1))
-    lane = (bottom // (P + 1)) * width + P + bottom % (P + 1)
-    keep = dr.gather(ns.Bool, keep, lane)
-    index = dr.prefix_sum(UInt32(keep))
-    last = dr.opaque(UInt32, len(index) - 1)
-    kept = dr.gather(UInt32, index, last) + UInt32(dr.gather(ns.Bool, keep, last))
-    dr.eval(index, keep, kept)
-    count = int(kept[0])
-    remap = dr.select(keep, index, NONE)
+    bottom = pos >= P
+    keep = bottom & reached & (size > leaf_size)
+    index = dr.gather(UInt32, seg_base, ls) + rank
+    remap = dr.empty(UInt32, S * (P + 1))
+    dr.scatter(remap, dr.select(keep, index, NONE), ls * (P + 1) + pos - P, bottom)
     # Every entry of the new segments is written below: no need to clear them.
     out = Segments(*(dr.empty(UInt32, count) for _ in range(4)))
     if count:
         for target, value in zip((out.start, out.end, out.node, out.depth), (lo, hi, node, depth)):
-            dr.scatter(target, dr.gather(UInt32, value, lane, keep), index, keep)
-    dr.eval(out.start, out.end, out.node, out.depth, remap)
+            dr.scatter(target, value, index, keep)
+    dr.eval(records.first, records.count, records.depth, out.start, out.end, out.node,
+            out.depth, remap)
     return out, remap
