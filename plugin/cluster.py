@@ -19,14 +19,16 @@ How the work is cut and written
   its row to a hidden row file beside it (:func:`hlbvh.render.row_path`). A chunk whose
   worker dies is retried by Dask elsewhere and resumes after its last complete frame.
 - The rows come back to the client, which writes ``stats.json`` and ``stats.csv`` once,
-  in frame order, when the work ends (also after an error or Ctrl-C, for the frames
-  that are complete), with a ``worker`` column (the worker's address); the next run,
-  local or not, records row files that a killed client left.
+  in frame order, when the work ends (also after an error or Ctrl-C, then with the row
+  files of every frame complete by then), with a ``worker`` column (the worker's
+  address); the next run, local or not, records row files that a killed client left.
 - Each worker process runs one chunk at a time with as many Dr.Jit threads as the
   worker has threads (a local cluster: the machine's cores shared among its workers),
   so nothing is oversubscribed.
 - Ctrl-C sets a Dask ``Event`` that every chunk checks before each frame, cancels the
-  tasks and closes a local cluster: only complete frames are left.
+  tasks and closes a local cluster (its workers stop at once; the workers of a
+  ``--scheduler`` finish the frame they are on, written whole): only complete frames
+  are left.
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ from hlbvh.render import (
     output_lock,
     read_row,
     remove_stale_files,
+    row_files,
     row_path,
     write_frame,
     write_row,
@@ -67,7 +70,7 @@ MAX_CHUNK = 16
 IN_FLIGHT = 2
 
 #: Seconds to wait for a scheduler to answer, and for its first worker.
-CONNECT_TIMEOUT = 20
+CONNECT_TIMEOUT = 10
 
 # One chunk at a time per worker process: Dr.Jit's thread pool is the process's.
 _ONE_CHUNK = threading.Lock()
@@ -194,29 +197,29 @@ def render_on_cluster(animation, spec: SceneSpec, frames: range, out_dir,
 
     directory = output_directory(out_dir)
     check_seed(settings.seed, frames)
-    with output_lock(directory):
+    FrameRenderer(animation, settings)  # refuses what every worker would refuse
+    with _connected(cluster, scheduler) as (client, workers, threads), output_lock(directory):
         remove_stale_files(directory)
         statistics = _Statistics(directory, {**(source or {}), **settings.as_dict()},
                                  settings.resolution)
         statistics.add_rows([])  # the settings on record before any worker writes a row
-        FrameRenderer(animation, settings)  # refuses what every worker would refuse
-        with _connected(cluster, scheduler) as (client, workers, threads):
-            size = chunk_size or max(1, min(MAX_CHUNK, math.ceil(len(frames) / (2 * workers))))
-            job = ChunkJob(spec, settings, str(directory.resolve()),
-                           f"hlbvh-cancel-{secrets.token_hex(6)}", threads)
-            rows, submitted = [], []
-            with tqdm(total=len(frames), desc=f"{animation.name} {settings.accel} on "
-                      f"{workers} workers", unit="frame", file=sys.stderr,
-                      disable=not progress, dynamic_ncols=True) as bar:
-                try:
-                    _run_chunks(client, job, _chunks(frames, statistics, size, bar),
-                                workers * IN_FLIGHT, rows, submitted, bar)
-                except KeyboardInterrupt:
-                    _cancel(client, job, submitted)
-                    raise
-                finally:
-                    statistics.add_rows(rows)
-            rendered = sorted(int(row["frame"]) for row in rows)
+        size = chunk_size or max(1, min(MAX_CHUNK, math.ceil(len(frames) / (2 * workers))))
+        job = ChunkJob(spec, settings, str(directory.resolve()),
+                       f"hlbvh-cancel-{secrets.token_hex(6)}", threads)
+        rows, submitted = [], []
+        with tqdm(total=len(frames), desc=f"{animation.name} {settings.accel} on "
+                  f"{workers} workers", unit="frame", file=sys.stderr,
+                  disable=not progress, dynamic_ncols=True) as bar:
+            try:
+                _run_chunks(client, job, _chunks(frames, statistics, size, bar),
+                            workers * IN_FLIGHT, rows, submitted, bar)
+            except KeyboardInterrupt:
+                _cancel(client, job, submitted)
+                raise
+            finally:
+                # With the rows of frames whose chunk did not end (an error, Ctrl-C).
+                statistics.add_rows(rows + row_files(directory))
+        rendered = sorted({int(row["frame"]) for row in rows})
     return statistics.ordered(), rendered
 
 
@@ -271,12 +274,6 @@ def _result(future) -> list[dict]:
     except KilledWorker as error:
         raise UserError(f"the workers rendering {_frames_of(future)} died repeatedly "
                         f"({error}); finished frames are kept: run again to resume") from None
-    except ImportError as error:
-        if (error.name or "").split(".")[0] in ("hlbvh", "mitsuba", "drjit"):
-            raise UserError(f"a worker cannot import {error.name} ({error}): install hlbvh "
-                            f"('pip install hlbvh[cluster]') in every worker's environment"
-                            ) from None
-        raise
 
 
 def _frames_of(future) -> str:
@@ -325,8 +322,18 @@ class _connected:
                 raise UserError(f"--scheduler {self.scheduler}: no worker joined within "
                                 f"{CONNECT_TIMEOUT} s; start workers with 'dask worker "
                                 f"{self.scheduler}'") from None
-        workers = len(self.client.scheduler_info()["workers"])
-        return self.client, workers, threads
+        # A worker that cannot unpickle a task (hlbvh missing there) never answers for
+        # it: every worker is asked to import hlbvh first, by a builtin it can unpickle.
+        answers = self.client.run(exec, "import hlbvh.cluster", on_error="return")
+        failed = {worker: error for worker, error in answers.items()
+                  if isinstance(error, BaseException)}
+        if failed:
+            worker, error = next(iter(failed.items()))
+            self.__exit__()
+            raise UserError(f"worker {worker} cannot import hlbvh ({type(error).__name__}: "
+                            f"{error}); install hlbvh ('pip install hlbvh[cluster]') in "
+                            f"every worker's environment")
+        return self.client, len(answers), threads
 
     def __exit__(self, *exc):
         self.client.close()

@@ -438,8 +438,7 @@ class _Statistics:
             )
         # Rows that cluster workers left beside their frames (a run that stopped before
         # writing its statistics) join the record here.
-        found = [row for row in map(read_row, directory.glob(".frame_*.row.json"))
-                 if row is not None]
+        found = row_files(directory)
         if found:
             self.add_rows(found)
         elif self.rows:
@@ -509,6 +508,12 @@ def write_row(directory: Path, row: dict) -> None:
     """Write a frame's row file (:func:`row_path`), atomically."""
     with images.atomic_output(row_path(directory, int(row["frame"]))) as temporary:
         temporary.write_text(json.dumps(row) + "\n")
+
+
+def row_files(directory: Path) -> list[dict]:
+    """The rows of every readable row file in ``directory``."""
+    rows = (read_row(path) for path in directory.glob(".frame_*.row.json"))
+    return [row for row in rows if row is not None]
 
 
 def read_row(path: Path) -> dict | None:
