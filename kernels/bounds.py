@@ -39,9 +39,12 @@ def internal_levels(node_count, node_depth) -> list:
     order = dr.detail.block_mkperm(bucket, dr.width(bucket), levels_n + 1)
     levels, start = [], 0
     for size in per_level.numpy().tolist()[:-1]:  # a few dozen counts
-        levels.append(dr.gather(UInt32, order, dr.arange(UInt32, size) + dr.opaque(UInt32, start)))
+        level = dr.gather(UInt32, order, dr.arange(UInt32, size) + dr.opaque(UInt32, start))
+        # One at a time: levels of equal size evaluated together fuse into one kernel
+        # with an output per level, a new kernel for every new such count.
+        dr.eval(level)
+        levels.append(level)
         start += size
-    dr.eval(levels)
     return levels
 
 

@@ -169,7 +169,7 @@ def _morton_topology(config: BuildConfig, stats: BuildStats, clock, points, face
     with clock("csd"):
         seed = previous.prim_ids if previous is not None and previous.prim_count == prim_count else None
         csd = csd_sort(keys, bits, coarse_bits, seed)
-    stats.csd_runs, stats.coarse_clusters = csd.runs, csd.coarse_clusters
+    stats.csd_runs, stats.csd_resorted, stats.coarse_clusters = csd.runs, csd.resorted, csd.coarse_clusters
 
     with clock("triangles"):
         tri, slot_lo, slot_hi = slot_triangles(points, faces, csd.order)

@@ -121,7 +121,9 @@ class BuildStats:
     ``sah_cost`` uses C_trav = C_isect = 1: sum over internal nodes of area/root area,
     plus sum over leaves of count * area/root area. ``morton_bits`` and
     ``quantization`` are the key the build used (what ``"auto"`` chose; 0 and ``""``
-    for the ``"sah"`` builder, which uses no keys). ``stage_ms`` holds the wall time of
+    for the ``"sah"`` builder, which uses no keys). ``csd_runs`` and ``csd_resorted``
+    are the CSD sort's run count and how many keys it had to sort (see
+    :class:`~hlbvh.kernels.csd.CsdResult`). ``stage_ms`` holds the wall time of
     each stage, synchronised (the device finished before the clock stopped).
     """
 
@@ -132,6 +134,7 @@ class BuildStats:
     depth: int = 0
     sah_cost: float = 0.0
     csd_runs: int = 0
+    csd_resorted: int = 0
     coarse_clusters: int = 0
     morton_bits: int = 30
     quantization: str = ""

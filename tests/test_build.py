@@ -145,3 +145,26 @@ def test10_key_options_build_valid_trees(bits, quantization):
     bvh = build(V, F, morton_bits=bits, quantization=quantization, coarse_bits=9, p=2)
     check_bvh(bvh, V, F, 4)
     assert bvh.stats.morton_bits in (30, 60)
+
+
+@pytest.mark.parametrize("builder", BUILDERS)
+def test11_a_new_mesh_size_compiles_no_new_kernel(builder):
+    # Sizes and counts enter kernels as opaque values: every frame of an animation may
+    # bring a new triangle, segment, cluster or level count, and a compile costs more
+    # than the build (run with an empty HOME, or Dr.Jit's disk cache hides compiles).
+    def build_some(n, seed):
+        V, F = grid(n)
+        build(V, F, builder=builder)
+        V, F = soup(2 * n * n, seed=seed)
+        build(V, F, builder=builder)
+
+    build_some(14, 1)
+    build_some(19, 2)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        build_some(23, 3)
+        compiled = [e for e in dr.kernel_history() if e.get("cache_hit") == 0]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert compiled == []
