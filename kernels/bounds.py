@@ -13,6 +13,7 @@ from __future__ import annotations
 import drjit as dr
 
 from .arrays import namespace_of
+from .geometry import box_records
 
 
 def internal_levels(node_count, node_depth) -> list:
@@ -48,12 +49,13 @@ def internal_levels(node_count, node_depth) -> list:
     return levels
 
 
-def node_bounds(node_first, node_count, tri_lo, tri_hi, levels, leaf_size: int):
+def node_bounds(node_first, node_count, slot_boxes, levels, leaf_size: int):
     """Boxes of every node.
 
     Args:
         node_first, node_count: UInt32[N] the tree (see kernels/bvh.py).
-        tri_lo, tri_hi: Array3f[F] triangle boxes in slot order.
+        slot_boxes: the triangle boxes in slot order, packed records
+            (:func:`hlbvh.kernels.geometry.slot_triangles`).
         levels: internal nodes per depth (:func:`internal_levels`).
         leaf_size: most primitives in a leaf.
     Returns:
@@ -67,8 +69,7 @@ def node_bounds(node_first, node_count, tri_lo, tri_hi, levels, leaf_size: int):
     node_max = dr.full(Array3f, -dr.inf, len(node_first))
     for k in range(leaf_size):
         has = node_count > k  # a masked gather reads 0, so select the identity
-        lo = dr.gather(Array3f, tri_lo, node_first + k, has)
-        hi = dr.gather(Array3f, tri_hi, node_first + k, has)
+        lo, hi = box_records(slot_boxes, node_first + k, has)
         node_min = dr.select(has, dr.minimum(node_min, lo), node_min)
         node_max = dr.select(has, dr.maximum(node_max, hi), node_max)
     dr.eval(node_min, node_max)

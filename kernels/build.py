@@ -29,8 +29,9 @@ from .bounds import internal_levels, leaf_histogram, node_bounds, sah_cost
 from .bvh import BVH, BuildConfig, BuildStats
 from .csd import csd_sort
 from .emission import NodeRecords, emit_hierarchy
-from .geometry import (checked_faces, checked_vertices, gather_triangles, slot_triangles,
-                       triangle_boxes, triangle_centroids, warn_if_out_of_range)
+from .geometry import (box_records, checked_faces, checked_vertices, gather_triangles,
+                       slot_triangles, triangle_boxes, triangle_centroids,
+                       warn_if_out_of_range)
 from .morton import choose_key, morton_codes, point_bounds
 from .sah import binned_sah, top_level
 
@@ -111,7 +112,7 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
         with clock("bounds"):
             levels = internal_levels(topology.node_count, topology.node_depth)
             node_min, node_max = node_bounds(topology.node_first, topology.node_count,
-                                             *slot_boxes, levels, config.leaf_size)
+                                             slot_boxes, levels, config.leaf_size)
 
     stats.stage_ms = dict(clock.ms)
     stats.total_ms = sum(clock.ms.values())
@@ -150,7 +151,7 @@ def _morton_topology(config: BuildConfig, stats: BuildStats, clock, points, face
     """The "lbvh" and "hlbvh" builders up to the node records: Morton keys, the CSD
     sort, the triangles in slot order, the SAH top level ("hlbvh"), the emission.
 
-    Returns (:class:`_Topology`, the slot triangles' boxes (lo, hi))."""
+    Returns (:class:`_Topology`, the slot triangles' packed boxes)."""
     ns = namespace_of(faces)
     UInt32 = ns.UInt32
     prim_count = len(faces) // 3
@@ -172,7 +173,7 @@ def _morton_topology(config: BuildConfig, stats: BuildStats, clock, points, face
     stats.csd_runs, stats.csd_resorted, stats.coarse_clusters = csd.runs, csd.resorted, csd.coarse_clusters
 
     with clock("triangles"):
-        tri, slot_lo, slot_hi = slot_triangles(points, faces, csd.order)
+        tri, slot_boxes = slot_triangles(points, faces, csd.order)
 
     records = NodeRecords(*(dr.zeros(UInt32, 2 * prim_count - 1) for _ in range(3)),
                           total=dr.opaque(UInt32, 1))
@@ -182,7 +183,8 @@ def _morton_topology(config: BuildConfig, stats: BuildStats, clock, points, face
         prim_root = dr.zeros(UInt32, prim_count)
     else:
         with clock("sah_top"):
-            top = top_level(csd.cluster_start, slot_lo, slot_hi, config.sah_bins)
+            slots = dr.arange(UInt32, prim_count)
+            top = top_level(csd.cluster_start, *box_records(slot_boxes, slots), config.sah_bins)
             internal = top.tree.node_count == 0
             nodes = dr.arange(UInt32, top.tree.size)
             dr.scatter(records.first, top.tree.node_first, nodes, internal)
@@ -199,4 +201,4 @@ def _morton_topology(config: BuildConfig, stats: BuildStats, clock, points, face
         node_first, node_count, node_depth = (
             dr.gather(UInt32, a, used) for a in (records.first, records.count, records.depth))
         dr.eval(node_first, node_count, node_depth)
-    return _Topology(node_first, node_count, node_depth, csd.order, tri), (slot_lo, slot_hi)
+    return _Topology(node_first, node_count, node_depth, csd.order, tri), slot_boxes

@@ -151,14 +151,35 @@ def triangle_boxes(tri):
     return dr.minimum(dr.minimum(tri[0], tri[1]), tri[2]), dr.maximum(dr.maximum(tri[0], tri[1]), tri[2])
 
 
+#: Floats per packed box record: lo.xyz, hi.xyz, two zeros (a power of two, so a
+#: record is read with one packet gather).
+BOX_RECORD = 8
+
+
 def slot_triangles(points, faces, prim_ids):
-    """``(tri, lo, hi)``, evaluated together (one kernel): the triangles of faces
-    ``prim_ids`` in slot order (Matrix3f, rows p0, p1, p2) and their boxes (Array3f).
-    Evaluating the boxes separately would run the gathers again for each component."""
+    """``(tri, boxes)``, evaluated together (one kernel): the triangles of faces
+    ``prim_ids`` in slot order (Matrix3f, rows p0, p1, p2) and their boxes as packed
+    records (Float[8·F], see :func:`box_records`). A record per slot keeps a box in one
+    cache line where three lower and three upper coordinates in six arrays would take
+    six: leaves read their slots' boxes at random places."""
+    ns = namespace_of(faces)
     tri = gather_triangles(points, faces, prim_ids)
     lo, hi = triangle_boxes(tri)
-    dr.eval(tri, lo, hi)
-    return tri, lo, hi
+    n = dr.width(prim_ids)
+    boxes = dr.empty(ns.Float, BOX_RECORD * n)
+    zero = dr.zeros(ns.Float, n)
+    dr.scatter(boxes, ns.ArrayXf([lo.x, lo.y, lo.z, hi.x, hi.y, hi.z, zero, zero]),
+               dr.arange(ns.UInt32, n))
+    dr.eval(tri, boxes)
+    return tri, boxes
+
+
+def box_records(boxes, index, active=True):
+    """``(lo, hi)``, Array3f: the packed box records ``index`` of ``boxes``
+    (:func:`slot_triangles`), one packet gather each."""
+    ns = namespace_of(boxes)
+    r = dr.gather(ns.ArrayXf, boxes, index, active, shape=(BOX_RECORD, dr.width(index)))
+    return ns.Array3f(r[0], r[1], r[2]), ns.Array3f(r[3], r[4], r[5])
 
 
 def triangle_centroids(points, faces):

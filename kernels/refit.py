@@ -24,10 +24,10 @@ def refit(bvh, vertices):
     """
     t0 = time.perf_counter()
     points = checked_vertices(vertices, bvh.faces)
-    tri, tri_lo, tri_hi = slot_triangles(points, bvh.faces, bvh.prim_ids)
+    tri, boxes = slot_triangles(points, bvh.faces, bvh.prim_ids)
     bvh.tri_p0, bvh.tri_p1, bvh.tri_p2 = tri[0], tri[1], tri[2]
     bvh.node_min, bvh.node_max = node_bounds(
-        bvh.node_first, bvh.node_count, tri_lo, tri_hi, bvh.levels, bvh.config.leaf_size
+        bvh.node_first, bvh.node_count, boxes, bvh.levels, bvh.config.leaf_size
     )
     dr.sync_thread()
     bvh.stats.stage_ms["refit"] = (time.perf_counter() - t0) * 1e3
