@@ -45,10 +45,11 @@ import drjit as dr
 
 from .arrays import namespace_of, plain
 
-# Most bits per pass of the LSD radix sort. CPU: passes of 10, 11 and 12 bits cost the
-# same per pass here (1M keys), 12 lets a 12-bit coarse key take one pass and a 24-bit
-# one two; GPU: Dr.Jit's own choice in dr.argsort (8, shared memory is smaller).
-_RADIX_BITS = {dr.JitBackend.LLVM: 12, dr.JitBackend.CUDA: 8}
+# Most bits per pass of the LSD radix sort. CPU: 15 sorts 30-bit keys in two passes
+# and 60-bit ones in four, and a 12-bit coarse key still in one (a pass of 15 bits
+# costs little more than one of 10 at 1M keys, see docs/decisions.md); GPU: Dr.Jit's
+# own choice in dr.argsort (8, shared memory is smaller).
+_RADIX_BITS = {dr.JitBackend.LLVM: 15, dr.JitBackend.CUDA: 8}
 
 
 @dataclass
