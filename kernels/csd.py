@@ -123,12 +123,16 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
     dr.eval(key, run_head, descent)
     run_start = dr.compress(run_head)  # UInt32[R]
     runs = dr.width(run_start)
+    inner_descents = dr.count(descent & ~run_head)
     if not dr.any(descent)[0]:
         # Already sorted in start order: each run is a whole voxel, nothing moves.
         return CsdResult(start, key, runs, coarse_clusters=runs, resorted=0, cluster_start=run_start)
-    if runs > n // 2:
+    if runs > n // 2 or inner_descents[0] >= runs:
         # Incoherent keys (a random soup): the runs are about as many as the keys, and
         # sorting and decoding them would cost more than sorting the keys themselves.
+        # Or as many descents inside runs as there are runs (a mesh that moved by more
+        # than a fine cell since the start order was taken): nearly every voxel would
+        # need its fine sort, so the keys are sorted whole at once.
         order, sorted_keys = _sorted_whole(key, key_bits, start)
         sorted_coarse = _coarse_keys(sorted_keys, key_bits, coarse_bits)
         voxel_start = dr.compress(
