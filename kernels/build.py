@@ -30,8 +30,8 @@ from .bvh import BVH, BuildConfig, BuildStats
 from .csd import csd_sort
 from .emission import NodeRecords, emit_hierarchy
 from .geometry import (box_records, checked_faces, checked_vertices, gather_triangles,
-                       slot_triangles, triangle_boxes, triangle_centroids,
-                       warn_if_out_of_range)
+                       records_to_triangles, slot_triangles, triangle_boxes,
+                       triangle_records, warn_if_out_of_range)
 from .morton import choose_key, morton_codes, point_bounds
 from .sah import binned_sah, top_level
 
@@ -157,12 +157,13 @@ def _morton_topology(config: BuildConfig, stats: BuildStats, clock, points, face
     prim_count = len(faces) // 3
 
     with clock("morton"):
-        centroid = triangle_centroids(points, faces)
+        centroid, tri_records = triangle_records(points, faces)
         lo, hi = point_bounds(centroid)
         bits, quantization = config.morton_bits, config.quantization
         if bits == "auto":
-            bits, quantization = choose_key(*triangle_boxes(_input_triangles(points, faces)),
-                                            lo, hi, quantization)
+            bits, quantization = choose_key(
+                *triangle_boxes(records_to_triangles(tri_records, dr.arange(UInt32, prim_count))),
+                lo, hi, quantization)
         keys = morton_codes(centroid, lo, hi, bits, quantization)
     stats.morton_bits, stats.quantization = bits, quantization
     coarse_bits = config.coarse_bits  # the same coarse voxels for 30- and 60-bit keys
@@ -173,8 +174,9 @@ def _morton_topology(config: BuildConfig, stats: BuildStats, clock, points, face
     stats.csd_runs, stats.csd_resorted, stats.coarse_clusters = csd.runs, csd.resorted, csd.coarse_clusters
 
     with clock("triangles"):
-        tri, slot_boxes = slot_triangles(points, faces, csd.order)
+        tri, slot_boxes = slot_triangles(records_to_triangles(tri_records, csd.order))
 
+    del tri_records  # 64 bytes a triangle, no longer needed
     records = NodeRecords(*(dr.zeros(UInt32, 2 * prim_count - 1) for _ in range(3)),
                           total=dr.opaque(UInt32, 1))
     if config.builder == "lbvh" or coarse_bits == 0 or csd.coarse_clusters == 1:

@@ -156,16 +156,16 @@ def triangle_boxes(tri):
 BOX_RECORD = 8
 
 
-def slot_triangles(points, faces, prim_ids):
-    """``(tri, boxes)``, evaluated together (one kernel): the triangles of faces
-    ``prim_ids`` in slot order (Matrix3f, rows p0, p1, p2) and their boxes as packed
-    records (Float[8·F], see :func:`box_records`). A record per slot keeps a box in one
-    cache line where three lower and three upper coordinates in six arrays would take
-    six: leaves read their slots' boxes at random places."""
-    ns = namespace_of(faces)
-    tri = gather_triangles(points, faces, prim_ids)
+def slot_triangles(tri):
+    """``(tri, boxes)``, evaluated together (one kernel): the triangles in slot order
+    (a lazy Matrix3f, rows p0, p1, p2: :func:`gather_triangles` or
+    :func:`records_to_triangles`) and their boxes as packed records (Float[8·F], see
+    :func:`box_records`). A record per slot keeps a box in one cache line where three
+    lower and three upper coordinates in six arrays would take six: leaves read their
+    slots' boxes at random places."""
+    ns = namespace_of(tri[0].x)
     lo, hi = triangle_boxes(tri)
-    n = dr.width(prim_ids)
+    n = dr.width(tri[0].x)
     boxes = dr.empty(ns.Float, BOX_RECORD * n)
     zero = dr.zeros(ns.Float, n)
     dr.scatter(boxes, ns.ArrayXf([lo.x, lo.y, lo.z, hi.x, hi.y, hi.z, zero, zero]),
@@ -182,12 +182,32 @@ def box_records(boxes, index, active=True):
     return ns.Array3f(r[0], r[1], r[2]), ns.Array3f(r[3], r[4], r[5])
 
 
-def triangle_centroids(points, faces):
-    """Array3f[F], evaluated: the centre of each face's box, in input order (what the
-    Morton keys quantise). Only the centroids are stored: the boxes a build needs are
-    those of its slot order, taken where the triangles are gathered in that order."""
+#: Floats per packed triangle record: p0, p1, p2 (xyz each), seven zeros.
+TRIANGLE_RECORD = 16
+
+
+def triangle_records(points, faces):
+    """``(centroid, records)``, evaluated together, in input order: the centre of each
+    face's box (Array3f[F], what the Morton keys quantise) and the face's vertices as
+    packed records (Float[16·F]). Reading a face through ``faces`` and the vertex array
+    takes four cache lines at random places; its record, one (see
+    :func:`records_to_triangles`)."""
     ns = namespace_of(faces)
-    lo, hi = triangle_boxes(gather_triangles(points, faces, dr.arange(ns.UInt32, len(faces) // 3)))
+    n = len(faces) // 3
+    tri = gather_triangles(points, faces, dr.arange(ns.UInt32, n))
+    lo, hi = triangle_boxes(tri)
     centroid = (lo + hi) * 0.5
-    dr.eval(centroid)
-    return centroid
+    records = dr.empty(ns.Float, TRIANGLE_RECORD * n)
+    rows = [c for p in (tri[0], tri[1], tri[2]) for c in p]
+    rows += [dr.zeros(ns.Float, n)] * (TRIANGLE_RECORD - len(rows))
+    dr.scatter(records, ns.ArrayXf(rows), dr.arange(ns.UInt32, n))
+    dr.eval(centroid, records)
+    return centroid, records
+
+
+def records_to_triangles(records, prims):
+    """Matrix3f[len(prims)] (lazy): the triangles of faces ``prims`` read from their
+    packed records (:func:`triangle_records`), one packet gather each."""
+    ns = namespace_of(prims)
+    r = dr.gather(ns.ArrayXf, records, prims, shape=(TRIANGLE_RECORD, dr.width(prims)))
+    return ns.Matrix3f(*(ns.Array3f(r[3 * k], r[3 * k + 1], r[3 * k + 2]) for k in range(3)))

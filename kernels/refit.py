@@ -8,7 +8,7 @@ import time
 import drjit as dr
 
 from .bounds import node_bounds, sah_cost
-from .geometry import checked_vertices, slot_triangles
+from .geometry import checked_vertices, gather_triangles, slot_triangles
 
 
 def refit(bvh, vertices):
@@ -24,7 +24,7 @@ def refit(bvh, vertices):
     """
     t0 = time.perf_counter()
     points = checked_vertices(vertices, bvh.faces)
-    tri, boxes = slot_triangles(points, bvh.faces, bvh.prim_ids)
+    tri, boxes = slot_triangles(gather_triangles(points, bvh.faces, bvh.prim_ids))
     bvh.tri_p0, bvh.tri_p1, bvh.tri_p2 = tri[0], tri[1], tri[2]
     bvh.node_min, bvh.node_max = node_bounds(
         bvh.node_first, bvh.node_count, boxes, bvh.levels, bvh.config.leaf_size
