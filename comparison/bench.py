@@ -13,7 +13,7 @@ import json
 
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BUILDERS
-from hlbvh.render import _int_flag
+from hlbvh.options import int_flag
 
 _SUITES = {
     "build": "hlbvh.comparison.bench_build",
@@ -36,9 +36,9 @@ def configure(parser) -> None:
 def run(args) -> int:
     """``hlbvh bench``: every option checked (one line naming it, exit status 2), then
     the suite's ``run``."""
-    kwargs = {"repeats": _int_flag("--repeats", args.repeats, least=1)}
+    kwargs = {"repeats": int_flag("--repeats", args.repeats, least=1)}
     if args.sizes is not None:
-        kwargs["sizes"] = [_int_flag("--sizes", s.strip(), least=1) for s in args.sizes.split(",")]
+        kwargs["sizes"] = [int_flag("--sizes", s.strip(), least=1) for s in args.sizes.split(",")]
     builders = None if args.builder is None else [b.strip() for b in args.builder.split(",")]
     for builder in builders or ():
         if builder not in BUILDERS:
@@ -48,7 +48,7 @@ def run(args) -> int:
         if builders:
             kwargs["builders"] = builders
     else:
-        kwargs["resolution"] = _int_flag("--resolution", args.resolution, least=1)
+        kwargs["resolution"] = int_flag("--resolution", args.resolution, least=1)
         if builders:
             if len(builders) > 1:
                 raise UserError(f"--builder {args.builder!r}: bench {args.suite} takes one builder")

@@ -18,7 +18,7 @@ triangles), with :func:`hlbvh.build` on frames ``0 .. drift_frames-1``:
 unless Dr.Jit's disk cache holds them); ``min``/``median`` are over frames ``1 ..``.
 
 **Frame time** at ``resolution``² and each ``spp``, through
-:class:`hlbvh.render.FrameRenderer` (what ``hlbvh render`` does), ``repeats + 1``
+:class:`hlbvh.frame.FrameRenderer` (what ``hlbvh render`` does), ``repeats + 1``
 consecutive frames per spp, every frame a new pose, the two accelerators taking turns
 frame by frame (both see the same machine load):
 
@@ -46,7 +46,6 @@ from __future__ import annotations
 
 import os
 import statistics
-import time
 
 import drjit as dr
 import mitsuba as mi
@@ -54,7 +53,9 @@ import numpy as np
 
 import hlbvh
 from hlbvh.scenes import get as get_scene
-from hlbvh.render import FrameRenderer, RenderSettings
+from hlbvh.frame import FrameRenderer
+from hlbvh.settings import RenderSettings
+from hlbvh.timing import timed
 
 SCENES = ("cloth", "twist", "fracture")
 SPPS = (1, 4, 16)
@@ -160,15 +161,15 @@ def _build_runs(animation, scene, builder: str, drift_frames: int) -> dict:
     tree = seeded = fresh = None
     for i in range(drift_frames):
         vertices = positions(i)
-        ms, fresh = _timed(lambda: hlbvh.build(vertices, faces, builder=builder))
+        ms, fresh = timed(lambda: hlbvh.build(vertices, faces, builder=builder))
         fresh_ms.append(ms)
         if i == 0:
             tree = seeded = fresh
             continue
-        ms, seeded = _timed(lambda: hlbvh.build(vertices, faces, builder=builder,
+        ms, seeded = timed(lambda: hlbvh.build(vertices, faces, builder=builder,
                                                 previous=seeded))
         seeded_ms.append(ms)
-        ms, _ = _timed(lambda: tree.refit(vertices))
+        ms, _ = timed(lambda: tree.refit(vertices))
         refit_ms.append(ms)
         drift.append(tree.stats.sah_cost / fresh.stats.sah_cost)
     return {
@@ -220,15 +221,6 @@ def _crossover(spps, ours: dict, native: dict) -> float | None:
     if k_ours <= k_native:  # ours gains (or keeps its lead) with every sample
         return None if a_ours < a_native else 0.0
     return max(0.0, float((a_native - a_ours) / (k_ours - k_native)))
-
-
-def _timed(fn):
-    """(wall ms with the device synchronised, result)."""
-    dr.sync_thread()
-    start = time.perf_counter()
-    result = fn()
-    dr.sync_thread()
-    return (time.perf_counter() - start) * 1e3, result
 
 
 def format_table(rows: list[dict]) -> str:

@@ -64,30 +64,16 @@ from pathlib import Path
 import drjit as dr
 import mitsuba as mi
 
-from hlbvh import images, scenes
+from hlbvh import images
 from hlbvh.accel import UpdatePolicy
 from hlbvh.comparison import plots, report
 from hlbvh.comparison.metrics import hit_agreement, image_metrics
 from hlbvh.errors import UserError
-from hlbvh.integrators.common import BUILD_OPTIONS
 from hlbvh.kernels.bvh import BuildConfig
-from hlbvh.render import (
-    DEFAULT_MAX_DEPTH,
-    add_scene_options,
-    UPDATES,
-    RenderSettings,
-    _choice,
-    _int_flag,
-    _option_value,
-    check_seed,
-    frame_name,
-    open_animation,
-    out_flag,
-    output_directory,
-    parse_resolution,
-    render_animation,
-    seed_flag,
-)
+from hlbvh.options import add_scene_options, open_animation, out_flag, render_settings
+from hlbvh.output import frame_name, output_directory
+from hlbvh.render import render_animation
+from hlbvh.settings import RenderSettings, check_seed
 
 #: Largest absolute per-channel difference of a pixel still counted as equal to native:
 #: the absolute part of the tolerance tests/test_integrators.py::test11 justified from
@@ -100,32 +86,6 @@ ACCELS = ("native", "hlbvh")
 #: Image metrics shown per frame (all of them are in ``results.json`` under ``image``).
 _IMAGE_COLUMNS = ("max_abs_diff", "mean_abs_diff", "fraction_identical",
                   "fraction_within_tolerance", "psnr_db", "nonfinite_mismatch_pixels")
-
-
-def render_settings(args, spp=None) -> RenderSettings:
-    """The :class:`hlbvh.render.RenderSettings` of the parsed options of
-    :func:`add_scene_options` (``hlbvh_path``, accelerator native; ``spp`` given here
-    overrides ``--spp``).
-
-    Raises:
-        UserError: a malformed number or choice, naming the option.
-        ValueError: a builder option out of range, naming it.
-    """
-    build_options = {name: _option_value(getattr(args, name)) for name in BUILD_OPTIONS
-                     if getattr(args, name, None) is not None}
-    update = getattr(args, "update", None)
-    if spp is None and args.spp is not None:
-        spp = _int_flag("--spp", args.spp, least=1)
-    return RenderSettings(
-        resolution=None if args.resolution is None else parse_resolution(args.resolution),
-        spp=spp,
-        integrator="path",
-        max_depth=_int_flag("--max-depth", args.max_depth, least=-1),
-        accel="native",
-        build_options=build_options,
-        update=None if update is None else _choice("--update", update, UPDATES),
-        seed=seed_flag(args.seed),
-    )
 
 
 # ---------------------------------------------------------------------------------------

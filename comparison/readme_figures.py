@@ -38,7 +38,8 @@ import mitsuba as mi
 from hlbvh.comparison import bench_build, bench_frame, bench_trace, sweep
 from hlbvh.comparison.report import format_value
 from hlbvh.images import atomic_output
-from hlbvh.render import RenderSettings, open_animation
+from hlbvh.options import open_animation
+from hlbvh.settings import RenderSettings
 
 #: What the README's figures are measured on (each overridable on the command line).
 SIZES = {

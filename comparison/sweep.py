@@ -23,7 +23,7 @@ spelled out: ``builder=lbvh+leaf_size=8+update=refit`` (its label is that text).
 
 What is measured
 ----------------
-Every setting gets its own loaded scene and :class:`hlbvh.render.FrameRenderer`
+Every setting gets its own loaded scene and :class:`hlbvh.frame.FrameRenderer`
 (``hlbvh_path``, the same seed per frame for all). First a cold start: every setting
 renders the first two frames of ``--frames`` once, untimed (the first compiles the
 kernels Dr.Jit's disk cache does not hold, the second is the first update, which
@@ -59,7 +59,6 @@ from __future__ import annotations
 
 import statistics
 import sys
-import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -68,23 +67,18 @@ import mitsuba as mi
 
 from hlbvh.comparison import plots, report
 from hlbvh.comparison.bench_trace import primary_rays, secondary_rays
-from hlbvh.comparison.compare import TOLERANCE, render_settings
-from hlbvh.render import add_scene_options
+from hlbvh.accel import UPDATES
+from hlbvh.comparison.compare import TOLERANCE
 from hlbvh.comparison.metrics import image_metrics
 from hlbvh.errors import UserError
+from hlbvh.frame import FrameRenderer
 from hlbvh.images import as_image
 from hlbvh.integrators.common import BUILD_OPTIONS
-from hlbvh.render import (
-    UPDATES,
-    FrameRenderer,
-    RenderSettings,
-    _int_flag,
-    _option_value,
-    check_seed,
-    open_animation,
-    out_flag,
-    output_directory,
-)
+from hlbvh.options import (add_scene_options, int_flag, open_animation, option_value, out_flag,
+                           render_settings)
+from hlbvh.output import output_directory
+from hlbvh.settings import RenderSettings, check_seed
+from hlbvh.timing import timed
 
 #: The default grid: each setting varies one knob of the defaults (builder options, and
 #: ``update``: our accelerator's per-frame policy).
@@ -196,7 +190,7 @@ def _spelled_out(word: str) -> dict:
         if key not in (*BUILD_OPTIONS, "update") or not value.strip():
             raise UserError(f"--settings {word!r}: {part!r} is not key=value with a key among "
                             f"{', '.join((*BUILD_OPTIONS, 'update'))}")
-        options[key] = _option_value(value)
+        options[key] = option_value(value)
     return options
 
 
@@ -269,17 +263,18 @@ def _frame(renderer: FrameRenderer, i: int, curve: list[int], spp: int) -> tuple
     render_ms = {curve[0]: row["render_ms"]}
     kept = image
     for samples in curve[1:]:
-        dr.sync_thread()
-        start = time.perf_counter()
-        image = mi.render(renderer.scene, seed=row["seed"], spp=samples)
-        dr.eval(image)
-        dr.sync_thread()
-        render_ms[samples] = (time.perf_counter() - start) * 1e3
+        render_ms[samples], image = timed(_render, renderer.scene, row["seed"], samples)
         if samples == spp:
             kept = image
     run = {"build_ms": row["build_ms"], "sah_cost": row["sah_cost"],
            "decision": row["decision"], "render_ms": render_ms}
     return run, as_image(kept)[..., :3]
+
+
+def _render(scene, seed: int, spp: int):
+    image = mi.render(scene, seed=seed, spp=spp)
+    dr.eval(image)
+    return image
 
 
 def _throughput(renderers: dict) -> dict:
@@ -296,15 +291,15 @@ def _throughput(renderers: dict) -> dict:
         for label, renderer in renderers.items():
             accel = renderer.integrator.accel(renderer.scene)
             for kind, (ray, coherent) in rays.items():
-                dr.sync_thread()
-                start = time.perf_counter()
-                pi = accel.ray_intersect_preliminary(ray, coherent)
-                dr.eval(pi.t, pi.prim_uv, pi.prim_index, pi.shape_index)
-                dr.sync_thread()
-                times[label][kind].append(time.perf_counter() - start)
-    return {label: {kind: dr.width(rays[kind][0]) / min(seconds[1:]) / 1e6
-                    for kind, seconds in per_kind.items()}
+                times[label][kind].append(timed(_trace, accel, ray, coherent)[0])
+    return {label: {kind: dr.width(rays[kind][0]) / min(ms[1:]) / 1e3
+                    for kind, ms in per_kind.items()}
             for label, per_kind in times.items()}
+
+
+def _trace(accel, ray, coherent: bool) -> None:
+    pi = accel.ray_intersect_preliminary(ray, coherent)
+    dr.eval(pi.t, pi.prim_uv, pi.prim_index, pi.shape_index)
 
 
 def _row(setting: Setting, runs: list[dict], cold_ms: float, throughput: dict, spp: int,
@@ -399,8 +394,8 @@ def configure(parser) -> None:
 def run(args) -> int:
     """``hlbvh sweep``: see the module docstring. Returns the exit status (0)."""
     settings = parse_settings(args.settings)
-    spp = DEFAULT_SPP if args.spp is None else _int_flag("--spp", args.spp, least=1)
-    curve = [_int_flag("--spp-curve", s, least=1) for s in args.spp_curve.split(",")]
+    spp = DEFAULT_SPP if args.spp is None else int_flag("--spp", args.spp, least=1)
+    curve = [int_flag("--spp-curve", s, least=1) for s in args.spp_curve.split(",")]
     base = render_settings(args, spp=spp)
     animation, source, frames = open_animation(
         args.scene, args.frames_dir, args.triangles,

@@ -12,11 +12,11 @@ How the work is cut and written
   range split in at least two chunks per worker, at most :data:`MAX_CHUNK` frames each),
   a few chunks per worker in flight at a time, so a billion frames are never listed.
   A chunk is one task, :func:`render_chunk`: its worker loads the scene (once per
-  process), makes a :class:`hlbvh.render.FrameRenderer` whose first frame is a fresh
+  process), makes a :class:`hlbvh.frame.FrameRenderer` whose first frame is a fresh
   build, and renders the chunk's frames in order, so the accelerator's policy (seeded
   rebuilds, refits) works inside the chunk as in one process.
 - Each frame is written as in a local render (EXR, PNG, atomically, read back), then
-  its row to a hidden row file beside it (:func:`hlbvh.render.row_path`). A chunk whose
+  its row to a hidden row file beside it (:func:`hlbvh.output.row_path`). A chunk whose
   worker dies is retried by Dask elsewhere and resumes after its last complete frame.
 - The rows come back to the client, which writes ``stats.json`` and ``stats.csv`` once,
   in frame order, when the work ends (also after an error or Ctrl-C, then with the row
@@ -46,22 +46,12 @@ import drjit as dr
 from distributed import Client, Event, KilledWorker, LocalCluster, as_completed, get_worker
 
 from hlbvh.errors import UserError
-from hlbvh.render import (
-    FrameRenderer,
-    RenderSettings,
-    _Statistics,
-    check_seed,
-    frame_images_complete,
-    open_animation,
-    output_directory,
-    output_lock,
-    read_row,
-    remove_stale_files,
-    row_files,
-    row_path,
-    write_frame,
-    write_row,
-)
+from hlbvh.frame import FrameRenderer
+from hlbvh.options import open_animation
+from hlbvh.output import (Statistics, frame_images_complete, output_directory, output_lock,
+                          read_row, remove_stale_files, row_files, row_path, write_frame,
+                          write_row)
+from hlbvh.settings import RenderSettings, check_seed
 
 #: Most frames in a chunk unless ``--chunk-size`` says otherwise.
 MAX_CHUNK = 16
@@ -79,7 +69,7 @@ _ONE_CHUNK = threading.Lock()
 @dataclass(frozen=True)
 class SceneSpec:
     """What a worker needs to open the animation as the client did: the command line's
-    strings (paths absolute) for :func:`hlbvh.render.open_animation`."""
+    strings (paths absolute) for :func:`hlbvh.options.open_animation`."""
 
     scene: str
     frames_dir: str | None
@@ -178,7 +168,7 @@ def render_on_cluster(animation, spec: SceneSpec, frames: range, out_dir,
         spec: the scene, as :class:`SceneSpec`.
         frames: the frame range.
         out_dir: the output folder, seen by every worker at the same path.
-        settings: the :class:`hlbvh.render.RenderSettings`.
+        settings: the :class:`hlbvh.settings.RenderSettings`.
         source: what identifies the scene, recorded with the settings.
         cluster: ``"local:N"``: a ``LocalCluster`` of N worker processes on this machine.
         scheduler: the address of a running Dask scheduler (exclusive with ``cluster``).
@@ -200,7 +190,7 @@ def render_on_cluster(animation, spec: SceneSpec, frames: range, out_dir,
     FrameRenderer(animation, settings)  # refuses what every worker would refuse
     with _connected(cluster, scheduler) as (client, workers, threads), output_lock(directory):
         remove_stale_files(directory)
-        statistics = _Statistics(directory, {**(source or {}), **settings.as_dict()},
+        statistics = Statistics(directory, {**(source or {}), **settings.as_dict()},
                                  settings.resolution)
         statistics.add_rows([])  # the settings on record before any worker writes a row
         size = chunk_size or max(1, min(MAX_CHUNK, math.ceil(len(frames) / (2 * workers))))

@@ -164,24 +164,6 @@ def write_png(path, image) -> Path:
     return _write_with_oiio(Path(path), "png", spec, encoded)
 
 
-def write_frame(directory, name: str, image) -> dict[str, Path]:
-    """Write one rendered frame as ``<name>.exr`` (linear) and ``<name>.png`` (sRGB).
-
-    Only the first three channels (or the one grey channel) go to the PNG; the EXR
-    holds them all.
-
-    Returns:
-        ``{"exr": path, "png": path}``.
-    """
-    pixels = as_image(image)
-    directory = Path(directory)
-    colour = pixels[..., :3] if pixels.shape[2] >= 3 else pixels[..., :1]
-    return {
-        "exr": write_exr(directory / f"{name}.exr", pixels),
-        "png": write_png(directory / f"{name}.png", colour),
-    }
-
-
 def read_exr(path, channel_names: Sequence[str] | None = None) -> np.ndarray:
     """Read an EXR (or any float image OpenImageIO reads) into numpy.
 

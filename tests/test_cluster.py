@@ -18,7 +18,7 @@ import pytest
 distributed = pytest.importorskip("distributed")
 
 from hlbvh import cli, cluster, images, scenes  # noqa: E402
-from hlbvh.render import STATS_FIELDS  # noqa: E402
+from hlbvh.frame import STATS_FIELDS  # noqa: E402
 from hlbvh.scenes.procedural import mesh_object  # noqa: E402
 
 TINY = ["--resolution", "16", "--spp", "1", "--quiet"]

@@ -131,10 +131,23 @@ def test05_png_grey_and_alpha(tmp_path):
 
 
 def test06_write_frame_writes_exr_and_png_of_one_frame(tmp_path):
+    """hlbvh.output.write_frame (what a render writes per frame): every channel to the
+    EXR bit for bit, R, G, B to the PNG, then the row recorded."""
+    from hlbvh.output import write_frame
+
+    class Renderer:
+        def channel_names(self, pixels):
+            return ["R", "G", "B", "depth", "prim_index"][:pixels.shape[2]]
+
     image = np.clip(awkward_values(channels=5), -1, 2)
-    files = images.write_frame(tmp_path / "out", "frame_0003", image)
-    assert files == {"exr": tmp_path / "out/frame_0003.exr", "png": tmp_path / "out/frame_0003.png"}
-    assert np.array_equal(images.read_exr(files["exr"]).view(np.uint32), image.view(np.uint32))
+    recorded = []
+    (tmp_path / "out").mkdir()
+    write_frame(tmp_path / "out", 3, image, Renderer(), {"frame": 3}, recorded.append)
+    files = {"exr": tmp_path / "out/frame_0003.exr", "png": tmp_path / "out/frame_0003.png"}
+    assert recorded == [{"frame": 3}]
+    names = Renderer().channel_names(image)
+    assert np.array_equal(images.read_exr(files["exr"], names).view(np.uint32),
+                          image.view(np.uint32))
     spec, pixels = file_spec(files["png"])
     assert spec.nchannels == 3 and pixels.shape == (5, 7, 3)
     assert np.array_equal(pixels, images.srgb_encode(image[..., :3]))

@@ -17,7 +17,7 @@ import pytest
 from hlbvh import cli, images, scenes
 from hlbvh.comparison import bench_frame
 from hlbvh.integrators.aov import CHANNELS
-from hlbvh.render import STATS_FIELDS
+from hlbvh.frame import STATS_FIELDS
 from hlbvh.scenes.procedural import mesh_object
 
 

@@ -52,8 +52,8 @@ def run(tmp_path_factory):
         native, ours = synthetic_frame(i)
         where = inside if i == 0 else outside
         pictures[i] = {
-            "native": images.write_frame(where / "native", f"frame_{i:04d}", native)["png"],
-            "hlbvh": images.write_frame(where / "hlbvh", f"frame_{i:04d}", ours)["png"],
+            "native": images.write_png(where / "native" / f"frame_{i:04d}.png", native),
+            "hlbvh": images.write_png(where / "hlbvh" / f"frame_{i:04d}.png", ours),
             "diff": images.write_difference_map(where / "diff" / f"frame_{i:04d}.png",
                                                 native, ours),
         }

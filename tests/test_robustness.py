@@ -19,8 +19,11 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from hlbvh import cli, images, render as render_module, scenes
-from hlbvh.render import LOCK_NAME, RenderSettings, render_animation
+from hlbvh import cli, images, output, scenes
+from hlbvh.frame import FrameRenderer
+from hlbvh.output import LOCK_NAME
+from hlbvh.render import render_animation
+from hlbvh.settings import RenderSettings
 from hlbvh.scenes.procedural import mesh_object
 
 TINY = ["--triangles", "200", "--resolution", "16", "--spp", "1", "--accel", "native",
@@ -173,7 +176,7 @@ def test02_a_short_write_reported_as_success_is_caught(tmp_path, capsys, monkeyp
 def test03_a_failed_statistics_write_stops_and_the_next_run_heals(tmp_path, capsys,
                                                                   monkeypatch):
     out = tmp_path / "out"
-    real = render_module._Statistics._write_csv
+    real = output.Statistics._write_csv
     calls = []
 
     def failing(self):
@@ -182,7 +185,7 @@ def test03_a_failed_statistics_write_stops_and_the_next_run_heals(tmp_path, caps
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         real(self)
 
-    monkeypatch.setattr(render_module._Statistics, "_write_csv", failing)
+    monkeypatch.setattr(output.Statistics, "_write_csv", failing)
     status, _, err = run_cli(capsys, "render", "cloth", "--frames", "0:3", "--out", out, *TINY)
     assert status == 2 and len(err) == 1 and "No space left on device" in err[0], err
     monkeypatch.undo()
@@ -283,7 +286,7 @@ class Frames:
 def test08_a_billion_frames_are_iterated_not_listed(tmp_path, monkeypatch):
     animation = scenes.get("cloth", triangles=200, frames=10**9)
     settings = RenderSettings(resolution=(8, 8), spp=1, accel="native")
-    real = render_module.FrameRenderer.render
+    real = FrameRenderer.render
     calls = []
 
     def render_twice(self, i, spp=None):
@@ -292,7 +295,7 @@ def test08_a_billion_frames_are_iterated_not_listed(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return real(self, i, spp)
 
-    monkeypatch.setattr(render_module.FrameRenderer, "render", render_twice)
+    monkeypatch.setattr(FrameRenderer, "render", render_twice)
     with pytest.raises(KeyboardInterrupt):
         render_animation(animation, Frames(range(0, 10**9), 5), tmp_path, settings,
                          progress=False)
@@ -395,7 +398,7 @@ def test13_bench_compare_and_sweep_flags(tmp_path, capsys, argv, flag):
 def test14_ctrl_c_inside_a_dr_jit_loop_exits_130_with_complete_frames(tmp_path, capsys,
                                                                        monkeypatch):
     """Dr.Jit turns a KeyboardInterrupt inside a traced loop into a RuntimeError."""
-    real = render_module.FrameRenderer._follow
+    real = FrameRenderer._update_accel
     calls = []
 
     def follow(self):
@@ -406,7 +409,7 @@ def test14_ctrl_c_inside_a_dr_jit_loop_exits_130_with_complete_frames(tmp_path, 
             dr.while_loop((mi.UInt32(0),), lambda k: k < 3, body)
         return real(self)
 
-    monkeypatch.setattr(render_module.FrameRenderer, "_follow", follow)
+    monkeypatch.setattr(FrameRenderer, "_update_accel", follow)
     out = tmp_path / "out"
     argv = [a for a in TINY if a not in ("--accel", "native")]
     status, _, err = run_cli(capsys, "render", "cloth", "--frames", "0:3", "--out", out, *argv)

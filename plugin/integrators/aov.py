@@ -65,7 +65,7 @@ class AOVIntegrator(AccelIntegrator):
         return list(CHANNELS)
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
-        accel = self.traced_accel(scene)
+        accel = self.accel(scene)
         ray = mi.Ray3f(ray)
         pi = accel.ray_intersect_preliminary(ray, True, active)
         si = pi.compute_surface_interaction(ray, mi.RayFlags.All, active)

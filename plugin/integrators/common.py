@@ -1,8 +1,8 @@
 """What every hlbvh integrator shares: the ``accel`` parameter and the accelerator's
 options (the builder's and the per-frame update policy) read from the scene
-description, the intersector built lazily on the first render of a scene, cached and
-updated, and the path-tracing helpers (MIS weight, skipping of directly visible area
-emitters) written against an intersector instead of the scene.
+description, the intersector built on the first render of a scene, kept and updated
+at the start of every render, and the path-tracing helpers (MIS weight, skipping of
+directly visible area emitters) written against an intersector instead of the scene.
 
 The module is reloaded by :func:`hlbvh.register` after a variant change, so that
 :class:`AccelIntegrator` derives from the current variant's ``mi.SamplingIntegrator``.
@@ -51,15 +51,15 @@ class AccelIntegrator(mi.SamplingIntegrator):
         split_options(self.accel_options)
         self._accel = None
 
-    def accel(self, scene):
-        """The intersector of ``scene``.
+    def update_accel(self, scene):
+        """Bring the intersector of ``scene`` up to date and return it.
 
         ``"native"``: a :class:`~hlbvh.NativeAccel`, made per call (it costs nothing,
         and a cached one would keep the scene alive through the scene's reference to
-        this integrator). ``"hlbvh"``: a :class:`~hlbvh.SceneAccel`, built on first
-        use, kept while the same scene is rendered, built anew for another scene, and
-        updated on every call (which costs a look at each mesh's buffers when nothing
-        changed), so its ``last_update`` says what this call did.
+        this integrator). ``"hlbvh"``: a :class:`~hlbvh.SceneAccel`, built on the first
+        call for a scene, built anew for another scene, otherwise updated (only the
+        meshes whose buffers changed; a look at each mesh's buffers when none did), so
+        its ``last_update`` says what this call did.
         """
         if self.accel_name == "native":
             return NativeAccel(scene)
@@ -69,24 +69,25 @@ class AccelIntegrator(mi.SamplingIntegrator):
             self._accel.update()
         return self._accel
 
-    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        """Bring the intersector up to date, then render as Mitsuba's sampling
-        integrator does.
-
-        The build or update runs before the render's kernel is recorded, so the first
-        render of a scene records the same kernel as every later one (built inside
-        the recording, it changed the kernel and cost a compile on the second render).
-        """
-        self.accel(scene)
-        return super().render(scene, sensor, seed, spp, develop, evaluate)
-
-    def traced_accel(self, scene):
-        """The intersector for the ray queries of :meth:`sample`: the one
-        :meth:`render` just brought up to date, without looking at the meshes again
-        (or :meth:`accel`'s when ``sample`` is called outside a render)."""
+    def accel(self, scene):
+        """The intersector of ``scene`` as the last :meth:`update_accel` left it (the one
+        :meth:`render` traces), without looking at the meshes; built by
+        :meth:`update_accel` only when none exists for ``scene`` yet (``sample`` called
+        outside a render)."""
         if self.accel_name == "hlbvh" and self._accel is not None and self._accel.is_for(scene):
             return self._accel
-        return self.accel(scene)
+        return self.update_accel(scene)
+
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        """Bring the intersector up to date (:meth:`update_accel`), then render as
+        Mitsuba's sampling integrator does.
+
+        The update runs before the render's kernel is recorded, so the first render of
+        a scene records the same kernel as every later one (a build inside the
+        recording changes the kernel: the second render would compile it again).
+        """
+        self.update_accel(scene)
+        return super().render(scene, sensor, seed, spp, develop, evaluate)
 
     def _options_string(self) -> str:
         options = "".join(f", {k}={v!r}" for k, v in self.accel_options.items())

@@ -86,7 +86,7 @@ class PathIntegrator(AccelIntegrator):
     def sample(self, scene, sampler, ray, medium=None, active=True):
         if self.max_depth == 0:
             return mi.Spectrum(0.0), mi.Bool(False), []
-        accel = self.traced_accel(scene)
+        accel = self.accel(scene)
         bsdf_ctx = mi.BSDFContext()
 
         # --------------------- Configure loop state ----------------------

@@ -1,0 +1,225 @@
+"""One frame of an animation: its geometry written into the loaded scene, the
+accelerator brought up to date, the render, and the frame's statistics row
+(:data:`STATS_FIELDS`, timed with :func:`hlbvh.timing.clock_ms`)."""
+
+from __future__ import annotations
+
+import re
+import resource
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+
+from hlbvh import scenes
+from hlbvh.accel import scene_shapes
+from hlbvh.errors import UserError
+from hlbvh.settings import RenderSettings
+from hlbvh.timing import clock_ms, timed
+
+#: Columns of ``stats.csv``, and keys of every row of ``stats.json``.
+STATS_FIELDS = ("frame", "accel", "triangles", "seed", "geometry_ms", "mitsuba_update_ms",
+                "build_ms", "render_ms", "sah_cost", "decision")
+
+#: Most samples (width x height x spp) of one frame: Dr.Jit arrays hold at most
+#: 2^32 - 1 entries, and ``mi.render`` traces them as one wavefront.
+MAX_SAMPLES = 2**32 - 1
+
+#: Memory a frame takes per pixel and per sample, in bytes: measured peaks of
+#: ``mi.render`` on the LLVM backend (about 40 per pixel at 1 spp, 15 per sample at
+#: 4 spp; film, wavefront and the developed image), doubled.
+BYTES_PER_PIXEL, BYTES_PER_SAMPLE = 64, 32
+
+
+class FrameRenderer:
+    """An animated scene loaded once, rendering any of its frames with timings.
+
+    Args:
+        animation: the :class:`hlbvh.scenes.AnimatedScene`.
+        settings: the :class:`hlbvh.settings.RenderSettings`.
+    Raises:
+        ValueError: the integrator cannot be made from the settings (naming what
+            Mitsuba or the builder objected to).
+        UserError: the frame does not fit in Dr.Jit's arrays or the machine's memory
+            (:func:`check_frame_fits`), or ``accel="hlbvh"`` and the scene holds shapes
+            our accelerator does not intersect (instances, curves, ...).
+
+    Attributes:
+        scene: the loaded ``mi.Scene``; ``params``: its ``mi.traverse``;
+        integrator: its hlbvh integrator.
+    """
+
+    def __init__(self, animation, settings: RenderSettings):
+        self.animation = animation
+        self.settings = settings
+        description = settings.integrator_dict()
+        try:
+            mi.load_dict(description)  # a bad property fails here, alone, before the scene
+        except RuntimeError as error:
+            raise ValueError(
+                f"integrator {description['type']}: {_mitsuba_message(error)}"
+            ) from None
+        self.scene = mi.load_dict(animation.scene_dict(
+            resolution=settings.resolution, spp=settings.spp, integrator=description))
+        self.params = mi.traverse(self.scene)
+        self.integrator = self.scene.integrator()
+        sensor = self.scene.sensors()[0]
+        width, height = sensor.film().crop_size()
+        check_frame_fits(int(width), int(height), int(sensor.sampler().sample_count()))
+        if settings.accel == "hlbvh":
+            try:
+                scene_shapes(self.scene.shapes())
+            except ValueError as error:
+                reason = str(error).split(" Use accel=")[0]
+                raise UserError(f"{reason} Render this scene with --accel native "
+                                f"(Mitsuba's own accelerator).") from None
+
+    def render(self, i: int, spp: int | None = None) -> tuple[mi.TensorXf, dict]:
+        """Apply frame ``i`` and render it.
+
+        Args:
+            i: the frame index.
+            spp: samples per pixel for this render; ``None`` keeps the scene's.
+        Returns:
+            ``(image, row)``: the film's channels ``(H, W, C)`` and the frame's
+            statistics (keys :data:`STATS_FIELDS`).
+        Raises:
+            ValueError: the frame's geometry cannot be read or applied (naming the file
+                and the frame for sequences).
+        """
+        # ---- The frame's geometry into the scene; Mitsuba updates itself ----
+        # With our accelerator, Mitsuba's own (Embree) is never queried: skip its rebuild.
+        start = clock_ms()
+        parameters = _TimedUpdate(self.params)
+        scenes.apply_frame(self.scene, parameters, self.animation.frame(i),
+                           rebuild_native=self.settings.accel == "native")
+        geometry_ms = clock_ms() - start - parameters.update_ms
+
+        # ---- Our accelerator follows ----
+        if self.settings.accel == "hlbvh":
+            build_ms, sah_cost, decision = self._update_accel()
+        else:
+            build_ms, sah_cost, decision = parameters.update_ms, None, "native"
+
+        # ---- Render ----
+        seed = self.settings.seed + i
+        start = clock_ms()
+        image = mi.render(self.scene, seed=seed, spp=0 if spp is None else spp)
+        dr.eval(image)
+        render_ms = clock_ms() - start
+
+        row = {
+            "frame": i, "accel": self.settings.accel, "triangles": self.triangle_count(),
+            "seed": seed, "geometry_ms": round(geometry_ms, 3),
+            "mitsuba_update_ms": round(parameters.update_ms, 3), "build_ms": round(build_ms, 3),
+            "render_ms": round(render_ms, 3), "sah_cost": sah_cost, "decision": decision,
+        }
+        return image, row
+
+    def _update_accel(self) -> tuple[float, float | None, str]:
+        """Bring our accelerator up to date with the frame, before the render (whose own
+        update then finds nothing changed): (ms, SAH cost, decision), the last two as
+        the accelerator reports them (``last_update``)."""
+        ms, accel = timed(self.integrator.update_accel, self.scene)
+        return ms, accel.last_update["sah_cost"], accel.last_update["decision"]
+
+    def triangle_count(self) -> int:
+        """Triangles of every mesh of the scene as it is now."""
+        return sum(s.face_count() for s in self.scene.shapes() if s.is_mesh())
+
+    def channel_names(self, image) -> list[str]:
+        """Names of the film's channels in ``image``: R, G, B (, A), then the AOVs."""
+        aovs = list(self.integrator.aov_names())
+        colour = image.shape[2] - len(aovs)
+        return ["R", "G", "B", "A"][:colour] + aovs
+
+
+def check_frame_fits(width: int, height: int, spp: int) -> None:
+    """Refuse a frame that Dr.Jit cannot index (:data:`MAX_SAMPLES`) or that needs more
+    memory than this process can still get (:func:`available_memory`, with
+    :data:`BYTES_PER_PIXEL` and :data:`BYTES_PER_SAMPLE`): it would otherwise fail
+    deep inside ``mi.render`` or crash the process.
+
+    Raises:
+        UserError: naming ``--resolution`` and ``--spp``, the limit and the need.
+    """
+    samples = width * height * spp
+    what = f"--resolution {width}x{height} at --spp {spp}"
+    if samples > MAX_SAMPLES:
+        raise UserError(f"{what}: {samples} samples per frame, more than the {MAX_SAMPLES} "
+                        f"a Dr.Jit array holds; lower --resolution or --spp")
+    need = width * height * BYTES_PER_PIXEL + samples * BYTES_PER_SAMPLE
+    available = available_memory()
+    if available is not None and need > available:
+        raise UserError(f"{what}: a frame needs about {need / 2**30:.1f} GiB, this process "
+                        f"can get {available / 2**30:.1f} GiB; lower --resolution or --spp")
+
+
+def available_memory() -> int | None:
+    """Bytes this process can still allocate, or ``None`` when nothing says: the least
+    of the system's available memory, the cgroup's limit less its use, and the
+    address-space limit (``RLIMIT_AS``) less what the process maps now."""
+    limits = []
+    meminfo = _proc_fields("/proc/meminfo")
+    if "MemAvailable" in meminfo:
+        limits.append(meminfo["MemAvailable"])
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if limit != "max":
+            used = int(Path("/sys/fs/cgroup/memory.current").read_text())
+            limits.append(int(limit) - used)
+    except (OSError, ValueError):
+        pass
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft != resource.RLIM_INFINITY:
+        limits.append(soft - _proc_fields("/proc/self/status").get("VmSize", 0))
+    return max(min(limits), 0) if limits else None
+
+
+def _proc_fields(path: str) -> dict[str, int]:
+    """``Name: N kB`` lines of a /proc file, in bytes (empty where there is none)."""
+    fields = {}
+    try:
+        for line in Path(path).read_text().splitlines():
+            name, _, value = line.partition(":")
+            parts = value.split()
+            if len(parts) == 2 and parts[1] == "kB" and parts[0].isdigit():
+                fields[name] = int(parts[0]) * 1024
+    except OSError:
+        pass
+    return fields
+
+
+class _TimedUpdate:
+    """``mi.SceneParameters`` as :func:`hlbvh.scenes.apply_frame` uses them, with the
+    wall time of ``update()`` (Mitsuba's own refresh and accelerator rebuild) kept in
+    ``update_ms``. Values are evaluated as they are set, so pending arithmetic is not
+    counted as Mitsuba's."""
+
+    def __init__(self, params):
+        self._params = params
+        self.update_ms = 0.0
+
+    def __contains__(self, key):
+        return key in self._params
+
+    def __getitem__(self, key):
+        return self._params[key]
+
+    def __setitem__(self, key, value):
+        dr.eval(value)
+        self._params[key] = value
+
+    def update(self):
+        start = clock_ms()
+        self._params.update()
+        self.update_ms = clock_ms() - start
+
+
+def _mitsuba_message(error: Exception) -> str:
+    """The informative part of a Mitsuba loader error, on one line."""
+    lines = [line.strip() for line in str(error).strip().splitlines() if line.strip()]
+    useful = [line for line in lines if not line.startswith(("File ", "Traceback"))]
+    text = " ".join(useful[-2:] if len(useful) > 1 else useful) or type(error).__name__
+    return re.sub(r"\[[\w.]+:\d+\]\s*", "", text)
+

@@ -1,0 +1,216 @@
+"""The command-line options ``hlbvh render``, ``compare``, ``sweep`` and ``bench``
+share, and their parsing: each value is checked here and a mistake raises a
+:class:`hlbvh.errors.UserError` naming the option, so the command line reports it in
+one line."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from hlbvh import scenes
+from hlbvh.accel import UPDATES
+from hlbvh.errors import UserError
+from hlbvh.integrators.common import BUILD_OPTIONS
+from hlbvh.kernels.bvh import BuildConfig
+from hlbvh.scenes.sequence import TOPOLOGIES
+from hlbvh.settings import DEFAULT_MAX_DEPTH, MAX_SEED, RenderSettings
+
+def add_scene_options(parser, out: str, *, builder_options: bool = True,
+                      frames: str | None = None, spp: int | None = None) -> None:
+    """The options of a scene and its renders (``hlbvh render``, ``compare``, ``sweep``): SCENE,
+    ``--frames-dir``, ``--frames``, ``--resolution``, ``--spp``, ``--triangles``,
+    ``--max-depth``, ``--seed``, ``--out``, ``--quiet``; with ``builder_options`` also
+    the builder's options and ``--update``. ``out``, ``frames`` and ``spp`` are the
+    defaults the help states (``None``: every frame, the scene's spp); the caller
+    applies them."""
+    add = parser.add_argument
+    add("scene", help=f"a procedural scene ({', '.join(scenes.names())}) or a Mitsuba XML "
+                      "file (with --frames-dir)")
+    add("--frames-dir", help="directory of per-frame meshes <dir>/<shape id>/frame_0001.ply "
+                             "(with an XML scene)")
+    add("--topology", help="of the meshes of --frames-dir: fixed (default: only positions "
+                           "change), changing (every frame brings its faces), or per shape "
+                           "ID=changing,ID=fixed")
+    add("--frames", help="A:B (frames A .. B-1) or N (the first N); default: "
+                         + (frames or "every frame of the scene"))
+    add("--resolution", help="W (W×W) or WxH; default: the scene's")
+    add("--spp", help="samples per pixel; default: " + ("the scene's" if spp is None else str(spp)))
+    add("--triangles", help="size of a procedural scene (default 200000)")
+    add("--max-depth", default=str(DEFAULT_MAX_DEPTH),
+        help=f"longest path of the path integrator (default {DEFAULT_MAX_DEPTH}; -1: unbounded)")
+    if builder_options:
+        for name in BUILD_OPTIONS:
+            add(f"--{name.replace('_', '-')}", dest=name,
+                help=f"builder option {name} (hlbvh.build; default {getattr(BuildConfig, name)!r})")
+        add("--update", help="our accelerator's per-frame policy: rebuild, fresh, refit or auto "
+                             "(default: the accelerator's own)")
+    add("--seed", default="0", help="frame i is rendered with seed SEED + i (default 0)")
+    add("--out", help=f"output directory (default {out})")
+    add("--quiet", action="store_true", help="no progress bars")
+
+
+
+def out_flag(text: str | None, default: Path) -> Path:
+    """``--out`` as given, or ``default`` when it is not; an empty ``--out ''`` is an
+    error, not the default (the directory itself is checked by
+    :func:`hlbvh.output.output_directory`)."""
+    if text is None:
+        return default
+    if not text.strip():
+        raise UserError("--out '': an empty path; give a directory, or leave --out out "
+                        "for the default")
+    return Path(text)
+
+
+def render_settings(args, *, spp: int | None = None, integrator: str = "path",
+                    accel: str = "native") -> RenderSettings:
+    """The :class:`hlbvh.settings.RenderSettings` of the options :func:`add_scene_options`
+    parsed into ``args``, with ``integrator`` and ``accel`` (``spp`` given here
+    overrides ``--spp``; the builder options and ``--update`` are read when ``args``
+    has them).
+
+    Raises:
+        UserError: a malformed number or choice, naming the option.
+        ValueError: a builder option out of range, naming it.
+    """
+    build_options = {name: option_value(getattr(args, name)) for name in BUILD_OPTIONS
+                     if getattr(args, name, None) is not None}
+    update = getattr(args, "update", None)
+    if spp is None and args.spp is not None:
+        spp = int_flag("--spp", args.spp, least=1)
+    return RenderSettings(
+        resolution=None if args.resolution is None else parse_resolution(args.resolution),
+        spp=spp,
+        integrator=integrator,
+        max_depth=int_flag("--max-depth", args.max_depth, least=-1),
+        accel=accel,
+        build_options=build_options,
+        update=None if update is None else choice("--update", update, UPDATES),
+        seed=seed_flag(args.seed),
+    )
+
+
+def seed_flag(text: str) -> int:
+    """``--seed``: an integer in 0 .. :data:`hlbvh.settings.MAX_SEED`."""
+    return int_flag("--seed", text, least=0, most=MAX_SEED)
+
+
+def open_animation(scene: str, frames_dir, triangles, frames, topology=None) -> tuple:
+    """The animated scene, what identifies it, and the frame range, from the command
+    line's strings (``topology``: ``--topology``, see :func:`parse_topology`).
+
+    Returns:
+        ``(animation, source, range)``.
+    Raises:
+        UserError: an unknown scene, a missing file, options that do not fit the kind
+            of scene, a bad frame range.
+    """
+    start, stop = parse_frames(frames)
+    if scene in scenes.names():
+        if frames_dir is not None:
+            raise UserError(f"--frames-dir is for XML scenes; {scene!r} is procedural")
+        if topology is not None:
+            raise UserError(f"--topology is for the meshes of an XML scene's --frames-dir; "
+                            f"{scene!r} is procedural")
+        options = {}
+        if triangles is not None:
+            options["triangles"] = int_flag("--triangles", triangles, least=1)
+        default = scenes.get(scene, **options).frame_count
+        # A procedural scene's motion is a function of time: frames past its own count
+        # are as valid as the others.
+        stop = default if stop is None else stop
+        animation = scenes.get(scene, **options, frames=max(default, stop))
+        source = {"scene": scene, "triangles": animation.triangles}
+    else:
+        path = Path(scene)
+        if path.suffix.lower() != ".xml" or not path.is_file():
+            raise UserError(
+                f"scene {scene!r}: not a procedural scene ({', '.join(scenes.names())}) "
+                f"nor an existing Mitsuba .xml file"
+            )
+        if frames_dir is None:
+            raise UserError(f"scene {scene!r}: an XML scene needs --frames-dir with its "
+                            f"per-frame meshes")
+        if triangles is not None:
+            raise UserError("--triangles sizes procedural scenes; an XML scene has its own")
+        kinds = parse_topology(topology)
+        animation = scenes.SequenceScene(path, frames_dir, topology=kinds)
+        source = {"scene": str(path.resolve()), "frames_dir": str(Path(frames_dir).resolve())}
+        if topology is not None:
+            source["topology"] = kinds
+        stop = animation.frame_count if stop is None else stop
+    if stop > animation.frame_count:
+        raise UserError(f"--frames {frames}: {scene!r} has frames 0:{animation.frame_count}")
+    if start >= stop:
+        raise UserError(f"--frames {frames}: the range is empty (expected A < B)")
+    return animation, source, range(start, stop)
+
+
+def parse_frames(text) -> tuple[int, int | None]:
+    """``"A:B"``, ``"A:"``, ``":B"`` or ``"N"`` (``0:N``) -> ``(A, B or None)``; ``None``
+    -> ``(0, None)``."""
+    if text is None:
+        return 0, None
+    match = re.fullmatch(r"\s*(\d*)\s*:\s*(\d*)\s*|\s*(\d+)\s*", text)
+    if not match:
+        raise UserError(f"--frames {text!r}: expected A:B (frames A .. B-1) or a count N")
+    if match.group(3) is not None:
+        count = int(match.group(3))
+        if count < 1:
+            raise UserError(f"--frames {text!r}: expected a count >= 1")
+        return 0, count
+    return int(match.group(1) or 0), int(match.group(2)) if match.group(2) else None
+
+
+def parse_topology(text: str | None):
+    """``--topology``: ``None`` or ``"fixed"`` -> ``"fixed"``, ``"changing"``, or
+    ``"ID=changing,ID=fixed"`` -> ``{"ID": "changing", ...}`` (what
+    :class:`hlbvh.scenes.SequenceScene` takes)."""
+    if text is None:
+        return "fixed"
+    word = text.strip()
+    if word in TOPOLOGIES:
+        return word
+    kinds = {}
+    for part in word.split(","):
+        shape, _, kind = part.partition("=")
+        if not shape.strip() or kind.strip() not in TOPOLOGIES:
+            raise UserError(f"--topology {text!r}: expected fixed, changing, or "
+                            f"ID=changing,ID=fixed per shape")
+        kinds[shape.strip()] = kind.strip()
+    return kinds
+
+
+def parse_resolution(text: str) -> tuple[int, int]:
+    """``"W"`` -> ``(W, W)``; ``"WxH"`` -> ``(W, H)``."""
+    match = re.fullmatch(r"\s*(\d+)\s*(?:[xX×]\s*(\d+)\s*)?", text)
+    if not match or int(match.group(1)) < 1 or (match.group(2) and int(match.group(2)) < 1):
+        raise UserError(f"--resolution {text!r}: expected W or WxH, positive integers")
+    width = int(match.group(1))
+    return width, int(match.group(2)) if match.group(2) else width
+
+
+def int_flag(flag: str, text: str, least: int, most: int | None = None) -> int:
+    """``text`` as an integer in ``least .. most`` (``most`` ``None``: no upper bound)."""
+    expected = f"an integer >= {least}" if most is None else f"an integer in {least}..{most}"
+    try:
+        value = int(text)
+    except ValueError:
+        raise UserError(f"{flag} {text!r}: expected {expected}") from None
+    if value < least or (most is not None and value > most):
+        raise UserError(f"{flag} {text!r}: expected {expected}")
+    return value
+
+
+def choice(flag: str, text: str, choices) -> str:
+    """``text`` when it is one of ``choices``."""
+    if text not in choices:
+        raise UserError(f"{flag} {text!r}: expected one of {', '.join(choices)}")
+    return text
+
+
+def option_value(text: str):
+    """A builder option from the command line: an int when it is one, else the word."""
+    return int(text) if re.fullmatch(r"-?\d+", text.strip()) else text.strip()
+

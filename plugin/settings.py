@@ -1,0 +1,105 @@
+"""How the frames of an animation are rendered (:class:`RenderSettings`), and the limits
+every frame's settings are checked against before any frame is rendered."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from hlbvh.accel import ACCELS, UPDATES
+from hlbvh.errors import UserError
+from hlbvh.kernels.bvh import BuildConfig
+
+#: ``--integrator`` choices and the registered integrators they name.
+INTEGRATORS = {"path": "hlbvh_path", "aov": "hlbvh_aov"}
+
+#: Longest path of ``--integrator path`` unless ``--max-depth`` says otherwise.
+DEFAULT_MAX_DEPTH = 8
+
+#: Largest seed of a frame: Mitsuba's samplers take 32-bit seeds.
+MAX_SEED = 2**32 - 1
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How the frames of an animation are rendered.
+
+    Attributes:
+        resolution: film ``(width, height)``; ``None`` keeps the scene's.
+        spp: samples per pixel; ``None`` keeps the scene's.
+        integrator: ``"path"`` (``hlbvh_path``) or ``"aov"`` (``hlbvh_aov``).
+        max_depth: longest path of ``"path"`` (-1: unbounded).
+        accel: ``"hlbvh"`` or ``"native"``.
+        build_options: options of :func:`hlbvh.build` (``builder``, ``leaf_size``, ...),
+            validated for both accelerators.
+        update: our accelerator's per-frame policy (``"rebuild"``, ``"refit"``,
+            ``"auto"``), or ``None`` for its default; handed to the integrator as its
+            ``update`` property.
+        seed: frame ``i`` is rendered with seed ``seed + i``.
+    Raises:
+        ValueError: naming the setting, for any value outside the above.
+    """
+
+    resolution: tuple[int, int] | None = None
+    spp: int | None = None
+    integrator: str = "path"
+    max_depth: int = DEFAULT_MAX_DEPTH
+    accel: str = "hlbvh"
+    build_options: dict = field(default_factory=dict)
+    update: str | None = None
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.resolution is not None and (
+            len(self.resolution) != 2 or not all(_is_int(v) and v >= 1 for v in self.resolution)
+        ):
+            raise ValueError(f"resolution={self.resolution!r}: expected (width, height) >= 1")
+        if self.spp is not None and not (_is_int(self.spp) and self.spp >= 1):
+            raise ValueError(f"spp={self.spp!r}: expected an int >= 1")
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(f"integrator={self.integrator!r}: expected one of {tuple(INTEGRATORS)}")
+        if not (_is_int(self.max_depth) and self.max_depth >= -1):
+            raise ValueError(f"max_depth={self.max_depth!r}: expected -1 (unbounded) or an int >= 0")
+        if self.accel not in ACCELS:
+            raise ValueError(f"accel={self.accel!r}: expected one of {ACCELS}")
+        BuildConfig.from_options(**self.build_options)
+        if self.update is not None and self.update not in UPDATES:
+            raise ValueError(f"update={self.update!r}: expected one of {UPDATES}")
+        if not (_is_int(self.seed) and 0 <= self.seed <= MAX_SEED):
+            raise ValueError(f"seed={self.seed!r}: expected an int in 0..{MAX_SEED}")
+
+    def integrator_dict(self) -> dict:
+        """The Mitsuba description of the integrator these settings ask for."""
+        description = {"type": INTEGRATORS[self.integrator], "accel": self.accel,
+                       **self.build_options}
+        if self.integrator == "path":
+            description["max_depth"] = self.max_depth
+        if self.update is not None:
+            description["update"] = self.update
+        return description
+
+    def as_dict(self) -> dict:
+        """The settings as JSON values (what ``stats.json`` records)."""
+        record = asdict(self)
+        record["resolution"] = None if self.resolution is None else list(self.resolution)
+        return record
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+def check_seed(seed: int, frames) -> None:
+    """Refuse a ``--seed`` whose last frame's seed (``seed + frame``) is past
+    :data:`MAX_SEED`, before any frame is rendered.
+
+    Raises:
+        UserError: naming ``--seed`` and the largest one that fits ``frames``.
+    """
+    last = frames[-1]
+    if seed + last > MAX_SEED:
+        raise UserError(f"--seed {seed}: frame {last} would get seed {seed + last}, past "
+                        f"{MAX_SEED} (seeds are 32-bit); use --seed {max(MAX_SEED - last, 0)} "
+                        f"or less")
+
