@@ -8,13 +8,18 @@ triangles, a 100k grid; or every mesh at the ``sizes`` given):
   :func:`hlbvh.kernels.traversal.packed_records` (what traversal reads), each timed,
   and their sum; cold (the first of the process: kernels compiled or loaded from Dr.Jit's
   disk cache) and warm (min and median over repeats), kernel launches of a warm call;
-- the same seeded with the previous frame's order (``previous=``), and a refit;
+- the same seeded with the previous frame's order (``previous=``, packing included),
+  and a refit;
 - Mitsuba's native rebuild: ``params.update()`` after genuinely new vertex arrays
   (Mitsuba skips the rebuild when handed the array it already holds), Embree HIGH;
 - when ``embreex`` is installed (``pip install hlbvh[bench]``), Embree 4 through its C
   API: a LOW and a MEDIUM build of a new scene on the same buffers, and a refit
   (``RTC_BUILD_QUALITY_REFIT`` on a dynamic scene), on all cores;
 - ``Mtris/s/core``: triangles per second of the ready time, divided by the cores.
+
+All of a mesh's measurements run round by round, interleaved (native, Embree, each of
+ours, then the next round), so that a shared machine's load, which comes and goes,
+weighs on every column alike; the ratios use the warm minima.
 """
 
 from __future__ import annotations
@@ -104,36 +109,45 @@ def _summary(times: list[float]) -> dict:
     return {"cold": times[0], "min": min(times[1:]), "median": statistics.median(times[1:])}
 
 
-def _ready(vertices, faces, builder: str, repeats: int, previous=None):
-    """Build + pack ``repeats + 1`` times: per part and summed, the :func:`_summary` of
-    wall ms, the warm minimum of CPU ms, launches of a warm call, the last tree."""
-    build_ms, pack_ms, ready_ms, cpu_ms, launches, bvh = [], [], [], [], 0, None
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    for r in range(repeats + 1):
+class _Ours:
+    """One builder on one mesh: each call of :meth:`round` times a fresh build and its
+    packing (ready to trace), a build seeded with the last fresh one, and a refit."""
+
+    def __init__(self, vertices, faces, moved, builder: str):
+        self.args, self.moved, self.builder = (vertices, faces), moved, builder
+        self.ms = {k: [] for k in ("build", "pack", "ready", "ready_cpu", "seeded", "refit")}
+        self.launches, self.bvh = 0, None
+
+    def round(self, k: int):
+        vertices, faces = self.args
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
         dr.kernel_history()
-        b_ms, b_cpu, bvh = _timed(lambda: hlbvh.build(vertices, faces, builder=builder,
-                                                      previous=previous))
+        b_ms, b_cpu, bvh = _timed(lambda: hlbvh.build(vertices, faces, builder=self.builder))
         p_ms, p_cpu, _ = _timed(lambda: packed_records(bvh))
-        launches = len(dr.kernel_history())
-        build_ms.append(b_ms), pack_ms.append(p_ms), ready_ms.append(b_ms + p_ms)
-        cpu_ms.append(b_cpu + p_cpu)
-    dr.set_flag(dr.JitFlag.KernelHistory, False)
-    return {"build": _summary(build_ms), "pack": _summary(pack_ms), "ready": _summary(ready_ms),
-            "ready_cpu_min": min(cpu_ms[1:]), "launches": launches}, bvh
+        self.launches = len(dr.kernel_history())
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+        s_ms = _timed(lambda: packed_records(
+            hlbvh.build(self.moved, faces, builder=self.builder, previous=bvh)))[0]
+        r_ms = _timed(lambda: bvh.refit(self.moved * (1 + 1e-5 * k)))[0]
+        for key, value in (("build", b_ms), ("pack", p_ms), ("ready", b_ms + p_ms),
+                           ("ready_cpu", b_cpu + p_cpu), ("seeded", s_ms), ("refit", r_ms)):
+            self.ms[key].append(value)
+        self.bvh = bvh
 
 
-def _native_rebuild(vertices, faces, repeats: int) -> dict:
-    """:func:`_summary` of Mitsuba's rebuild after genuinely new vertex arrays."""
-    scene = mesh_scene(vertices, faces)
-    params = mi.traverse(scene)
-    key = next(k for k in params.keys() if k.endswith("vertex_positions"))
-    variants = [vertices * (1 + 1e-6 * k) for k in range(repeats + 1)]
-    dr.eval(variants)
-    times = []
-    for v in variants:
-        params[key] = v
-        times.append(_timed(params.update)[0])
-    return _summary(times)
+class _Native:
+    """Mitsuba's rebuild after genuinely new vertex arrays (``params.update()``)."""
+
+    def __init__(self, vertices, faces, rounds: int):
+        self.params = mi.traverse(mesh_scene(vertices, faces))
+        self.key = next(k for k in self.params.keys() if k.endswith("vertex_positions"))
+        self.variants = [vertices * (1 + 1e-6 * (k + 1)) for k in range(rounds)]
+        dr.eval(self.variants)
+        self.ms = []
+
+    def round(self, k: int):
+        self.params[self.key] = self.variants[k]
+        self.ms.append(_timed(self.params.update)[0])
 
 
 class _Embree:
@@ -182,32 +196,37 @@ class _Embree:
         lib.rtcAttachGeometry(scene, geom)
         return scene, geom
 
-    def build(self, vertices, faces, quality: int, repeats: int) -> dict:
-        """:func:`_summary` of committing a new scene of this quality."""
-        times = []
-        for _ in range(repeats + 1):
-            scene, geom = self._scene(vertices, faces, quality, refit=False)
-            start = time.perf_counter()
-            self.lib.rtcCommitScene(scene)
-            times.append(1e3 * (time.perf_counter() - start))
-            self.lib.rtcReleaseGeometry(geom), self.lib.rtcReleaseScene(scene)
-        return _summary(times)
+    def build_ms(self, vertices, faces, quality: int) -> float:
+        """ms to commit a new scene of this quality."""
+        scene, geom = self._scene(vertices, faces, quality, refit=False)
+        start = time.perf_counter()
+        self.lib.rtcCommitScene(scene)
+        ms = 1e3 * (time.perf_counter() - start)
+        self.lib.rtcReleaseGeometry(geom), self.lib.rtcReleaseScene(scene)
+        return ms
 
-    def refit(self, vertices, faces, repeats: int) -> dict:
-        """:func:`_summary` of refitting a built dynamic scene to moved vertices."""
+    def refitter(self, vertices, faces):
+        """A function of the round ``k`` that moves the vertices of a built dynamic
+        scene and returns the ms of its refit."""
         buffer = vertices.copy()
         scene, geom = self._scene(buffer, faces, self.MEDIUM, refit=True)
         self.lib.rtcCommitScene(scene)
-        times = []
-        for k in range(repeats + 1):
+        self._keep = (buffer, scene, geom)
+
+        def refit(k: int) -> float:
             buffer[:] = vertices * np.float32(1 + 1e-4 * (k + 1))
             start = time.perf_counter()
             self.lib.rtcUpdateGeometryBuffer(geom, self._VERTEX, 0)
             self.lib.rtcCommitGeometry(geom)
             self.lib.rtcCommitScene(scene)
-            times.append(1e3 * (time.perf_counter() - start))
+            return 1e3 * (time.perf_counter() - start)
+
+        return refit
+
+    def release(self):
+        """Free the scene of the last :meth:`refitter`."""
+        _, scene, geom = self._keep
         self.lib.rtcReleaseGeometry(geom), self.lib.rtcReleaseScene(scene)
-        return _summary(times)
 
 
 def _embree():
@@ -219,41 +238,50 @@ def _embree():
 
 
 def run(sizes=None, meshes=("grid", "soup", "box"), builders=("hlbvh", "lbvh", "sah"),
-        repeats: int = 5, sah_max: int = 100_000) -> list[dict]:
+        repeats: int = 5, sah_max: int = 200_000) -> list[dict]:
     """Measure every case (``DEFAULT_CASES``, or each mesh at each of ``sizes``) and
     builder (``"sah"`` only up to ``sah_max`` triangles); one dict per row (see the
-    module docstring)."""
+    module docstring). All measurements of a case run round by round, interleaved, so
+    a load that comes and goes on a shared machine affects every column alike."""
     cases = DEFAULT_CASES if sizes is None else [(m, s) for m in meshes for s in sizes]
     cores = os.cpu_count() or 1
     embree = _embree()
+    rounds = repeats + 1
     rows = []
     for mesh, size in cases:
         vertices, faces = MESHES[mesh](size)
-        dr.eval(vertices, faces)
+        moved = vertices * 1.0001
+        dr.eval(vertices, faces, moved)
         triangles = len(faces) // 3
-        native = _native_rebuild(vertices, faces, repeats)
+        native = _Native(vertices, faces, rounds)
+        ours = [_Ours(vertices, faces, moved, b) for b in builders
+                if b != "sah" or triangles <= sah_max]
         others = {}
         if embree is not None:
             v_np, f_np = np.ascontiguousarray(vertices.numpy()), np.ascontiguousarray(faces.numpy())
-            others = {"embree_low": embree.build(v_np, f_np, embree.LOW, repeats),
-                      "embree_medium": embree.build(v_np, f_np, embree.MEDIUM, repeats),
-                      "embree_refit": embree.refit(v_np, f_np, repeats)}
-        moved = vertices * 1.0001
-        dr.eval(moved)
-        for builder in builders:
-            if builder == "sah" and triangles > sah_max:
-                continue
-            fresh, bvh = _ready(vertices, faces, builder, repeats)
-            seeded, seeded_bvh = _ready(moved, faces, builder, repeats, previous=bvh)
-            refit = [_timed(lambda: bvh.refit(moved * (1 + 1e-5 * k)))[0] for k in range(repeats + 1)]
-            ready = fresh["ready"]["min"]
+            others = {"embree_low": [], "embree_medium": [], "embree_refit": []}
+            embree_refit = embree.refitter(v_np, f_np)
+        for k in range(rounds):
+            native.round(k)
+            if embree is not None:
+                others["embree_low"].append(embree.build_ms(v_np, f_np, embree.LOW))
+                others["embree_medium"].append(embree.build_ms(v_np, f_np, embree.MEDIUM))
+                others["embree_refit"].append(embree_refit(k))
+            for o in ours:
+                o.round(k)
+        if embree is not None:
+            embree.release()
+        others = {key: _summary(ms) for key, ms in others.items()}
+        for o in ours:
+            ready = min(o.ms["ready"][1:])
             rows.append({
-                "mesh": mesh, "triangles": triangles, "builder": builder, "cpu": cpu_model(),
-                "cores": cores, **fresh, "seeded": seeded["ready"], "refit": _summary(refit),
-                "stage_ms": dict(seeded_bvh.stats.stage_ms), "sah_cost": bvh.stats.sah_cost,
-                "csd_runs": bvh.stats.csd_runs, "csd_runs_seeded": seeded_bvh.stats.csd_runs,
-                "native": native, **others,
-                "native_over_ready": native["min"] / ready,
+                "mesh": mesh, "triangles": triangles, "builder": o.builder, "cpu": cpu_model(),
+                "cores": cores, "load": os.getloadavg()[0],
+                **{key: _summary(o.ms[key]) for key in ("build", "pack", "ready", "seeded", "refit")},
+                "ready_cpu_min": min(o.ms["ready_cpu"][1:]), "launches": o.launches,
+                "stage_ms": dict(o.bvh.stats.stage_ms), "sah_cost": o.bvh.stats.sah_cost,
+                "native": _summary(native.ms), **others,
+                "native_over_ready": min(native.ms[1:]) / ready,
                 "mtris_per_s_per_core": triangles / ready / 1e3 / cores,
             })
     return rows
@@ -277,11 +305,12 @@ def format_table(rows: list[dict]) -> str:
             f"{r['launches']:6} {r['sah_cost']:6.2f}")
     for r in rows[:1]:
         stages = " ".join(f"{k}={v:.1f}" for k, v in r["stage_ms"].items())
-        lines.append(f"stages of the first row's seeded build (ms): {stages}")
+        lines.append(f"stages of the first row's last build (ms): {stages}")
     cpu = rows[0]["cpu"] if rows else cpu_model()
     cores = rows[0]["cores"] if rows else os.cpu_count()
     lines.append(
         f"ms, warm min over repeats (median); ready = build + pack (packed_records); "
         f"native = Mitsuba params.update() (Embree HIGH); E.* = Embree 4 LOW/MEDIUM build "
-        f"and refit; {cpu}, {cores} cores, load {os.getloadavg()[0]:.2f}; variant {mi.variant()}")
+        f"and refit, all interleaved round by round; {cpu}, {cores} cores, load "
+        f"{os.getloadavg()[0]:.2f}; variant {mi.variant()}")
     return "\n".join(lines)
