@@ -156,8 +156,9 @@ def _morton_topology(config: BuildConfig, stats: BuildStats, clock, points, face
     UInt32 = ns.UInt32
     prim_count = len(faces) // 3
 
-    with clock("morton"):
+    with clock("triangles"):
         centroid, tri_records = triangle_records(points, faces)
+    with clock("morton"):
         lo, hi = point_bounds(centroid)
         bits, quantization = config.morton_bits, config.quantization
         if bits == "auto":
