@@ -34,9 +34,10 @@ Embree tree; what Mitsuba still spends refreshing the scene is reported
 (``mitsuba_update_ms``, 0 on hlbvh frames) and not counted in the hlbvh frame. ``cold`` is the first frame at that spp (for the first spp: the scene's
 first build and kernel compilation).
 
-The **crossover** is the spp from which native is faster per frame: a line
-``frame_ms = a + k·spp`` is fitted to each accelerator's median frame times, and the
-crossover is where the lines meet (0: native is faster at every spp; ``None``: never).
+The **crossover** is the spp from which native is faster per frame, from the median
+frame times (:func:`hlbvh.comparison.crossover.crossover_spp`: interpolated between
+measured spp; ``None`` when native is faster at every measured spp or at none, the
+table says which).
 
 Run: ``hlbvh bench frame [--sizes ...] [--resolution 512] [--repeats N]``, or
 ``python -m hlbvh.comparison.bench_frame --help`` for every knob.
@@ -52,6 +53,7 @@ import mitsuba as mi
 import numpy as np
 
 import hlbvh
+from hlbvh.comparison.crossover import crossover_spp, describe
 from hlbvh.scenes import get as get_scene
 from hlbvh.frame import FrameRenderer
 from hlbvh.settings import RenderSettings
@@ -211,16 +213,18 @@ def _frame_runs(renderers: dict, spps, repeats: int) -> dict:
 
 
 def _crossover(spps, ours: dict, native: dict) -> float | None:
-    """The spp from which native's fitted frame time is below ours (see the module
-    docstring); ``None`` when that never happens or fewer than two spp were measured."""
-    if len(set(spps)) < 2:
-        return None
-    x = np.array(spps, dtype=float)
-    k_ours, a_ours = np.polyfit(x, [ours[s]["median_ms"] for s in spps], 1)
-    k_native, a_native = np.polyfit(x, [native[s]["median_ms"] for s in spps], 1)
-    if k_ours <= k_native:  # ours gains (or keeps its lead) with every sample
-        return None if a_ours < a_native else 0.0
-    return max(0.0, float((a_native - a_ours) / (k_ours - k_native)))
+    """:func:`hlbvh.comparison.crossover.crossover_spp` of the median frame times."""
+    spps = sorted(set(spps))
+    return crossover_spp(spps, [ours[s]["median_ms"] for s in spps],
+                         [native[s]["median_ms"] for s in spps])
+
+
+def _crossover_text(rows: list[dict], row: dict) -> str:
+    """The crossover of ``row``'s scene and size in words (``describe``)."""
+    same = sorted((r for r in rows if (r["scene"], r["triangles"]) == (row["scene"], row["triangles"])),
+                  key=lambda r: r["spp"])
+    return describe([r["spp"] for r in same], [r["hlbvh_frame_median_ms"] for r in same],
+                    [r["native_frame_median_ms"] for r in same])
 
 
 def format_table(rows: list[dict]) -> str:
@@ -243,20 +247,20 @@ def format_table(rows: list[dict]) -> str:
         )
     head = (f"{'scene':9} {'tris':>8} {'spp':>4} | {'build':>7} {'render':>8} "
             f"{'frame min/med/cold':>20} | {'update':>7} {'render':>8} "
-            f"{'frame min/med/cold':>20} | {'nat/ours':>8} {'crossover':>9}")
+            f"{'frame min/med/cold':>20} | {'nat/ours':>8} {'crossover':>10}")
     lines += ["", f"frame time (ms) at {rows[0]['resolution']}x{rows[0]['resolution']}"
               if rows else "frame time (ms)",
               f"{'':24}| {'hlbvh (hlbvh_path, accel=hlbvh)':^37} | "
               f"{'native (hlbvh_path, accel=native)':^37} |", head, "-" * len(head)]
     for r in rows:
-        crossover = "never" if r["crossover_spp"] is None else f"{r['crossover_spp']:.1f}"
+        crossover = _crossover_text(rows, r)
         lines.append(
             f"{r['scene']:9} {r['triangles']:>8} {r['spp']:>4} | {r['hlbvh_build_ms']:7.1f} "
             f"{r['hlbvh_render_ms']:8.1f} "
             f"{_slash(r['hlbvh_frame_min_ms'], r['hlbvh_frame_median_ms'], r['hlbvh_frame_cold_ms']):>20} | "
             f"{r['native_update_ms']:7.1f} {r['native_render_ms']:8.1f} "
             f"{_slash(r['native_frame_min_ms'], r['native_frame_median_ms'], r['native_frame_cold_ms']):>20} | "
-            f"{r['native_over_hlbvh']:7.2f}x {crossover:>9}"
+            f"{r['native_over_hlbvh']:7.2f}x {crossover:>10}"
         )
     if rows:
         update = statistics.median(r["mitsuba_update_ms"] for r in rows)

@@ -46,12 +46,13 @@ frame when the timing is the question.
 
 The report (``--out``)
 ----------------------
-``report.md`` and ``report.html`` (settings, one row per frame, then per frame the
-native image, ours and the false-colour difference side by side, then the plot),
-``results.json`` and ``results.csv`` (the same rows), ``diff/frame_NNNN.png`` (the
-difference maps, all on one scale: the largest difference of any frame, so frames can
-be compared by eye; it is recorded as ``difference_scale``) and ``build_ms.png``
-(build time per frame, both accelerators).
+``report.md`` and ``report.html`` (the verdict, :func:`verdict`; the plots; per frame
+the native image, ours and the false-colour difference side by side, its scale written
+beside it; then the settings and one row per frame), ``results.json`` and
+``results.csv`` (the same rows), ``diff/frame_NNNN.png`` (the difference maps, all on
+one scale: the largest difference of any frame, so frames can be compared by eye; it is
+recorded as ``difference_scale``), ``frame_ms.png`` and ``build_ms.png`` (frame and
+build time per frame, both accelerators).
 """
 
 from __future__ import annotations
@@ -144,12 +145,15 @@ def compare_animation(animation, frames, out_dir, settings: RenderSettings,
         pictures[i] = {"native": out / "native" / f"{frame_name(i)}.png",
                        "hlbvh": out / "hlbvh" / f"{frame_name(i)}.png", "diff": difference}
 
-    # ---- Plot and report ----
-    plot = plots.plot_build_times(
-        out / "build_ms.png", frames, [row["build_ms"]["native"] for row in rows],
-        [row["build_ms"]["hlbvh"] for row in rows],
-        title=f"{animation.name}: build time per frame",
-    )
+    # ---- Plots and report ----
+    per_frame = [
+        plots.plot_per_frame(
+            out / f"{key}.png", frames, [row[key]["native"] for row in rows],
+            [row[key]["hlbvh"] for row in rows], quantity=quantity, native_label=native,
+            title=f"{animation.name}: {quantity} per frame")
+        for key, quantity, native in (("frame_ms", "frame time (build + render)", "native"),
+                                      ("build_ms", "build time", "native rebuild"))
+    ]
     recorded = {**(source or {}), **settings.as_dict(), "frames": f"{frames[0]}:{frames[-1] + 1}",
                 "tolerance": tolerance, "difference_scale": scale, "variant": mi.variant(),
                 "mitsuba": mi.__version__, "drjit": dr.__version__}
@@ -158,9 +162,12 @@ def compare_animation(animation, frames, out_dir, settings: RenderSettings,
     # Every builder option and the policy as used, defaults included.
     recorded["build_options"] = asdict(BuildConfig.from_options(**settings.build_options))
     recorded["update"] = settings.update or UpdatePolicy().update
+    caption = (f"difference: black = identical, pale yellow = {scale:.3g} or more (largest "
+               f"channel difference; one scale for every frame), cyan = NaN/inf in one render")
     files = report.write_report(out, f"hlbvh compare: {animation.name}", rows, pictures,
-                                recorded, plots=[plot])
-    return {"rows": rows, "files": files, "plots": [plot]}
+                                recorded, plots=per_frame, verdict=verdict(rows, tolerance),
+                                captions={"diff": caption})
+    return {"rows": rows, "files": files, "plots": per_frame}
 
 
 def _frame_row(i: int, native: dict, ours: dict, image: dict, hits: dict) -> dict:
@@ -183,17 +190,31 @@ def _frame_row(i: int, native: dict, ours: dict, image: dict, hits: dict) -> dic
     }
 
 
-def summary(rows: list[dict]) -> str:
-    """One line over all frames: median build speedup, worst image and hit agreement."""
+def verdict(rows: list[dict], tolerance: float) -> str:
+    """The paragraph the report opens with: frame time of each accelerator (median over
+    the frames), the median build speedup, whether the images are equal to native's
+    within ``tolerance`` on every frame, and how often the camera rays hit the same
+    primitive first."""
     image = [row["image"] for row in rows]
+    ours = statistics.median(row["frame_ms"]["hlbvh"] for row in rows)
+    native = statistics.median(row["frame_ms"]["native"] for row in rows)
+    faster = f"{native / ours:.2f}x faster" if ours <= native else f"{ours / native:.2f}x slower"
+    equal = sum(m["fraction_within_tolerance"] == 1.0 for m in image)
+    images = ("every pixel of every frame equals native's within the tolerance"
+              if equal == len(rows) else
+              f"{equal} of {len(rows)} frames equal native's within the tolerance on every "
+              f"pixel; the worst has "
+              f"{100 * min(m['fraction_within_tolerance'] for m in image):.4f}% of its pixels "
+              f"within it")
     return (
-        f"median build speedup {statistics.median(r['build_speedup'] for r in rows):.2f}x "
-        f"(native params.update() / ours); largest pixel difference "
+        f"A frame (build + render, median of {len(rows)}) takes {ours:.1f} ms with hlbvh "
+        f"and {native:.1f} ms with native: hlbvh is {faster}. Median build speedup "
+        f"{statistics.median(r['build_speedup'] for r in rows):.2f}x (Mitsuba's rebuild / "
+        f"ours). Images: {images} ({tolerance:g} per channel; largest pixel difference "
         f"{max(m['max_abs_diff'] for m in image):.3g}, at least "
-        f"{100 * min(m['fraction_within_tolerance'] for m in image):.3f}% of pixels within "
-        f"tolerance and {100 * min(m['fraction_identical'] for m in image):.1f}% bit-identical; "
-        f"primary hits agree on at least "
-        f"{100 * min(r['hits']['fraction_agree'] for r in rows):.3f}% of pixels"
+        f"{100 * min(m['fraction_identical'] for m in image):.1f}% of pixels bit-identical). "
+        f"Camera rays hit the same primitive first on at least "
+        f"{100 * min(r['hits']['fraction_agree'] for r in rows):.3f}% of pixels."
     )
 
 
@@ -222,7 +243,7 @@ def run(args) -> int:
     result = compare_animation(animation, frames, out, settings, source, tolerance,
                                progress=not args.quiet)
     print(f"{result['files']['html']}: frames {frames.start}..{frames.stop - 1} of "
-          f"{animation.name}, native vs hlbvh; {summary(result['rows'])}")
+          f"{animation.name}, native vs hlbvh. {verdict(result['rows'], tolerance)}")
     return 0
 
 

@@ -1,12 +1,12 @@
 """The plots of the comparison harness, drawn with matplotlib's Agg canvas (no display,
 no pyplot state) and written as PNG atomically; each plot function returns the path.
 
-- :func:`plot_build_times`: build ms per frame, native rebuild vs hlbvh.
+- :func:`plot_per_frame`: build or frame time per frame, native vs hlbvh.
 - :func:`plot_build_vs_sah`: build time against SAH cost per builder setting, the Pareto
   front (:func:`pareto_front`) marked: the settings no other setting beats on both.
 - :func:`plot_frame_time_vs_spp`: frame time (build + render) against samples per pixel
-  per setting and native, with the spp where native becomes faster
-  (:func:`crossover_spp`) marked.
+  per setting and native, the measured points joined, the spp where native becomes
+  faster (:func:`hlbvh.comparison.crossover.crossover_spp`) marked and in the legend.
 """
 
 from __future__ import annotations
@@ -18,8 +18,9 @@ from pathlib import Path
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from matplotlib.ticker import MaxNLocator
+from matplotlib.ticker import FormatStrFormatter, MaxNLocator
 
+from hlbvh.comparison.crossover import crossover_spp, describe
 from hlbvh.images import atomic_output
 
 _NATIVE_STYLE = {"color": "black", "linestyle": "--", "marker": "s"}
@@ -47,50 +48,22 @@ def pareto_front(x: Sequence[float], y: Sequence[float]) -> list[int]:
     return sorted(front.tolist(), key=lambda index: (x[index], y[index]))
 
 
-def crossover_spp(
-    spp: Sequence[float], ours_ms: Sequence[float], native_ms: Sequence[float]
-) -> float | None:
-    """The samples per pixel at which native becomes at least as fast per frame as ours.
-
-    Frame time is build time plus a render time proportional to spp, so between two
-    measured spp it is interpolated linearly; the crossover is the first spp where
-    ``ours_ms - native_ms`` goes from negative to zero or positive.
-
-    Args:
-        spp: measured samples per pixel, strictly increasing.
-        ours_ms, native_ms: frame times at those spp.
-
-    Returns:
-        The crossover spp, or ``None`` when there is none inside the measured range (ours
-        is faster at every spp, or native already at the smallest: compare the first
-        entries to tell which).
-    """
-    spp, ours = _paired(spp, ours_ms, "spp", "ours_ms")
-    _, native = _paired(spp, native_ms, "spp", "native_ms")
-    if not np.all(np.diff(spp) > 0):
-        raise ValueError(f"spp={spp.tolist()}: expected strictly increasing values")
-    gap = ours - native
-    for i in range(len(gap) - 1):
-        if gap[i] < 0 <= gap[i + 1]:
-            return float(spp[i] + (spp[i + 1] - spp[i]) * (-gap[i]) / (gap[i + 1] - gap[i]))
-    return None
-
-
-def plot_build_times(
+def plot_per_frame(
     path, frames: Sequence[int], native_ms: Sequence[float], hlbvh_ms: Sequence[float],
-    title: str = "Build time per frame",
+    quantity: str = "build time", title: str = "Build time per frame",
+    native_label: str = "native rebuild",
 ) -> Path:
-    """Build ms per frame: native rebuild (``params.update()``) and hlbvh, one line
-    each, the ratio in the legend."""
+    """``quantity`` in ms per frame, native and hlbvh one line each, how many times
+    faster hlbvh is (median over median) in the legend."""
     frames_, native = _paired(frames, native_ms, "frames", "native_ms")
     _, ours = _paired(frames, hlbvh_ms, "frames", "hlbvh_ms")
     figure, axes = _figure(title)
     ratio = np.median(native) / np.median(ours) if np.median(ours) > 0 else math.inf
-    axes.plot(frames_, native, label="native rebuild", **_NATIVE_STYLE)
+    axes.plot(frames_, native, label=native_label, **_NATIVE_STYLE)
     axes.plot(frames_, ours, marker="o", label=f"hlbvh (median {ratio:.3g}x faster)")
     axes.set_xlabel("frame")
     axes.xaxis.set_major_locator(MaxNLocator(integer=True))
-    axes.set_ylabel("build time [ms]")
+    axes.set_ylabel(f"{quantity} [ms]")
     axes.set_ylim(bottom=0)
     axes.legend()
     return _save(figure, path)
@@ -98,15 +71,16 @@ def plot_build_times(
 
 def plot_build_vs_sah(
     path, labels: Sequence[str], build_ms: Sequence[float], sah_cost: Sequence[float],
-    title: str = "Build time vs tree quality",
+    title: str = "Build time vs tree quality", note: str | None = None,
 ) -> Path:
     """Each setting as a point (build ms, SAH cost), labelled; the Pareto front drawn as
-    a step line through its points (lower left is better)."""
+    a step line through its points (lower left is better); ``note`` (the machine) under
+    the plot."""
     build, sah = _paired(build_ms, sah_cost, "build_ms", "sah_cost")
     if len(labels) != len(build):
         raise ValueError(f"labels: {len(labels)} labels for {len(build)} points")
     front = pareto_front(build, sah)
-    figure, axes = _figure(title)
+    figure, axes = _figure(title, note)
     axes.scatter(build, sah, color="tab:gray", label="setting")
     axes.step(build[front], sah[front], where="post", color="tab:red", alpha=0.6)
     axes.scatter(build[front], sah[front], color="tab:red", zorder=3, label="Pareto front")
@@ -121,42 +95,51 @@ def plot_build_vs_sah(
 def plot_frame_time_vs_spp(
     path, spp: Sequence[float], frame_ms: Mapping[str, Sequence[float]],
     native: str = "native", title: str = "Frame time vs samples per pixel",
+    note: str | None = None,
 ) -> Path:
     """Frame time (build + render) against spp for every setting in ``frame_ms`` (label
-    -> ms at each ``spp``), the ``native`` entry dashed; where a setting's line crosses
-    native's, the crossover spp is marked and written."""
+    -> ms at each ``spp``), native dashed.
+
+    Only measured points are drawn, joined by straight segments on a linear spp axis
+    (frame time is linear in spp between them: the segments are what
+    :func:`hlbvh.comparison.crossover.crossover_spp` interpolates, so a marked crossover
+    lies on both lines). Each setting's crossover is written in its legend entry, so no
+    two labels can overlap; ``note`` (the machine: CPU model, cores) is written under
+    the plot.
+    """
+    figure = frame_time_figure(spp, frame_ms, native, title, note)
+    return _save(figure, path)
+
+
+def frame_time_figure(spp, frame_ms, native="native", title="Frame time vs samples per pixel",
+                      note=None) -> Figure:
+    """The figure :func:`plot_frame_time_vs_spp` saves."""
     if native not in frame_ms:
         raise ValueError(f"frame_ms: no {native!r} entry to compare the settings with")
     samples, native_ms = _paired(spp, frame_ms[native], "spp", f"frame_ms[{native!r}]")
-    # Frame time is linear in spp: draw the piecewise-linear interpolation (curved on the
-    # log axis), so the marked crossovers lie on the lines.
     if not (np.all(samples > 0) and np.all(np.diff(samples) > 0)):
         raise ValueError(f"spp={samples.tolist()}: expected positive, strictly increasing values")
-    dense = np.geomspace(samples[0], samples[-1], 256)
-    figure, axes = _figure(title)
-    (line,) = axes.plot(dense, np.interp(dense, samples, native_ms), color="black", linestyle="--")
-    axes.plot(samples, native_ms, color="black", marker="s", linestyle="none")
-    line.set_label(native)
+    figure, axes = _figure(title, note)
+    axes.plot(samples, native_ms, label=native, **_NATIVE_STYLE)
     for label, series in frame_ms.items():
         if label == native:
             continue
         _, ours = _paired(spp, series, "spp", f"frame_ms[{label!r}]")
-        (line,) = axes.plot(dense, np.interp(dense, samples, ours), label=label)
-        axes.plot(samples, ours, marker="o", linestyle="none", color=line.get_color())
+        (line,) = axes.plot(samples, ours, marker="o",
+                            label=f"{label}: native faster from {describe(samples, ours, native_ms)}")
         crossing = crossover_spp(samples, ours, native_ms)
         if crossing is not None:
             at = float(np.interp(crossing, samples, native_ms))
-            axes.plot([crossing], [at], marker="X", markersize=11, color=line.get_color())
-            axes.annotate(
-                f"{crossing:.3g} spp", (crossing, at), textcoords="offset points",
-                xytext=(6, -12), color=line.get_color(),
-            )
-    axes.set_xscale("log", base=2)
-    axes.set_xlabel("samples per pixel")
+            axes.plot([crossing], [at], marker="X", markersize=10, linestyle="none",
+                      color=line.get_color())
+    axes.set_xticks(samples)
+    axes.xaxis.set_major_formatter(FormatStrFormatter("%g"))
+    axes.set_xlim(0, samples[-1] * 1.04)
+    axes.set_xlabel("samples per pixel (measured at the ticks; X: crossover)")
     axes.set_ylabel("frame time [ms]")
     axes.set_ylim(bottom=0)
-    axes.legend()
-    return _save(figure, path)
+    axes.legend(fontsize=8, loc="upper left")
+    return figure
 
 
 def _paired(a: Sequence[float], b: Sequence[float], name_a: str, name_b: str):
@@ -170,11 +153,13 @@ def _paired(a: Sequence[float], b: Sequence[float], name_a: str, name_b: str):
     return a, b
 
 
-def _figure(title: str):
+def _figure(title: str, note: str | None = None):
     figure = Figure(figsize=(7, 4.5), dpi=100, layout="constrained")
     FigureCanvasAgg(figure)
     axes = figure.add_subplot()
     axes.set_title(title)
+    if note:
+        figure.supxlabel(note, fontsize=8, color="dimgray")
     axes.grid(True, alpha=0.3)
     return figure, axes
 

@@ -17,6 +17,7 @@ It writes:
 
 The sizes are the module's ``SIZES`` (every knob has an option, see ``--help``); the
 sweep's full report goes to a temporary directory and only its plots and rows are kept.
+``--replot`` draws the two plots again from ``docs/bench.json`` without measuring.
 """
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import math
 import os
 import platform
 import shutil
@@ -36,7 +36,7 @@ import drjit as dr
 import mitsuba as mi
 
 from hlbvh.comparison import bench_build, bench_frame, bench_trace, sweep
-from hlbvh.comparison.report import format_value
+from hlbvh.comparison.report import flatten, markdown_table, read_results, to_json
 from hlbvh.images import atomic_output
 from hlbvh.options import open_animation
 from hlbvh.settings import RenderSettings
@@ -68,16 +68,8 @@ _SWEEP_COLUMNS = ("setting", "build_ms", "sah_cost", "mrays_primary", "mrays_sec
 def machine() -> dict:
     """What the numbers were measured on: CPU model, cores, Dr.Jit's threads, versions,
     variant, load average now."""
-    model = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        model = platform.processor() or model
     return {
-        "cpu": model,
+        "cpu": bench_build.cpu_model(),
         "cores": os.cpu_count(),
         "drjit_threads": dr.thread_count(),
         "drjit": dr.__version__,
@@ -118,10 +110,11 @@ def measure(sizes: dict, progress: bool = True) -> dict:
                        sizes["spp_curve"], progress=progress)
     recorded = {"scene_name": animation.name, "triangles": animation.triangles,
                 "resolution": sizes["resolution"], "spp": sizes["spp"],
-                "frames": sizes["frames"]}
+                "frames": sizes["frames"], "cpu": results["machine_before"]["cpu"],
+                "cores": results["machine_before"]["cores"]}
     plots_dir = Path(tempfile.mkdtemp(prefix="hlbvh-readme-"))
     written = sweep.write_sweep(plots_dir, rows, recorded, sizes["spp"], sizes["spp_curve"])
-    results["sweep"] = [dict(_flat(row)) for row in rows]
+    results["sweep"] = [flatten(row) for row in rows]
     results["sweep_plots"] = written["plots"]
     results["verdict"] = sweep.verdict(written, animation.name, sizes["spp"])
     results["machine_after"] = machine()
@@ -177,7 +170,7 @@ def write(out_dir, results: dict, sizes: dict, command: str) -> dict[str, Path]:
         + ("" if sizes["sweep_settings"] == "all" else f" --settings {sizes['sweep_settings']}")
         + "`)",
         "",
-        _markdown_table(results["sweep"], _SWEEP_COLUMNS),
+        markdown_table(results["sweep"], _SWEEP_COLUMNS),
         "",
         f"**{results['verdict'][0].upper()}{results['verdict'][1:]}.**",
         "",
@@ -192,36 +185,28 @@ def write(out_dir, results: dict, sizes: dict, command: str) -> dict[str, Path]:
         temporary.write_text("\n".join(lines), encoding="utf-8")
     document = {key: value for key, value in results.items() if key != "sweep_plots"}
     with atomic_output(files["json"]) as temporary:
-        temporary.write_text(json.dumps(_json_safe(document), indent=1) + "\n")
+        temporary.write_text(json.dumps(to_json(document), indent=1, allow_nan=False) + "\n")
     for key, plot in zip(("sweep", "frame_vs_spp"), results["sweep_plots"]):
         with atomic_output(files[key]) as temporary:
             shutil.copyfile(plot, temporary)
     return files
 
 
-def _markdown_table(rows: list[dict], columns) -> str:
-    lines = ["| " + " | ".join(columns) + " |", "|" + "|".join("---" for _ in columns) + "|"]
-    lines += ["| " + " | ".join(format_value(row.get(c)) for c in columns) + " |" for row in rows]
-    return "\n".join(lines)
-
-
-def _flat(row: dict, prefix: str = ""):
-    for key, value in row.items():
-        if isinstance(value, dict):
-            yield from _flat(value, f"{prefix}{key}.")
-        else:
-            yield f"{prefix}{key}", value
-
-
-def _json_safe(value):
-    """Non-finite floats as strings (strict JSON), tuples as lists."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return format_value(value)
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value
+def replot(out_dir, bench_json) -> list[Path]:
+    """Draw ``sweep.png`` and ``sweep_frame_vs_spp.png`` again from the sweep rows and
+    the machine recorded in ``bench_json`` (no measurement: for a change of the plots
+    alone). Returns the two plots."""
+    document = read_results(bench_json)
+    rows, before = document["sweep"], document["machine_before"]
+    spp = sorted(int(key[len("frame_ms_spp"):]) for key in rows[0] if key.startswith("frame_ms_spp"))
+    recorded = {"scene_name": SIZES["sweep_scene"], "cpu": before["cpu"], "cores": before["cores"]}
+    with tempfile.TemporaryDirectory(prefix="hlbvh-readme-") as where:
+        written = sweep.write_sweep(where, rows, recorded, spp[0], spp)
+        files = [Path(out_dir) / "sweep.png", Path(out_dir) / "sweep_frame_vs_spp.png"]
+        for plot, target in zip(written["plots"], files):
+            with atomic_output(target) as temporary:
+                shutil.copyfile(plot, temporary)
+    return files
 
 
 def _load(record: dict) -> str:
@@ -244,7 +229,13 @@ def main(argv=None) -> int:
         parser.add_argument(f"--{key.replace('_', '-')}", dest=key, type=kind, default=value,
                             help=f"default {value}")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
+    parser.add_argument("--replot", action="store_true",
+                        help="only draw the two plots again from OUT/bench.json (no measurement)")
     args = parser.parse_args(argv)
+    if args.replot:
+        files = replot(args.out, Path(args.out) / "bench.json")
+        print(f"{files[0]}, {files[1]}: drawn from {Path(args.out) / 'bench.json'}")
+        return 0
     sizes = {key: getattr(args, key) for key in SIZES}
     given = " ".join(argv if argv is not None else sys.argv[1:])
     command = f".venv/bin/python -m hlbvh.comparison.readme_figures {given}".strip()

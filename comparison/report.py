@@ -2,11 +2,16 @@
 HTML), the images side by side, the plots, and the raw numbers as JSON and CSV.
 
 Every report directory holds ``report.md``, ``report.html``, ``results.json`` and
-``results.csv``. The tables are formatted by :func:`format_value` from exactly the rows
-written to ``results.json`` (nested dicts flattened to dotted keys, e.g.
-``build_ms.native``), so a number on the page is the JSON number, shortened. Columns are
-the rows' keys in order of first appearance: a new statistic shows up without touching
-this module.
+``results.csv``. A comparison's page leads with its verdict (a paragraph the caller
+writes), then the plots, then each frame's images (the difference map's scale written
+beside it), then the tables. The tables are formatted by :func:`format_value` from
+exactly the rows written to ``results.json`` (nested dicts flattened by
+:func:`flatten` to dotted keys, e.g. ``build_ms.native``), so a number on the page is
+the JSON number, shortened; their headers are the keys made readable
+(:func:`column_title`), the JSON and CSV keep the keys. Columns are the rows' keys in
+order of first appearance: a new statistic shows up without touching this module.
+:func:`markdown_table` and :func:`to_json` are the one table and JSON writer of the
+harness (the README's figures use them too).
 
 Links in the HTML and Markdown are relative and percent-encoded; images and plots
 outside the report directory are copied into it (``images/``, ``plots/``), so the
@@ -27,6 +32,7 @@ import io
 import json
 import math
 import os
+import re
 import shutil
 import urllib.parse
 from collections.abc import Mapping, Sequence
@@ -41,6 +47,25 @@ BROWSER_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".gif", ".webp", ".svg")
 IMAGE_ROLES = {"native": "native", "hlbvh": "hlbvh (ours)", "diff": "difference"}
 
 _NONFINITE_STRINGS = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}
+
+#: Headers of the keys whose readable name is not their words (:func:`column_title`).
+COLUMN_TITLES = {
+    "decision": "our update",
+    "build_speedup": "build speedup (native / ours)",
+    "sah_cost": "SAH cost",
+    "build_cold_ms": "first build [ms]",
+    "mrays_primary": "primary rays [M/s]",
+    "mrays_secondary": "secondary rays [M/s]",
+    "image.max_abs_diff": "largest pixel difference",
+    "image.mean_abs_diff": "mean pixel difference",
+    "image.fraction_identical": "pixels bit-identical",
+    "image.fraction_within_tolerance": "pixels within tolerance",
+    "image.psnr_db": "PSNR [dB]",
+    "image.nonfinite_mismatch_pixels": "pixels NaN/inf in one render only",
+    "hits.fraction_agree": "camera hits agree",
+    "hits.fraction_shape_agree": "camera hits on the same shape",
+    "hits.differ_pixels": "pixels hitting another primitive",
+}
 
 _CSS = """
 body { font-family: system-ui, sans-serif; margin: 2em; color: #222; }
@@ -86,6 +111,37 @@ def format_value(value) -> str:
     return str(value)
 
 
+def column_title(key: str) -> str:
+    """The header a table shows for a row key: :data:`COLUMN_TITLES`, else the key's
+    words (``build_ms.native`` -> ``build, native [ms]``, ``frame_ms_spp16`` ->
+    ``frame at 16 spp [ms]``, ``hits.differ_pixels`` -> ``hits: differ pixels``)."""
+    if key in COLUMN_TITLES:
+        return COLUMN_TITLES[key]
+    head, _, rest = key.partition(".")
+    unit = ""
+    at = re.fullmatch(r"(\w+)_ms_spp(\d+)", head)
+    if at:
+        head, unit = f"{at.group(1)} at {at.group(2)} spp", " [ms]"
+    elif head.endswith("_ms"):
+        head, unit = head[:-3], " [ms]"
+    words = head.replace("_", " ")
+    if rest:
+        words += (", " if unit else ": ") + rest.replace("_", " ").replace(".", " ")
+    return words + unit
+
+
+def markdown_table(rows: Sequence[Mapping], columns: Sequence[str] | None = None) -> str:
+    """A Markdown table of flat ``rows`` (``columns``: their keys, by default every key
+    in order of first appearance), headed by :func:`column_title`, cells by
+    :func:`format_value`."""
+    columns = _columns(rows) if columns is None else list(columns)
+    lines = ["| " + " | ".join(_md_escape(column_title(c)) for c in columns) + " |",
+             "|" + "|".join("---" for _ in columns) + "|"]
+    lines += ["| " + " | ".join(_md_escape(format_value(row.get(c))) for c in columns) + " |"
+              for row in rows]
+    return "\n".join(lines)
+
+
 def winner(rows: Sequence[Mapping], objective: str = "frame_ms") -> Mapping:
     """The row with the smallest finite ``objective`` (the first such row on ties).
 
@@ -111,8 +167,11 @@ def write_report(
     images: Mapping[int, Mapping[str, os.PathLike | str]],
     settings: Mapping,
     plots: Sequence[os.PathLike | str] = (),
+    verdict: str | None = None,
+    captions: Mapping[str, str] | None = None,
 ) -> dict[str, Path]:
-    """Write the report of a native-vs-hlbvh comparison of an animation.
+    """Write the report of a native-vs-hlbvh comparison of an animation: the verdict,
+    the plots, the images per frame, then the settings and per-frame tables.
 
     Args:
         out_dir: the report directory (created if needed).
@@ -125,7 +184,10 @@ def write_report(
         images: frame number -> ``{"native": png, "hlbvh": png, "diff": png}`` (further
             roles are shown after these), paths to images a browser shows.
         settings: what was run (scene, resolution, spp, integrator, builder options ...).
-        plots: PNG plots to show under the tables.
+        plots: PNG plots, shown after the verdict.
+        verdict: the paragraph the page opens with (``None``: none).
+        captions: per image role, the caption under it (default :data:`IMAGE_ROLES`;
+            e.g. the difference map's scale).
 
     Returns:
         ``{"md": ..., "html": ..., "json": ..., "csv": ...}``: the files written.
@@ -135,7 +197,7 @@ def write_report(
             an image or plot that is missing or not a browser image format.
     """
     out_dir = Path(out_dir)
-    rows = [_flatten(row) for row in frames]
+    rows = [flatten(row) for row in frames]
     frame_numbers = [row.get("frame") for row in rows]
     if None in frame_numbers:
         raise ValueError("frames: every row needs a 'frame' key with the frame number")
@@ -152,8 +214,8 @@ def write_report(
     plot_links = _plot_links(out_dir, plots)
 
     page = _Page(title)
-    page.table("Settings", _setting_rows(settings))
-    page.table("Frames", rows)
+    if verdict:
+        page.paragraph(verdict, strong=True)
     flagged = [row["frame"] for row in rows if _nonfinite_mismatch(row)]
     if flagged:
         page.warning(
@@ -161,14 +223,16 @@ def write_report(
             "infinite in one render and not the other (nonfinite_mismatch_pixels); their "
             "differences and PSNR cover the finite pixels only."
         )
+    page.plots(plot_links)
     for frame in frame_numbers:
         if frame in links:
-            page.images(f"Frame {format_value(frame)}", links[frame])
-    page.plots(plot_links)
+            page.images(f"Frame {format_value(frame)}", links[frame], captions)
+    page.table("Settings", _setting_rows(settings))
+    page.table("Frames", rows)
     results = {
         "kind": "compare",
         "title": title,
-        "settings": dict(_flatten(settings)),
+        "settings": dict(flatten(settings)),
         "rows": rows,
         "images": {str(frame): roles for frame, roles in links.items()},
         "plots": plot_links,
@@ -208,25 +272,25 @@ def write_sweep_report(
             plot that is missing or not a browser image format.
     """
     out_dir = Path(out_dir)
-    flat = [_flatten(row) for row in rows]
+    flat = [flatten(row) for row in rows]
     if any(label not in row for row in flat):
         raise ValueError(f"rows: every row needs a {label!r} key naming its setting")
     best = winner(flat, objective)
     plot_links = _plot_links(out_dir, plots)
 
     page = _Page(title)
-    page.table("Settings", _setting_rows(settings))
     page.paragraph(
         f"Fastest by {objective}: {format_value(best[label])} "
         f"({objective} = {format_value(best[objective])})",
         strong=True,
     )
-    page.table("Sweep", flat, highlight=flat.index(best))
     page.plots(plot_links)
+    page.table("Sweep", flat, highlight=flat.index(best))
+    page.table("Settings", _setting_rows(settings))
     results = {
         "kind": "sweep",
         "title": title,
-        "settings": dict(_flatten(settings)),
+        "settings": dict(flatten(settings)),
         "rows": flat,
         "winner": {"label": best[label], "objective": objective, "value": best[objective]},
         "plots": plot_links,
@@ -269,16 +333,7 @@ class _Page:
             self.paragraph("(none)")
             return
         cells = [[format_value(row.get(column)) for column in columns] for row in rows]
-        self.markdown.append(
-            "\n".join(
-                [
-                    "| " + " | ".join(map(_md_escape, columns)) + " |",
-                    "|" + "|".join("---" for _ in columns) + "|",
-                    *("| " + " | ".join(map(_md_escape, line)) + " |" for line in cells),
-                ]
-            )
-            + "\n"
-        )
+        self.markdown.append(markdown_table(rows, columns) + "\n")
         body = []
         for index, (row, line) in enumerate(zip(rows, cells)):
             tds = "".join(
@@ -288,14 +343,16 @@ class _Page:
                 for column, text in zip(columns, line)
             )
             body.append(f'<tr class="winner">{tds}</tr>' if index == highlight else f"<tr>{tds}</tr>")
-        head = "".join(f"<th>{html.escape(column)}</th>" for column in columns)
+        head = "".join(f"<th>{html.escape(column_title(column))}</th>" for column in columns)
         self.html.append(
             f'<div class="scroll"><table><thead><tr>{head}</tr></thead>'
             f"<tbody>{''.join(body)}</tbody></table></div>"
         )
 
-    def images(self, heading: str, links: Mapping[str, str]) -> None:
-        captions = [IMAGE_ROLES.get(role, role) for role in links]
+    def images(self, heading: str, links: Mapping[str, str],
+               named: Mapping[str, str] | None = None) -> None:
+        names = {**IMAGE_ROLES, **(named or {})}
+        captions = [names.get(role, role) for role in links]
         self.markdown.append(f"### {heading}\n")
         self.markdown.append(
             "| " + " | ".join(captions) + " |\n|" + "|".join("---" for _ in links) + "|\n| "
@@ -345,7 +402,7 @@ def _write_files(out_dir: Path, page: _Page, results: dict) -> dict[str, Path]:
     texts = {
         "md": ("report.md", "\n".join(page.markdown)),
         "html": ("report.html", page.render_html()),
-        "json": ("results.json", json.dumps(_to_json(results), indent=2, allow_nan=False) + "\n"),
+        "json": ("results.json", json.dumps(to_json(results), indent=2, allow_nan=False) + "\n"),
         "csv": ("results.csv", table.getvalue()),
     }
     written = {}
@@ -398,14 +455,14 @@ def _ordered_roles(roles: Mapping) -> list[tuple[str, object]]:
 # ---- Values ----
 
 
-def _flatten(row: Mapping, prefix: str = "") -> dict:
-    """Nested dicts -> one level with dotted keys; numpy scalars and paths -> Python
-    values."""
+def flatten(row: Mapping, prefix: str = "") -> dict:
+    """Nested dicts -> one level with dotted keys (``{"a": {"b": 1}}`` -> ``{"a.b":
+    1}``); numpy scalars and paths -> Python values."""
     flat = {}
     for key, value in row.items():
         name = f"{prefix}{key}"
         if isinstance(value, Mapping):
-            flat.update(_flatten(value, f"{name}."))
+            flat.update(flatten(value, f"{name}."))
         else:
             flat[name] = _plain(value)
     return flat
@@ -431,7 +488,7 @@ def _nonfinite_mismatch(row: Mapping) -> bool:
 
 
 def _setting_rows(settings: Mapping) -> list[dict]:
-    return [{"setting": key, "value": value} for key, value in _flatten(settings).items()]
+    return [{"setting": key, "value": value} for key, value in flatten(settings).items()]
 
 
 def _columns(rows: Sequence[Mapping]) -> list[str]:
@@ -452,17 +509,19 @@ def _csv_value(value):
     if isinstance(value, float):
         return repr(value)
     if isinstance(value, list):
-        return json.dumps(_to_json(value))
+        return json.dumps(to_json(value))
     return value
 
 
-def _to_json(value):
+def to_json(value):
+    """``value`` as strict JSON values: non-finite floats as the strings ``"inf"``,
+    ``"-inf"``, ``"nan"`` (:func:`read_results` reads them back), tuples as lists."""
     if isinstance(value, float) and not math.isfinite(value):
         return format_value(value)
     if isinstance(value, Mapping):
-        return {str(key): _to_json(item) for key, item in value.items()}
+        return {str(key): to_json(item) for key, item in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_to_json(item) for item in value]
+        return [to_json(item) for item in value]
     return value
 
 

@@ -57,6 +57,7 @@ and native, the spp where native becomes faster marked).
 
 from __future__ import annotations
 
+import os
 import statistics
 import sys
 from dataclasses import dataclass, field, replace
@@ -66,6 +67,7 @@ import drjit as dr
 import mitsuba as mi
 
 from hlbvh.comparison import plots, report
+from hlbvh.comparison.bench_build import cpu_model
 from hlbvh.comparison.bench_trace import primary_rays, secondary_rays
 from hlbvh.accel import UPDATES
 from hlbvh.comparison.compare import TOLERANCE
@@ -345,16 +347,18 @@ def write_sweep(out_dir, rows: list[dict], recorded: dict, spp: int, curve) -> d
     """
     out = Path(out_dir)
     ours = [row for row in rows if row["setting"] != NATIVE]
+    note = machine_note(recorded)
     pareto = plots.plot_build_vs_sah(
         out / "build_vs_sah.png", [row["setting"] for row in ours],
         [row["build_ms"] for row in ours], [row["sah_cost"] for row in ours],
-        title=f"{recorded['scene_name']}: build time vs SAH cost (medians)",
+        title=f"{recorded['scene_name']}: build time vs SAH cost (medians)", note=note,
     )
     curve = sorted({*curve, spp})
     by_spp = plots.plot_frame_time_vs_spp(
         out / "frame_vs_spp.png", curve,
         {row["setting"]: [row[f"frame_ms_spp{s}"] for s in curve] for row in rows},
         native=NATIVE, title=f"{recorded['scene_name']}: frame time (build + render) vs spp",
+        note=note,
     )
     files = report.write_sweep_report(
         out, f"hlbvh sweep: {recorded['scene_name']} at {spp} spp", rows, recorded,
@@ -362,6 +366,15 @@ def write_sweep(out_dir, rows: list[dict], recorded: dict, spp: int, curve) -> d
     )
     return {"files": files, "plots": [pareto, by_spp], "winner": report.winner(rows),
             "fastest_hlbvh": report.winner(ours)}
+
+
+def machine_note(recorded: dict) -> str | None:
+    """What the plots say they were measured on: ``"Intel(R) Xeon(R) ..., 2 cores"``
+    (from ``cpu`` and ``cores`` of ``recorded``; ``None`` without them)."""
+    if not recorded.get("cpu"):
+        return None
+    cores = f", {recorded['cores']} cores" if recorded.get("cores") else ""
+    return f"measured on {recorded['cpu']}{cores}"
 
 
 def verdict(result: dict, scene: str, spp: int) -> str:
@@ -408,7 +421,7 @@ def run(args) -> int:
     recorded = {"scene_name": animation.name, **source, **_recorded(base),
                 "frames": f"{frames.start}:{frames.stop}", "spp_curve": sorted({*curve, spp}),
                 "tolerance": TOLERANCE, "variant": mi.variant(), "mitsuba": mi.__version__,
-                "drjit": dr.__version__}
+                "drjit": dr.__version__, "cpu": cpu_model(), "cores": os.cpu_count()}
     result = write_sweep(out, rows, recorded, spp, curve)
     print(f"{result['files']['html']}: {len(settings)} settings and native on "
           f"{animation.name}; {verdict(result, animation.name, spp)}")

@@ -13,7 +13,7 @@ import pytest
 from hlbvh import cli, images
 from hlbvh.comparison import compare
 from hlbvh.comparison.metrics import hit_agreement, image_metrics
-from hlbvh.comparison.report import format_value, read_results
+from hlbvh.comparison.report import column_title, format_value, read_results
 
 FRAMES = (0, 1)
 SIZE = 24
@@ -85,7 +85,13 @@ def test01_compare_writes_every_file_it_promises(compared):
         frame = f"frame_{i:04d}.png"
         assert [f"native/{frame}", f"hlbvh/{frame}", f"diff/{frame}"] == [
             s for s in parser.sources if s.endswith(frame)]
-    assert "build_ms.png" in parser.sources
+    assert "build_ms.png" in parser.sources and "frame_ms.png" in parser.sources
+    # It opens on the verdict, and the difference maps carry their scale.
+    page = (out / "report.html").read_text()
+    scale = read_results(out / "results.json")["settings"]["difference_scale"]
+    assert page.split("<body>", 1)[1].split("</h1>", 1)[1].startswith(
+        "\n<p><strong>A frame (build + render")
+    assert f"pale yellow = {scale:.3g} or more" in page
     for source in parser.sources:
         assert (out / source).resolve().is_file() and (out / source).resolve().is_relative_to(
             out.resolve()), source
@@ -99,7 +105,8 @@ def test02_report_numbers_equal_the_json_and_csv(compared):
     table = markdown_table((out / "report.md").read_text(), "Frames")
     assert len(table) == len(rows)
     for row, cells in zip(rows, table):
-        assert list(cells) == list(row)
+        assert list(cells) == [column_title(key) for key in row]
+        cells = dict(zip(row, cells.values()))  # by key
         for key, value in row.items():
             assert cells[key] == format_value(value), key
             if isinstance(value, float) and math.isfinite(value):

@@ -14,10 +14,11 @@ import shutil
 import subprocess
 
 import numpy as np
+import matplotlib.text
 import pytest
 
 from hlbvh import images
-from hlbvh.comparison import plots, report
+from hlbvh.comparison import crossover, plots, report
 from hlbvh.comparison.metrics import hit_agreement, image_metrics
 from hlbvh.comparison.report import format_value, read_results
 
@@ -71,7 +72,7 @@ def run(tmp_path_factory):
             "note": None if i else "a | pipe",
             "leaf_sizes": [1, 2.5, 4],
         })
-    plot = plots.plot_build_times(root / "plots in" / "build_ms.png", FRAMES,
+    plot = plots.plot_per_frame(root / "plots in" / "build_ms.png", FRAMES,
                                   [row["build_ms"]["native"] for row in rows],
                                   [row["build_ms"]["hlbvh"] for row in rows])
     settings = {"scene": "fake", "spp": 2, "tolerance": 1e-3,
@@ -184,7 +185,8 @@ def test03_markdown_numbers_are_the_json_numbers(run):
     table = markdown_table(text, "Frames")
     assert len(table) == len(rows)
     for row, cells in zip(rows, table):
-        assert list(cells) == list(row)
+        assert list(cells) == [report.column_title(key) for key in row]
+        cells = dict(zip(row, cells.values()))  # by key
         for key, value in row.items():
             assert cells[key] == format_value(value), key
             if isinstance(value, float):
@@ -195,9 +197,10 @@ def test03_markdown_numbers_are_the_json_numbers(run):
                     assert parsed == value, key
             elif isinstance(value, int) and not isinstance(value, bool):
                 assert int(cells[key]) == value, key
-    assert table[0]["note"] == "a | pipe" and table[1]["note"] == "-"
-    assert table[0]["fraction_like"] == "0.9999995"  # not rounded up to "1"
-    assert table[1]["image.fraction_identical"] != "1"
+    title = report.column_title
+    assert table[0][title("note")] == "a | pipe" and table[1][title("note")] == "-"
+    assert table[0][title("fraction_like")] == "0.9999995"  # not rounded up to "1"
+    assert table[1][title("image.fraction_identical")] != "1"
     settings = {r["setting"]: r["value"] for r in markdown_table(text, "Settings")}
     assert settings == {"scene": "fake", "spp": "2", "tolerance": "0.001",
                         "build_options.builder": "hlbvh", "build_options.leaf_size": "4",
@@ -208,8 +211,8 @@ def test04_html_tables_show_the_same_cells(run):
     rows = read_results(run["files"]["json"])["rows"]
     page = parse_html(run["files"]["html"])
     header, *body = page.tables["Frames"]
-    assert header == list(rows[0])
-    assert body == [[format_value(row[key]) for key in header] for row in rows]
+    assert header == [report.column_title(key) for key in rows[0]]
+    assert body == [[format_value(row[key]) for key in rows[0]] for row in rows]
     assert ["setting", "value"] == page.tables["Settings"][0]
 
 
@@ -231,11 +234,26 @@ def test06_page_shows_each_frame_side_by_side_and_the_plot(run):
     page = parse_html(run["files"]["html"])
     results = read_results(run["files"]["json"])
     expected = [results["images"][str(i)][role] for i in FRAMES for role in ROLES]
-    assert page.sources == [_url(link) for link in expected + results["plots"]]
+    # The plots first (after the verdict), then the images frame by frame.
+    assert page.sources == [_url(link) for link in results["plots"] + expected]
     md_links = re.findall(r"!\[[^\]]*\]\(([^)]*)\)", run["files"]["md"].read_text())
-    assert md_links == [_url(link) for link in expected + results["plots"]]
+    assert md_links == [_url(link) for link in results["plots"] + expected]
     text = run["files"]["html"].read_text()
     assert "native" in text and "hlbvh (ours)" in text and "difference" in text
+
+
+def test06b_page_opens_on_the_verdict_and_captions_the_scale(run, tmp_path):
+    """The verdict is the first thing under the title, before the plots, images and
+    tables; a caption given for a role replaces its default."""
+    files = report.write_report(tmp_path, "t", run["rows"], run["pictures"], run["settings"],
+                                plots=[run["plot"]], verdict="Ours is as good.",
+                                captions={"diff": "difference: 0 to 0.25"})
+    text = files["html"].read_text()
+    body = text.split("<body>", 1)[1]
+    assert body.index("Ours is as good.") < body.index("<img") < body.index("<table")
+    assert body.count("<figcaption>difference: 0 to 0.25</figcaption>") == len(FRAMES)
+    markdown = files["md"].read_text()
+    assert markdown.index("Ours is as good.") < markdown.index("![") < markdown.index("| ")
 
 
 def _url(link: str) -> str:
@@ -300,7 +318,7 @@ def test10_sweep_report_names_the_winner_by_its_own_numbers(tmp_path):
     assert "Fastest by frame_ms: hlbvh (frame_ms = 61.25)" in text
     table = markdown_table(text, "Sweep")
     assert [r["setting"] for r in table] == ["native", "lbvh", "hlbvh", "broken"]
-    assert table[3]["frame_ms"] == "nan"
+    assert table[3][report.column_title("frame_ms")] == "nan"
     assert '<tr class="winner"><td>hlbvh</td>' in files["html"].read_text()
     with pytest.raises(ValueError, match="objective"):
         report.winner(rows, "mrays")
@@ -328,20 +346,28 @@ def test11_pareto_front_of_hand_made_points():
 
 
 def test12_crossover_of_hand_made_frame_times():
+    """The one crossover definition (hlbvh.comparison.crossover), used by the frame
+    benchmark, the sweep and the plot."""
     spp = [1, 2, 4, 8]
     # Frame time = build + spp * render: ours 8 + 2 spp, native 11 + spp: equal at 3 spp.
     ours = [8 + 2 * s for s in spp]
-    assert plots.crossover_spp(spp, ours, [11 + s for s in spp]) == 3.0
+    assert crossover.crossover_spp(spp, ours, [11 + s for s in spp]) == 3.0
     # Equal exactly at a measured spp: that spp.
-    assert plots.crossover_spp(spp, ours, [12 + s for s in spp]) == 4.0
+    assert crossover.crossover_spp(spp, ours, [12 + s for s in spp]) == 4.0
     # Ours faster throughout, native faster (or equal) from the start: none.
-    assert plots.crossover_spp(spp, ours, [100 + s for s in spp]) is None
-    assert plots.crossover_spp(spp, ours, [8 + 2 * s for s in spp]) is None
-    assert plots.crossover_spp(spp, ours, [1 + s for s in spp]) is None
+    assert crossover.crossover_spp(spp, ours, [100 + s for s in spp]) is None
+    assert crossover.crossover_spp(spp, ours, [8 + 2 * s for s in spp]) is None
+    assert crossover.crossover_spp(spp, ours, [1 + s for s in spp]) is None
     # Not linear: interpolated between the two measured spp around the sign change.
-    assert plots.crossover_spp([1, 16], [10, 30], [15, 25]) == pytest.approx(8.5)
+    assert crossover.crossover_spp([1, 16], [10, 30], [15, 25]) == pytest.approx(8.5)
     with pytest.raises(ValueError, match="increasing"):
-        plots.crossover_spp([4, 2], [1, 2], [2, 1])
+        crossover.crossover_spp([4, 2], [1, 2], [2, 1])
+    # In words: the number, or which side of the measured range it lies on.
+    assert crossover.describe(spp, ours, [11 + s for s in spp]) == "3 spp"
+    assert crossover.describe(spp, ours, [100 + s for s in spp]) == "> 8 spp"
+    assert crossover.describe(spp, ours, [1 + s for s in spp]) == "< 1 spp"
+    with pytest.raises(ValueError, match="equal length"):
+        crossover.crossover_spp([1, 2], [1, 2], [1])
 
 
 def test13_plots_are_pngs_and_mark_the_crossover(tmp_path):
@@ -359,6 +385,37 @@ def test13_plots_are_pngs_and_mark_the_crossover(tmp_path):
         plots.plot_frame_time_vs_spp(tmp_path / "x.png", spp, {"hlbvh": spp})
     with pytest.raises(ValueError, match="labels"):
         plots.plot_build_vs_sah(tmp_path / "y.png", ["a"], [1.0, 2.0], [1.0, 2.0])
+
+
+def test13b_frame_time_plot_draws_measured_points_and_labels_apart():
+    """Only the measured spp are drawn (no interpolated curve), every crossover is
+    marked on the lines and named in the legend, no two texts overlap, and the machine
+    is written on the plot."""
+    spp = [1, 4, 16]
+    series = {"native": [129.0, 154.0, 240.0], "a": [100.0, 147.0, 358.0],
+              "b": [97.0, 151.0, 347.0], "c": [85.0, 138.0, 350.0], "d": [60.0, 109.0, 297.0]}
+    figure = plots.frame_time_figure(spp, series, note="measured on Some CPU, 2 cores")
+    axes = figure.axes[0]
+    crossings = {label: crossover.crossover_spp(spp, ms, series["native"])
+                 for label, ms in series.items() if label != "native"}
+    lines = [line for line in axes.get_lines() if len(line.get_xdata()) > 1]
+    assert len(lines) == len(series)
+    for line in lines:
+        assert list(line.get_xdata()) == spp
+    marks = sorted(float(line.get_xdata()[0]) for line in axes.get_lines()
+                   if len(line.get_xdata()) == 1)
+    assert marks == pytest.approx(sorted(crossings.values()))
+    legend = [text.get_text() for text in axes.get_legend().get_texts()]
+    for label, at in crossings.items():
+        assert f"{label}: native faster from {at:.3g} spp" in legend
+    figure.canvas.draw()
+    renderer = figure.canvas.get_renderer()
+    texts = [t for t in figure.findobj(matplotlib.text.Text) if t.get_visible() and t.get_text()]
+    boxes = [t.get_window_extent(renderer) for t in texts]
+    for i in range(len(boxes)):
+        for j in range(i + 1, len(boxes)):
+            assert not boxes[i].overlaps(boxes[j]), (texts[i].get_text(), texts[j].get_text())
+    assert "measured on Some CPU, 2 cores" in [t.get_text() for t in texts]
 
 
 # ---- The page in a real browser ----

@@ -11,7 +11,7 @@ import pytest
 
 from hlbvh import cli
 from hlbvh.comparison import sweep
-from hlbvh.comparison.report import format_value, read_results
+from hlbvh.comparison.report import column_title, format_value, read_results
 
 SIZE = 24
 SPP = 2
@@ -83,7 +83,7 @@ def test02_numbers_are_consistent_with_each_other(swept):
     for row, line in zip(rows, table[2:]):
         cells = dict(zip(header, (cell.strip() for cell in line.strip("|").split(" | "))))
         for key, value in row.items():
-            assert cells[key] == format_value(value), key
+            assert cells[column_title(key)] == format_value(value), key
 
 
 def test03_the_winner_is_the_fastest_by_its_own_numbers(swept):
