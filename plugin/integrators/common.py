@@ -108,6 +108,7 @@ def spec_fma(a, b, c):
     return a * b + c if mi.is_polarized else dr.fma(a, b, c)
 
 
+@dr.syntax
 def skip_area_emitters(accel, ray, coherent, active):
     """The first hit along ``ray`` that is not on an area emitter.
 
@@ -124,22 +125,12 @@ def skip_area_emitters(accel, ray, coherent, active):
         PreliminaryIntersection3f of the first non-emitting surface (or a miss).
     """
 
-    def cond(pi, ray, active):
-        return active
-
-    def body(pi, ray, active):
+    pi = dr.zeros(mi.PreliminaryIntersection3f, dr.width(ray))
+    ray = mi.Ray3f(ray)
+    active = mi.Bool(active)
+    while dr.hint(active, label="hlbvh_skip_area_emitters"):
         pi = accel.ray_intersect_preliminary(ray, coherent)
         active &= pi.is_valid() & (pi.shape.emitter() != None)  # noqa: E711 (JIT compare)
         si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
         ray = si.spawn_ray(ray.d)
-        return pi, ray, active
-
-    pi, _, _ = dr.while_loop(
-        state=(dr.zeros(mi.PreliminaryIntersection3f, dr.width(ray)), mi.Ray3f(ray),
-               mi.Bool(active)),
-        cond=cond,
-        body=body,
-        labels=("pi", "ray", "active"),
-        label="hlbvh_skip_area_emitters",
-    )
     return pi

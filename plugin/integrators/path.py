@@ -83,8 +83,9 @@ class PathIntegrator(AccelIntegrator):
         if self.rr_depth <= 0:
             raise ValueError(f"rr_depth={self.rr_depth}: expected a value > 0")
 
+    @dr.syntax
     def sample(self, scene, sampler, ray, medium=None, active=True):
-        if self.max_depth == 0:
+        if dr.hint(self.max_depth == 0, mode="scalar"):
             return mi.Spectrum(0.0), mi.Bool(False), []
         accel = self.accel(scene)
         bsdf_ctx = mi.BSDFContext()
@@ -109,14 +110,13 @@ class PathIntegrator(AccelIntegrator):
 
         # ---------------------- Hide area emitters ----------------------
 
-        if self.hide_emitters:
+        if dr.hint(self.hide_emitters, mode="scalar"):
             skip = pi.is_valid() & (pi.shape.emitter() != None) & active  # noqa: E711
             si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, skip)
             pi_after_skip = skip_area_emitters(accel, si.spawn_ray(ray.d), True, skip)
             pi = dr.select(skip, pi_after_skip, pi)
 
-        def body(ray, pi, throughput, result, eta, depth, valid_ray, prev_si,
-                 prev_bsdf_pdf, prev_bsdf_delta, active, sampler):
+        while dr.hint(active, label="hlbvh_path"):
             si = pi.compute_surface_interaction(ray, mi.RayFlags.All)
 
             # ---------------------- Direct emission ----------------------
@@ -187,19 +187,7 @@ class PathIntegrator(AccelIntegrator):
 
             # Continuation rays are incoherent
             pi = accel.ray_intersect_preliminary(ray, False, active)
-            return (ray, pi, throughput, result, eta, depth, valid_ray, prev_si,
-                    prev_bsdf_pdf, prev_bsdf_delta, active, sampler)
 
-        state = dr.while_loop(
-            state=(ray, pi, throughput, result, eta, depth, valid_ray, prev_si,
-                   prev_bsdf_pdf, prev_bsdf_delta, active, sampler),
-            cond=lambda *state: state[-2],  # active
-            body=body,
-            labels=("ray", "pi", "throughput", "result", "eta", "depth", "valid_ray",
-                    "prev_si", "prev_bsdf_pdf", "prev_bsdf_delta", "active", "sampler"),
-            label="hlbvh_path",
-        )
-        result, valid_ray = state[3], state[6]
         return dr.select(valid_ray, result, 0.0), valid_ray, []
 
     def to_string(self):
