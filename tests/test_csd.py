@@ -179,8 +179,9 @@ def test09_bad_arguments_raise_errors_naming_them():
 
 
 def test10_a_new_size_or_run_count_compiles_no_new_kernel():
-    # Sizes must enter kernels as opaque values (DRJIT_NOTES pitfall 6): every frame of
-    # an animation has a new run count, and a recompile costs more than the sort.
+    # Sizes must enter kernels as opaque values (a Python int is baked in as a literal):
+    # every frame of an animation has a new run count, and a recompile costs more than
+    # the sort.
     rng = np.random.default_rng(9)
 
     def sort_some(n):
