@@ -68,3 +68,21 @@ def _in_jit_memory(x):
     copy = buf[skip : skip + src.nbytes].view(src.dtype)
     copy[:] = src
     return type(x)(copy)
+
+
+def concat(parts):
+    """The flat JIT arrays ``parts`` (one type) end to end, evaluated. Unlike
+    ``dr.concat``, whose kernel holds each part's size as a literal (a compile for
+    every new size), the offsets enter as opaque values."""
+    if len(parts) == 1:
+        return parts[0]
+    ns = namespace_of(parts[0])
+    out = dr.empty(type(parts[0]), sum(dr.width(p) for p in parts))
+    offset = 0
+    for part in parts:
+        width = dr.width(part)
+        if width:
+            dr.scatter(out, part, dr.arange(ns.UInt32, width) + dr.opaque(ns.UInt32, offset))
+        offset += width
+    dr.eval(out)
+    return out

@@ -1,29 +1,27 @@
-"""Ray traversal of the BVH: closest hit and any hit.
+"""Ray traversal of the packed 4-wide BVH (:mod:`hlbvh.kernels.layout`): closest hit
+and any hit.
 
-Each ray runs one symbolic ``dr.while_loop`` with a per-lane short stack (registers
-over local memory, see below). Every iteration advances every lane by one step: a lane at an
-internal node tests both children's boxes, a lane inside a leaf tests one triangle.
-The two tests sit in symbolic ifs, so a packet whose lanes are all at nodes (or all
-in leaves) skips the other test. Unlike Aila & Laine's *while-while* loops (descend
-until every lane of the packet reaches a leaf, then intersect), no lane waits for the
-rest of its packet to finish a phase; measured here 1.1-1.4x faster on a 1M-triangle
-grid and 2x on Cornell box. The loop and its ifs are symbolic whatever Dr.Jit's
-``JitFlag.SymbolicLoops`` and ``SymbolicConditionals`` say: an integrator running
-its own loops evaluated still gets one traversal kernel per query (an evaluated
-traversal launched kernels on every step: minutes for a thousand rays).
+Each ray runs one symbolic ``dr.while_loop``. Every iteration reads one 64-byte slot
+(one packet gather, whatever the lane finds there) and advances every lane by one step:
+a lane at a wide node tests its up to four children's boxes, a lane inside a leaf tests
+one triangle. The two tests sit in symbolic ifs, so a packet whose lanes are all at
+nodes (or all in leaves) skips the other test, and no lane waits for the rest of its
+packet to finish a phase. The loop and its ifs are symbolic whatever Dr.Jit's
+``JitFlag.SymbolicLoops`` and ``SymbolicConditionals`` say, so an integrator running
+its own loops evaluated still gets one traversal kernel per query.
 
-- **Ordered visit**: both children's boxes are tested together; the nearer child is
-  visited first, the farther one is pushed with its entry distance, and a popped node
-  whose entry distance lies beyond the closest hit so far is skipped. Any hit, which
-  any occluder ends, visits the left child first instead: its record is the next one
-  (see the layout below), and that measured 1.07-1.12x faster on incoherent shadow-like
-  rays of a 1M-triangle grid and 1.04-1.07x on ``hlbvh_path`` renders.
+- **Ordered visit**: the hit children of a wide node are sorted by a four-entry
+  sorting network; the ray goes to the first and pushes the others, so the next pop
+  is the nearest of them. Closest hit sorts by entry distance and skips a popped entry
+  whose distance lies beyond the closest hit so far; any hit, which any occluder ends,
+  sorts leaves before nodes (a leaf may end the query at once) and keeps no distance.
 - **Conservative slab test** (Ize, "Robust BVH ray traversal", JCGT 2013): the exit
   distance of a box is scaled by ``1 + 2·gamma(3)`` so rounding never culls a box the
   ray touches; so is the closest hit so far when a box's entry distance is compared
-  with it (a triangle lying on a box face at exactly ``maxt`` is still found).
-  Reciprocal directions come from directions clamped away from zero (``|d| >=
-  FLT_MIN``, sign kept), so no ``0 · inf = NaN`` reaches the min/max.
+  with it. The child boxes are the packer's quantised ones, decoded with the same
+  ``fma`` the packer checked them with, so they contain the exact boxes. Reciprocal
+  directions come from directions clamped away from zero (``|d| >= FLT_MIN``, sign
+  kept), so no ``0 · inf = NaN`` reaches the min/max.
 - **Watertight ray/triangle test** (Woop, Benthin & Wald, JCGT 2013): vertices are
   translated to the ray origin, permuted so the ray's dominant axis is z and sheared so
   the ray becomes the z axis. Every vertex is transformed the same way whichever
@@ -31,112 +29,42 @@ traversal launched kernels on every step: minutes for a thousand rays).
   negatives of each other, so no ray slips between two triangles that share an edge or
   a vertex. A hit is accepted with barycentrics ``U/det, V/det, W/det`` down to
   ``-BARYCENTRIC_MARGIN`` (2**-20): this also closes the one-ulp cracks where two
-  separately modelled meshes meet (the walls of Cornell box), as Embree does, and makes
-  the paper's double-precision recomputation of an edge function that rounds to zero
-  unnecessary (zero is inside either way). Triangles whose edge functions overflow or
-  underflow float32 (coordinates beyond ~1e19 or below ~1e-19 relative to the ray
-  origin) or whose determinant rounds to zero are recomputed in double precision, so
-  scenes at 1e+30 and 1e-30 scale trace correctly.
+  separately modelled meshes meet (the walls of Cornell box), as Embree does. Triangles
+  whose edge functions overflow or underflow float32 (coordinates beyond ~1e19 or below
+  ~1e-19 relative to the ray origin) or whose determinant rounds to zero are recomputed
+  in double precision, so scenes at 1e+30 and 1e-30 scale trace correctly. Zero-area
+  triangles are packed with NaN vertices and never hit.
 
 A hit is reported at the smallest ``t`` with ``0 < t <= maxt``. Rays with a NaN or
 infinite component, a zero direction, ``maxt <= 0`` or ``maxt`` NaN are clean misses.
 
-Packed records (built once per BVH and cached on it, see :func:`packed_records`): the
-arrays of ``hlbvh.kernels.bvh`` are repacked into one Float array of 16-float records
-(64 bytes, one cache line), so that each step is one packet gather, whatever the lane
-is doing. An internal node has one record; a leaf has none of its own, only its
-triangles' records, one per triangle:
+Short stack: the top ``REGISTERS`` (4) entries of each lane's stack live in loop
+registers, the rest in local memory (``dr.alloc_local``), which only a packet in which
+some lane pushes past the registers, or pops with none held, touches (in a symbolic
+if). A wide node pushes at most three entries and the packer refuses trees deeper than
+``layout.MAX_DEPTH`` binary levels, so ``STACK_SIZE`` entries always suffice; the
+packer also refuses cycles and shared subtrees, so every ray ends.
 
-========================  ===============================================================
-internal node, ``0..5``   its left child's box: lo x, y, z, hi x, y, z
-``6..11``                 its right child's box
-``12, 13``                left and right child's references (the bits of a UInt32);
-                          14, 15 zero padding
-triangle, ``0..8``        p0, p1, p2 (in the face's order)
-``9``                     the input face index (the bits of a UInt32)
-``10``                    1 for a zero-area triangle (never hit), else 0; 11..15 zero
-========================  ===============================================================
-
-The records are laid out depth first (pre-order, left child first): a node's record,
-then its left subtree's records, then its right subtree's, a leaf's triangles in slot
-order where the leaf stands. A ray that descends often steps to the next record, which
-the cache (or its adjacent-line prefetch) already holds: measured 1.11-1.18x faster on
-a 1M-triangle grid than nodes in index order followed by all triangles (no change on
-Cornell box, which fits in L1), and packing is no slower. The order comes from the
-tree's ``levels`` (one pass up for subtree sizes, one down for positions); a hand-made
-tree whose ``levels`` do not describe it exactly (checked: every internal node and
-leaf triangle got a record of its own and no record is empty) is packed in index order
-instead: node ``i`` at record ``i``, the triangle in slot ``s`` at ``N + s``. Storing
-the face index in the triangle's record also spares a gather after the loop.
-
-A *reference* names a node: an internal node by its record (bit 31 clear); a leaf by
-``LEAF_BIT | first_record << 4 | (count - 1)`` so a leaf needs no record of its own (this
-bounds leaves to 16 triangles and the records to 2**27, about 2**26 triangles). The
-cache is keyed by the Dr.Jit variable indices of the BVH's arrays, so a refit (which
-assigns new box and vertex arrays) repacks on the next trace; code that modifies those
-arrays in place must call :func:`forget_records`.
-
-Short stack: the top ``STACK_REGISTERS`` (4) entries of each lane's stack live in
-loop registers, the rest in local memory (``dr.alloc_local``), which is only touched,
-in a symbolic if, by a packet in which some lane pushes onto four held entries or pops
-with none held. Rays rarely hold more than a few entries (on a 1M-triangle grid 1-2 on
-average, under 4 on 75-90% of pushes), while every local-memory access costs a packet a
-scatter or gather plus Dr.Jit's test for a uniform index: measured 1.08-1.2x faster
-than a stack wholly in local memory accessed on every step (2, 3 or 6 registers: no
-better). The spill's if returns the new stack pointer: Dr.Jit drops a ``dr.if_stmt``
-without outputs and runs its local-memory write masked on every step. An entry holds
-the node's reference and entry distance (any hit: the reference only).
-
-Tried and not kept (process CPU time, one thread, against this code): sorting the rays
-of a query by origin cell, direction octant or cell before tracing and scattering the
-results back (``block_mkperm`` over 12-bit keys) gained at most 1.08-1.11x on
-incoherent rays of a 1M-triangle grid and lost 1.04-1.25x elsewhere, coherent rays
-included: rays generated per pixel already come ordered by origin, and inside an
-integrator's symbolic loop nothing can be sorted anyway. Two triangles per leaf step:
-0.8-0.88x. Box slabs as ``fma(x, 1/d, -o/d)``: not conservative for origins far from
-the box (the rounding of ``o/d`` is not bounded by the slab distance). Testing for
-possible hits before the triangle test's two divisions, and the shear from the
-reciprocal direction: 0.93-1.03x. Leaf sizes 2 or 8 instead of the builder's 4: no
-better. In ``hlbvh_path`` a packet steps while any of its lanes still traverses: on a
-200k-triangle cloth frame a third of the lane-steps paid for are active ones (a fifth
-for shadow rays through the cloth), which only fewer steps per ray or compacted rays
-would change.
-
-Stack guard: the stack holds ``STACK_SIZE`` (64) entries; ordered traversal pushes at
-most one entry per level, so a tree of depth <= 64 never overflows, and deeper trees
-are refused with a ValueError before tracing. A corrupt tree that still overflows the
-stack, or that makes a ray take more steps than the tree has nodes and triangles (a
-cycle), ends that ray deterministically as a miss (any hit: not occluded). Child
-references and leaf ranges are checked when the records are packed, so no gather
-leaves its array.
-
-Call :func:`packed_records` once outside any symbolic loop (when the BVH is built or
-refit) if the traversal is then traced inside one: packing evaluates arrays.
+The slots are packed once per BVH (or per set of BVHs, :func:`layout.joined`) and
+cached on it: call :func:`packed_records` (or ``joined``) outside any symbolic loop if
+the traversal is then traced inside one, since packing evaluates arrays.
 """
 
 from __future__ import annotations
 
 import drjit as dr
 
+from . import layout
 from .arrays import namespace_of, plain
+from .layout import packed_records  # noqa: F401  (what traversal reads, built on first use)
 
-#: Entries of the per-lane traversal stack.
-STACK_SIZE = 64
+#: Entries of the per-lane traversal stack: a wide node pushes at most three, one wide
+#: level per two of the deepest tree that packs.
+STACK_SIZE = (layout.WIDTH - 1) * layout.MAX_DEPTH // 2
 #: Of these, the top entries held in loop registers (the rest in local memory).
-STACK_REGISTERS = 4
-#: Bit 31 of a reference marks a leaf.
-LEAF_BIT = 0x80000000
-#: Most triangles a leaf may hold (its count - 1 lives in the reference's low 4 bits).
-MAX_LEAF_SIZE = 16
-#: Most records (internal nodes plus triangles) a BVH may pack into (the first record
-#: of a leaf lives in bits 4..30 of its reference).
-MAX_RECORDS = 1 << 27
-
-_RECORD = 16  # floats per packed node or triangle record
-_TRIANGLE_TAG = 0x80000000  # a record holding a triangle, the slot in the low bits
-_NOTHING = 0xFFFFFFFF  # a record holding nothing (index-order layout only)
-_TRIANGLE_TAG = 0x80000000  # a record holding a triangle (the slot in the low bits)
-_NOTHING = 0xFFFFFFFF  # a record holding nothing
+REGISTERS = 4
+_MISS = 0xFFFFFFFFFFFFFFFF  # the entry of a child the ray misses (sorts last)
+_MISS32 = 0xFFFFFFFF  # the same for any hit's 32-bit entries
 _FLT_MIN = 2.0**-126  # smallest normal float: 1 / _FLT_MIN is finite
 _EPS = 2.0**-24  # unit roundoff of float32
 _GAMMA3 = 3 * _EPS / (1 - 3 * _EPS)  # gamma(3) of Pharr et al., as in Ize 2013
@@ -156,7 +84,8 @@ def closest_hit(bvh, o, d, maxt, active=True):
     """Nearest intersection of each ray with the BVH's triangles.
 
     Args:
-        bvh: an ``hlbvh.BVH``.
+        bvh: an ``hlbvh.BVH``, or the :class:`~hlbvh.kernels.layout.Packed` slots of
+            several (:func:`~hlbvh.kernels.layout.joined`).
         o: Array3f (or ``mi.Point3f``) ray origins, width R (or 1).
         d: Array3f (or ``mi.Vector3f``) ray directions, width R (or 1); need not be
             normalised (``t`` is in units of ``d``).
@@ -203,205 +132,27 @@ def occluded(bvh, ray, active=True):
 
 
 # ---------------------------------------------------------------------------------------
-# Packed records
-# ---------------------------------------------------------------------------------------
-
-
-def packed_records(bvh):
-    """The packed node and triangle records of ``bvh`` (layout in the module docstring),
-    built on first use and cached on the BVH object.
-
-    Returns:
-        ``(records, root)``: Float (16 per record) and the Python int reference of the
-        root.
-    Raises:
-        ValueError: the tree is deeper than ``STACK_SIZE``, has a leaf of more than 16
-            triangles, more than ``MAX_RECORDS`` records, or a child/leaf range outside
-            its arrays.
-    """
-    arrays = (bvh.node_min, bvh.node_max, bvh.node_first, bvh.node_count, bvh.prim_ids,
-              bvh.tri_p0, bvh.tri_p1, bvh.tri_p2)
-    key = tuple(c.index for a in arrays for c in (a if dr.depth_v(a) > 1 else (a,)))
-    key += tuple(level.index for level in bvh.levels)
-    cache = getattr(bvh, "_traversal_records", None)
-    if cache is not None and cache[0] == key:
-        return cache[1]
-    records = _pack(bvh)
-    bvh._traversal_records = (key, records)
-    return records
-
-
-def forget_records(bvh):
-    """Drop the cached packed records of ``bvh`` (after changing its arrays in place)."""
-    bvh._traversal_records = None
-
-
-def _pack(bvh):
-    ns = namespace_of(bvh.node_count)
-    UInt32, Float, ArrayXf = ns.UInt32, ns.Float, ns.ArrayXf
-    n_nodes, n_prims = bvh.size, bvh.prim_count
-
-    # ---- Validate: depth, leaf sizes, child and slot ranges ----
-    depth = max(bvh.stats.depth, len(bvh.levels))
-    if depth > STACK_SIZE:
-        raise ValueError(
-            f"BVH depth {depth} exceeds the traversal stack ({STACK_SIZE} entries): "
-            "rebuild with a builder that bounds the depth"
-        )
-    if n_nodes + n_prims > MAX_RECORDS:
-        raise ValueError(
-            f"BVH has {n_prims} triangles in {n_nodes} nodes; traversal supports at most "
-            f"{MAX_RECORDS} nodes plus triangles (about {MAX_RECORDS // 2} triangles)"
-        )
-    if n_nodes == 0 or n_prims == 0:
-        raise ValueError("BVH is empty: build it from at least one triangle")
-    first, count = UInt32(bvh.node_first), UInt32(bvh.node_count)
-    internal = count == 0
-    # Sizes enter kernels as opaque values: a literal would compile new kernels for
-    # every tree of a new size, i.e. every frame of an animation (pitfall 6).
-    nodes_o, prims_o = dr.opaque(UInt32, n_nodes), dr.opaque(UInt32, n_prims)
-    bad = dr.select(
-        internal,
-        first + 1 >= nodes_o,
-        (count > MAX_LEAF_SIZE) | (first + count > prims_o) | (first + count < first),
-    )
-    if dr.any(bad, axis=None):
-        raise ValueError(
-            "corrupt BVH: a child index or leaf range lies outside the node/slot "
-            f"arrays, or a leaf holds more than {MAX_LEAF_SIZE} triangles"
-        )
-    widest = int(dr.max(count, axis=None)[0])
-
-    # ---- Layout: what each record holds ----
-    position, total = _depth_first(bvh.levels, first, count, internal, n_prims)
-    holds = None
-    if position is not None:
-        holds = _holdings(position, total, first, count, internal, widest)
-        if not _exact(holds, position, total, first, count, internal, widest):
-            holds = None
-    if holds is None:  # index order: node i at record i, slot s at record N + s
-        position = dr.select(internal, dr.arange(UInt32, n_nodes), nodes_o + first)
-        total = n_nodes + n_prims
-        holds = _holdings(position, total, first, count, internal, widest)
-    is_node = (holds & _TRIANGLE_TAG) == 0
-    is_triangle = ~is_node & (holds != _NOTHING)
-    item = holds & ~UInt32(_TRIANGLE_TAG)
-
-    # ---- Node rows: both children's boxes and references ----
-    # Each node's box and reference as an 8-float row in index order, read twice (the
-    # children of a node are adjacent) by packet gathers.
-    ref = dr.select(internal, position, LEAF_BIT | (position << 4) | (count - 1))
-    lo, hi = bvh.node_min, bvh.node_max
-    half = dr.ravel(ArrayXf([lo.x, lo.y, lo.z, hi.x, hi.y, hi.z,
-                             dr.reinterpret_array(Float, ref), dr.zeros(Float, n_nodes)]))
-    left = dr.gather(UInt32, first, item, is_node)
-    one = dr.gather(ArrayXf, half, left, is_node, shape=(8, total))
-    other = dr.gather(ArrayXf, half, left + 1, is_node, shape=(8, total))
-    zero = dr.zeros(Float, total)
-    rows = [one[i] for i in range(6)] + [other[i] for i in range(6)] + [one[6], other[6]]
-    rows += [zero] * (_RECORD - len(rows))
-
-    # ---- Triangle rows: the three vertices and the face index ----
-    tri_rows = [c for p in (bvh.tri_p0, bvh.tri_p1, bvh.tri_p2)
-                for c in dr.gather(ns.Array3f, p, item, is_triangle)]
-    face = dr.gather(UInt32, UInt32(bvh.prim_ids), item, is_triangle)
-    tri_rows.append(dr.reinterpret_array(Float, face))
-    # A zero-area triangle (collinear vertices) is never hit, as in Embree: its normal
-    # would be NaN. After the shear its determinant may round away from zero, so the
-    # flag is taken here, from the unsheared edges.
-    # In double precision: float32 products underflow at 1e-30 and overflow at 1e20.
-    p0, p1, p2 = (ns.Array3f64(dr.gather(ns.Array3f, p, item, is_triangle))
-                  for p in (bvh.tri_p0, bvh.tri_p1, bvh.tri_p2))
-    normal = dr.cross(p1 - p0, p2 - p0)
-    flat = (normal.x == 0) & (normal.y == 0) & (normal.z == 0)
-    tri_rows.append(dr.select(flat, Float(1), Float(0)))
-    tri_rows += [zero] * (_RECORD - len(tri_rows))
-
-    records = dr.ravel(ArrayXf([dr.select(is_node, a, b) for a, b in zip(rows, tri_rows)]))
-    dr.eval(records)
-    return records, int(ref[0])
-
-
-def _depth_first(levels, first, count, internal, n_prims):
-    """Depth-first record positions from the tree's ``levels`` (internal nodes per
-    depth, root first): one pass up for each subtree's number of records, one pass down
-    for the positions.
-
-    Returns:
-        ``(position, total)``: UInt32[N] the record of each internal node and the first
-        record of each leaf, and the number of records; ``(None, 0)`` when ``levels``
-        cannot describe the tree (no levels, or a record count out of range).
-    """
-    UInt32 = type(first)
-    n_nodes = dr.width(first)
-    if not levels:
-        return None, 0
-    # ---- Up: records in each subtree (a leaf: its triangles) ----
-    size = dr.select(internal, 0, count)
-    for nodes in reversed(levels):
-        left = dr.gather(UInt32, first, nodes)
-        grown = 1 + dr.gather(UInt32, size, left) + dr.gather(UInt32, size, left + 1)
-        dr.eval(grown)  # read before writing into the same array (pitfall 5)
-        dr.scatter(size, grown, nodes)
-    total = int(size[0])
-    if not 0 < total <= n_nodes + n_prims:
-        return None, 0
-    # ---- Down: a node at p, its left child at p + 1, its right after the left subtree ----
-    position = dr.zeros(UInt32, n_nodes)
-    for nodes in levels:
-        left = dr.gather(UInt32, first, nodes)
-        after = dr.gather(UInt32, position, nodes) + 1
-        right = after + dr.gather(UInt32, size, left)
-        dr.eval(after, right)
-        dr.scatter(position, after, left)
-        dr.scatter(position, right, left + 1)
-    return position, total
-
-
-def _holdings(position, total, first, count, internal, widest):
-    """UInt32[total]: what each record holds: an internal node's index, or
-    ``_TRIANGLE_TAG | slot``, or ``_NOTHING``. Positions beyond ``total`` are dropped."""
-    UInt32 = type(first)
-    holds = dr.full(UInt32, _NOTHING, total)
-    total_o = dr.opaque(UInt32, total)
-    dr.scatter(holds, dr.arange(UInt32, dr.width(first)), position,
-               internal & (position < total_o))
-    for k in range(widest):
-        dr.scatter(holds, _TRIANGLE_TAG | (first + k), position + k,
-                   ~internal & (count > k) & (position + k < total_o))
-    return holds
-
-
-def _exact(holds, position, total, first, count, internal, widest):
-    """Whether the layout ``position`` gives every internal node and every triangle of
-    every leaf a record of its own and leaves no record empty (no two of them wrote
-    the same record, none fell outside, and as many were written as there are)."""
-    UInt32 = type(first)
-    ok = dr.full(type(internal), True, dr.width(first))
-    for k in range(max(widest, 1)):
-        owner = ~internal & (count > k)
-        expected = _TRIANGLE_TAG | (first + k)
-        if k == 0:
-            owner |= internal
-            expected = dr.select(internal, dr.arange(UInt32, dr.width(first)), expected)
-        fits = position + k < dr.opaque(UInt32, total)
-        held_here = dr.gather(UInt32, holds, position + k, owner & fits)
-        ok &= ~owner | (fits & (held_here == expected))
-    return bool(dr.all(ok, axis=None)[0]) and not dr.any(holds == _NOTHING, axis=None)[0]
-
-
-# ---------------------------------------------------------------------------------------
 # Traversal
 # ---------------------------------------------------------------------------------------
 
 
 def _broadcast(x, kind, ns, n):
     """``x`` as a plain ``kind`` array of width exactly ``n`` (an evaluated variable, so
-    no literal of width 1 can enter the loop state; see DRJIT_NOTES pitfall 1)."""
+    no literal of width 1 can enter the loop state: Dr.Jit would share one
+    local-memory stack between all lanes)."""
     x = plain(x, kind) if dr.is_array_v(x) else getattr(ns, kind)(x)
     if dr.width(x) == n:
         return x
     return dr.gather(getattr(ns, kind), x, dr.opaque(ns.UInt32, 0, n))
+
+
+def _pick_entry(held, k):
+    """Per-lane register entry ``held[k]`` (``k`` a UInt32 below ``len(held)``; any
+    value elsewhere)."""
+    value = held[0]
+    for j in range(1, len(held)):
+        value = dr.select(k == j, held[j], value)
+    return value
 
 
 def _min(a, b):
@@ -446,14 +197,17 @@ def _trace(bvh, o, d, maxt, active, any_hit):
     if not dr.is_array_v(o) or not dr.is_array_v(d):
         raise TypeError("ray origin and direction must be Dr.Jit Array3f/Point3f/Vector3f")
     ns = namespace_of(o)
-    Float, UInt32, Bool, Array3f = ns.Float, ns.UInt32, ns.Bool, ns.Array3f
+    Float, UInt32, UInt64, Bool, Array3f = ns.Float, ns.UInt32, ns.UInt64, ns.Bool, ns.Array3f
     widths = {dr.width(x) for x in (o, d, maxt, active) if dr.is_array_v(x)} - {1}
     if len(widths) > 1:
         raise ValueError(f"ray arrays of different widths {sorted(widths)}: expected one")
     n = widths.pop() if widths else 1
     if n == 0:
         return Bool() if any_hit else (Float(), Float(), Float(), UInt32(), Bool())
-    records, root = packed_records(bvh)
+    if isinstance(bvh, layout.Packed):
+        records, root = bvh.records, bvh.root
+    else:
+        records, root = packed_records(bvh)
 
     o = _broadcast(o, "Array3f", ns, n)
     d = _broadcast(d, "Array3f", ns, n)
@@ -481,28 +235,23 @@ def _trace(bvh, o, d, maxt, active, any_hit):
     shear_y = _pick(d, *perm[1]) / dz
     shear_z = dr.rcp(dz)
 
-    def slab(rec, base, t_max):
-        """Entry distance and hit mask of the box in ``rec[base : base+6]``."""
-        t0 = [(rec[base + i] - o[i]) * inv_d[i] for i in range(3)]
-        t1 = [(rec[base + 3 + i] - o[i]) * inv_d[i] for i in range(3)]
-        lo = [_min(a, b) for a, b in zip(t0, t1)]
-        hi = [_max(a, b) for a, b in zip(t0, t1)]
-        t_near = _max(_max(lo[0], lo[1]), _max(lo[2], 0.0))
-        t_far = _min(_min(hi[0], hi[1]), hi[2])
-        return t_near, t_near <= _min(t_far, t_max) * _TFAR_SCALE
+    def slot(base):
+        """The 16 floats of slot ``base``: one packet gather (a vector load per lane
+        and a transpose, far cheaper than a gather per float)."""
+        return dr.gather(ns.ArrayXf, records, base, shape=(layout.SLOT, n))
 
-    def vertex(rec, base):
+    def vertex(rec, offset):
         """A triangle vertex translated, permuted and sheared into ray space."""
-        p = [rec[base + i] for i in range(3)]
+        p = [rec[offset + i] for i in range(3)]
         a = [dr.select(m0, p[0], dr.select(m1, p[1], p[2])) - oc
              for (m0, m1), oc in zip(perm, o_p)]
         return a[0] - shear_x * a[2], a[1] - shear_y * a[2], shear_z * a[2]
 
     def woop(rec, t_max):
         """Watertight intersection with the triangle in ``rec``: (hit, t, u, v)."""
-        ax, ay, az = vertex(rec, 0)
-        bx, by, bz = vertex(rec, 3)
-        cx, cy, cz = vertex(rec, 6)
+        ax, ay, az = vertex(rec, layout.TRI_P[0])
+        bx, by, bz = vertex(rec, layout.TRI_P[1])
+        cx, cy, cz = vertex(rec, layout.TRI_P[2])
         edges = (cx * by - cy * bx, ax * cy - ay * cx, bx * ay - by * ax)
         det = edges[0] + edges[1] + edges[2]
         t_scaled = dr.fma(edges[0], az, dr.fma(edges[1], bz, edges[2] * cz))
@@ -521,38 +270,76 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         )
         inside = (b0 >= -BARYCENTRIC_MARGIN) & (b1 >= -BARYCENTRIC_MARGIN) \
             & (b2 >= -BARYCENTRIC_MARGIN)
-        hit = inside & (t > 0) & (t <= t_max) & (rec[10] == 0)  # rec[10]: zero area
-        return hit, t, b1, b2
+        return inside & (t > 0) & (t <= t_max), t, b1, b2
 
-    def box_pair(rec, t_best):
-        """Entry distances and hit masks of an internal node's two children."""
-        return slab(rec, 0, t_best) + slab(rec, 6, t_best)
-
-    def no_box(rec, t_best):
-        return dr.zeros(Float, n), dr.zeros(Bool, n), dr.zeros(Float, n), dr.zeros(Bool, n)
-
-    def no_triangle(rec, t_best):
+    def no_triangle(rec, t_max):
         return dr.zeros(Bool, n), dr.zeros(Float, n), dr.zeros(Float, n), dr.zeros(Float, n)
 
-    def enter(ref):
-        """Record range of the node ``ref`` names: ``(cur, end)``, a leaf's triangles
-        at ``cur .. end-1``; ``end = 0`` for an internal node (so ``cur < end`` says
-        whether a lane is in a leaf)."""
-        leaf = (ref & LEAF_BIT) != 0
-        first = (ref & ~UInt32(LEAF_BIT)) >> 4
-        return dr.select(leaf, first, ref), dr.select(leaf, first + (ref & 15) + 1, 0)
+    # Stack entries. Closest hit: ``t_near bits << 32 | reference`` (t_near >= 0, so
+    # the bits order as the floats do: sorting entries sorts by distance). Any hit: the
+    # reference with its leaf bit flipped (leaves sort before nodes: a leaf may end the
+    # query at once), no distance.
+    Entry = UInt32 if any_hit else UInt64
+    miss = _MISS32 if any_hit else _MISS
 
-    # ---- Short stack: STACK_REGISTERS entries in registers, the rest in local memory ----
-    # Any hit: the closest hit stays maxt, which every pushed entry already passed, so
-    # entries are bare references (no entry distance, no staleness).
-    Entry = UInt32 if any_hit else ns.UInt64
-    memory = dr.alloc_local(Entry, STACK_SIZE - STACK_REGISTERS)
+    def entry_of(ref, t_near):
+        if any_hit:
+            return ref ^ layout.LEAF_BIT
+        return (UInt64(dr.reinterpret_array(UInt32, t_near)) << 32) | UInt64(ref)
 
-    def spill(entry, sp, mask):
-        memory.write(entry, sp, active=mask)
-        return dr.select(mask, sp + 1, sp)
+    def ref_of(entry):
+        return entry ^ layout.LEAF_BIT if any_hit else UInt32(entry)
 
-    def no_spill(entry, sp, mask):
+    def t_of(entry):
+        return node_t if any_hit else dr.reinterpret_array(Float, UInt32(entry >> 32))
+
+    def children(rec, t_best):
+        """The wide node in ``rec``: entries of the children the ray enters before
+        ``t_best``, sorted ascending, a missed or absent child as ``miss`` (so the hit
+        ones come first)."""
+        origin = [rec[layout.NODE_ORIGIN + i] for i in range(3)]
+        scale = [rec[layout.NODE_SCALE + i] for i in range(3)]
+        lo_bytes = [dr.reinterpret_array(UInt32, rec[layout.NODE_LO[i]]) for i in range(3)]
+        hi_bytes = [dr.reinterpret_array(UInt32, rec[layout.NODE_HI[i]]) for i in range(3)]
+        keys = []
+        limit = t_best * _TFAR_SCALE
+        for k in range(layout.WIDTH):
+            ref = dr.reinterpret_array(UInt32, rec[layout.NODE_REF + k])
+            t0, t1 = [], []
+            for i in range(3):
+                # The decoded planes, exactly as the packer checked them.
+                lo = dr.fma(Float((lo_bytes[i] >> (8 * k)) & 0xFF), scale[i], origin[i])
+                hi = dr.fma(Float((hi_bytes[i] >> (8 * k)) & 0xFF), scale[i], origin[i])
+                t0.append((lo - o[i]) * inv_d[i])
+                t1.append((hi - o[i]) * inv_d[i])
+            near = [_min(a, b) for a, b in zip(t0, t1)]
+            far = [_max(a, b) for a, b in zip(t0, t1)]
+            t_near = _max(_max(near[0], near[1]), _max(near[2], 0.0))
+            t_far = _min(_min(far[0], far[1]), far[2])
+            hit = (t_near <= _min(t_far * _TFAR_SCALE, limit)) & (ref != layout.EMPTY)
+            keys.append(dr.select(hit, entry_of(ref, t_near), miss))
+        # A sorting network of four.
+        for i, j in ((0, 1), (2, 3), (0, 2), (1, 3), (1, 2)):
+            keys[i], keys[j] = _min(keys[i], keys[j]), _max(keys[i], keys[j])
+        return tuple(keys)
+
+    def no_children(rec, t_best):
+        return tuple(dr.full(Entry, miss, n) for _ in range(layout.WIDTH))
+
+    # ---- Short stack: REGISTERS entries in registers (top first), the rest in local
+    # memory, touched only by a packet in which some lane pushes past the registers or
+    # pops with none held ----
+    memory = dr.alloc_local(Entry, STACK_SIZE)
+
+    def spill(held, depth, count, sp, spilled):
+        """Move the ``spilled`` oldest register entries to local memory, oldest
+        deepest, before ``count`` new entries push them out."""
+        for i in range(layout.WIDTH - 1):
+            oldest = _pick_entry(held, depth - 1 - i)
+            memory.write(oldest, sp + (spilled - 1 - i), active=spilled > i)
+        return sp + spilled
+
+    def no_spill(held, depth, count, sp, spilled):
         return sp
 
     def fill(sp, mask):
@@ -561,19 +348,22 @@ def _trace(bvh, o, d, maxt, active, any_hit):
     def no_fill(sp, mask):
         return dr.zeros(Entry, n)
 
-    def push(held, depth, sp, entry, mask):
-        """Push ``entry`` on the lanes of ``mask``; the bottom register spills to local
-        memory when all are in use. Returns ``(held, depth, sp, overflow)``."""
-        spilling = mask & (depth == STACK_REGISTERS)
-        overflow = spilling & (sp >= STACK_SIZE - STACK_REGISTERS)
-        spilling &= ~overflow
-        mask &= ~overflow
-        sp = dr.if_stmt(args=(held[-1], sp, spilling), cond=spilling, true_fn=spill,
-                        false_fn=no_spill, label="hlbvh_spill", mode="symbolic")
-        held = [dr.select(mask, above, below)
-                for above, below in zip([entry] + held[:-1], held)]
-        depth = dr.select(mask & (depth < STACK_REGISTERS), depth + 1, depth)
-        return held, depth, sp, overflow
+    def push(held, depth, sp, keys, count):
+        """Push ``keys[1..count]`` (the hit children after the nearest, nearest on
+        top). Returns ``(held, depth, sp)``. The packer's depth limit bounds what a
+        ray can push by ``STACK_SIZE``, so nothing here overflows."""
+        spilled = dr.maximum(depth + count, REGISTERS) - REGISTERS
+        sp = dr.if_stmt(args=(held, depth, count, sp, spilled), cond=spilled > 0,
+                        true_fn=spill, false_fn=no_spill, label="hlbvh_spill",
+                        mode="symbolic")
+        new = []
+        for j in range(REGISTERS):
+            value = held[j]
+            for c in range(1, layout.WIDTH):
+                value = dr.select(count == c, keys[j + 1] if j < c else held[j - c], value)
+            new.append(value)
+        depth = dr.minimum(depth + count, REGISTERS)
+        return new, depth, sp
 
     def pop(held, depth, sp, mask):
         """Pop an entry on the lanes of ``mask`` (each holding one, in registers or in
@@ -589,35 +379,32 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         depth = dr.select(from_register, depth - 1, depth)
         return entry, held, depth, sp
 
-    # ---- Loop state (every variable at full width, pitfall 1) ----
-    cur, end = enter(dr.full(UInt32, root, n))  # record to process; end of its leaf
-    node_t = dr.zeros(Float, n)  # entry distance of the current node's box
+    # ---- Loop state (every variable at full width: a width-1 start value would make
+    # Dr.Jit share one local-memory slot between all lanes) ----
+    cur, end = layout.open_ref(dr.full(UInt32, root, n))  # slot to process; end of leaf
+    node_t = dr.zeros(Float, n)  # entry distance of the current node (or leaf)
     entering = dr.full(Bool, True, n)  # first step at this node (or leaf)
-    # stack entries, top first: t_near bits << 32 | reference (any hit: the reference)
-    held = [dr.zeros(Entry, n) for _ in range(STACK_REGISTERS)]
+    held = [dr.zeros(Entry, n) for _ in range(REGISTERS)]  # stack registers, top first
     depth = dr.zeros(UInt32, n)  # entries held in registers
     sp = dr.zeros(UInt32, n)  # entries in local memory
     t_best = dr.select(alive, maxt, dr.inf)  # closest hit so far (or maxt)
     u_best = dr.zeros(Float, n)
     v_best = dr.zeros(Float, n)
-    prim_best = dr.zeros(UInt32, n)  # input face index of the closest hit
+    hit_slot = dr.zeros(UInt32, n)  # slot of the closest hit's triangle
     found = dr.zeros(Bool, n)
-    steps = dr.zeros(UInt32, n)  # loop iterations (cycle guard)
-    corrupt = dr.zeros(Bool, n)  # the ray hit a stack overflow or a cycle
-    max_steps = dr.opaque(UInt32, bvh.size + bvh.prim_count)
-    state = (cur, end, node_t, entering, held, depth, sp, alive, steps, corrupt, t_best,
-             u_best, v_best, prim_best, found)
-    labels = ("cur", "end", "node_t", "entering", "held", "depth", "sp", "alive", "steps",
-              "corrupt", "t_best", "u_best", "v_best", "prim_best", "found")
+    state = (cur, end, node_t, entering, held, depth, sp, alive, t_best, u_best, v_best,
+             hit_slot, found)
+    labels = ("cur", "end", "node_t", "entering", "held", "depth", "sp", "alive", "t_best",
+              "u_best", "v_best", "hit_slot", "found")
 
     def trace_cond(cur, end, node_t, entering, held, depth, sp, alive, *rest):
         return alive
 
-    def trace_body(cur, end, node_t, entering, held, depth, sp, alive, steps, corrupt,
-                   t_best, u_best, v_best, prim_best, found):
-        rec = dr.gather(ns.ArrayXf, records, cur, shape=(_RECORD, n))
+    def trace_body(cur, end, node_t, entering, held, depth, sp, alive, t_best, u_best,
+                   v_best, hit_slot, found):
+        rec = slot(cur)  # one packet gather per step, node or triangle alike
         in_leaf = cur < end
-        # A node (or leaf) entered beyond the closest hit so far is skipped.
+        # A node (or leaf) popped from beyond the closest hit so far is skipped.
         stale = dr.zeros(Bool, n) if any_hit else entering & (node_t > t_best * _TFAR_SCALE)
 
         # ---- A lane in a leaf: test one triangle ----
@@ -631,59 +418,45 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         t_best = dr.select(hit, t, t_best)
         u_best = dr.select(hit, u, u_best)
         v_best = dr.select(hit, v, v_best)
-        prim_best = dr.select(hit, dr.reinterpret_array(UInt32, rec[9]), prim_best)
+        hit_slot = dr.select(hit, cur, hit_slot)
         found |= hit
 
-        # ---- A lane at an internal node: test both children's boxes ----
+        # ---- A lane at a wide node: test its children's boxes, go to the first ----
         at_node = ~in_leaf & ~stale
-        t_l, hit_l, t_r, hit_r = dr.if_stmt(
-            args=(rec, t_best), cond=at_node, true_fn=box_pair, false_fn=no_box,
-            arg_labels=("rec", "t_best"), rv_labels=("t_l", "hit_l", "t_r", "hit_r"),
+        keys = dr.if_stmt(
+            args=(rec, t_best), cond=at_node, true_fn=children, false_fn=no_children,
+            arg_labels=("rec", "t_best"), rv_labels=tuple(f"key{k}" for k in range(4)),
             label="hlbvh_boxes", mode="symbolic",
         )
-        hit_l &= at_node
-        hit_r &= at_node
-        ref_l = dr.reinterpret_array(UInt32, rec[12])
-        ref_r = dr.reinterpret_array(UInt32, rec[13])
-        left_first = hit_l if any_hit else hit_l & (~hit_r | (t_l <= t_r))
-        near, near_t = dr.select(left_first, ref_l, ref_r), dr.select(left_first, t_l, t_r)
-        far, far_t = dr.select(left_first, ref_r, ref_l), dr.select(left_first, t_r, t_l)
-        # Both children hit: go to ``near`` (the nearer; any hit: the left), push the other.
-        entry = far if any_hit else \
-            ns.UInt64(far) | (ns.UInt64(dr.reinterpret_array(UInt32, far_t)) << 32)
-        held, depth, sp, overflow = push(held, depth, sp, entry, hit_l & hit_r)
+        hits = [k != miss for k in keys]
+        count = UInt32(hits[1]) + UInt32(hits[2]) + UInt32(hits[3])
+        held, depth, sp = push(held, depth, sp, keys, count)
 
-        # ---- Next step: the leaf's next triangle, the nearer child, or a pop ----
+        # ---- Next step: the leaf's next triangle, the first child, or a pop ----
         more = in_leaf & ~stale & (cur + 1 < end)
         if any_hit:
             more &= ~hit
             alive &= ~hit
-        pop_here = ~more & ~(hit_l | hit_r)
+        descend = hits[0]
         has = (depth > 0) | (sp > 0)
-        take = pop_here & has & alive
+        take = ~more & ~descend & has & alive
         popped, held, depth, sp = pop(held, depth, sp, take)
-        alive &= ~(pop_here & ~has)
-        ref = dr.select(take, UInt32(popped), near)
-        ref_t = near_t if any_hit else \
-            dr.select(take, dr.reinterpret_array(Float, UInt32(popped >> 32)), near_t)
-        next_cur, next_end = enter(ref)
+        alive &= more | descend | take
+        entry = dr.select(take, popped, keys[0])
+        next_cur, next_end = layout.open_ref(ref_of(entry))
         cur = dr.select(more, cur + 1, next_cur)
         end = dr.select(more, end, next_end)
-        node_t = dr.select(more, node_t, ref_t)
+        node_t = dr.select(more, node_t, t_of(entry))
         entering = ~more
-
-        steps += 1
-        cycle = steps > max_steps
-        corrupt |= overflow | cycle
-        alive &= ~(overflow | cycle)
-        return (cur, end, node_t, entering, held, depth, sp, alive, steps, corrupt, t_best,
-                u_best, v_best, prim_best, found)
+        return (cur, end, node_t, entering, held, depth, sp, alive, t_best, u_best, v_best,
+                hit_slot, found)
 
     state = dr.while_loop(state=state, cond=trace_cond, body=trace_body, labels=labels,
                           label="hlbvh_trace", mode="symbolic")
-    corrupt, t_best, u_best, v_best, prim_best, found = state[9:]
-    valid = found & ~corrupt
+    t_best, u_best, v_best, hit_slot, valid = state[8:]
     if any_hit:
         return valid
+    prim = dr.reinterpret_array(UInt32, dr.gather(Float, records,
+                                                  hit_slot * layout.SLOT + layout.TRI_FACE, valid))
     return (dr.select(valid, t_best, dr.inf), dr.select(valid, u_best, 0),
-            dr.select(valid, v_best, 0), dr.select(valid, prim_best, 0), valid)
+            dr.select(valid, v_best, 0), dr.select(valid, prim, 0), valid)

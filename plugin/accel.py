@@ -16,8 +16,9 @@ What :class:`SceneAccel` intersects, and what it does not:
   (see "Per-frame update" below);
 * ``sphere``, ``disk``, ``cylinder``: the few analytic shapes, intersected by
   Mitsuba's own per-shape routine (``shape.ray_intersect_preliminary``, called once per
-  analytic shape, not through a shape pointer: see DRJIT_NOTES pitfall 11) and merged
-  with the BVHs' hit by nearest ``t``;
+  analytic shape: a call through a shape pointer inside a symbolic loop would trace
+  every registered shape, and meshes have no such routine) and merged with the
+  BVHs' hit by nearest ``t``;
 * instances, curves, SDF grids and ellipsoids: rejected with a ``ValueError`` naming
   the shape (never rendered wrong);
 * meshes without triangles: rejected with a ``ValueError`` naming the shape. Mitsuba's
@@ -46,10 +47,11 @@ buffer is compared. The meshes live in two groups, each with its own BVH:
   tree's SAH cost stays within ``refit_tolerance`` of its last build's (``"auto"``).
   New faces, a changed vertex count or a change of its meshes always rebuild.
 
-Queries trace every group that has triangles, the smaller first: a closest-hit query
-traces the next group only up to the closest hit so far (``maxt``), an any-hit query
-only the rays not yet occluded. :attr:`SceneAccel.last_update` says what the last
-update did per group (for per-frame statistics).
+Queries trace one tree: a wide node over the groups' BVHs
+(:func:`hlbvh.kernels.layout.joined`, static group first, so its slots stay cached
+while the dynamic group changes), so a ray pays one traversal whatever the number of
+groups. :attr:`SceneAccel.last_update` says what the last update did per group (for
+per-frame statistics).
 
 ``coherent`` is accepted everywhere for signature compatibility; it is a performance
 hint of Embree's and :class:`SceneAccel` traces coherent and incoherent rays alike.
@@ -68,7 +70,9 @@ import mitsuba as mi
 
 from hlbvh.kernels.build import build
 from hlbvh.kernels.bvh import BUILDERS, BuildConfig
-from hlbvh.kernels.traversal import any_hit, closest_hit, packed_records
+from hlbvh.kernels.arrays import concat
+from hlbvh.kernels.layout import joined
+from hlbvh.kernels.traversal import any_hit, closest_hit
 
 ACCELS = ("hlbvh", "native")
 #: Per-frame policies of :meth:`SceneAccel.update` (option ``update``).
@@ -334,6 +338,12 @@ def _checked_ray(ray):
     return ray
 
 
+def _no_rays(ray) -> bool:
+    """Whether ``ray`` holds no rays (its origins or directions are empty; ``maxt``
+    and ``time`` may still be width-1 defaults)."""
+    return dr.width(ray.o) == 0 or dr.width(ray.d) == 0
+
+
 class _Accel:
     """The three query methods of ``mi.Scene`` with its signatures, keyword names and
     defaults (every overload: ``ray_intersect(ray, active)`` and ``ray_test(ray,
@@ -355,8 +365,9 @@ class _Accel:
             (local to the shape), ``shape_index`` (into ``scene.shapes()``), ``shape``,
             ``instance`` null; on a miss ``valid`` False and ``t`` infinite.
         """
-        return self._preliminary(_checked_ray(ray), coherent, active,
-                                 (reorder, reorder_hint, reorder_hint_bits))
+        if _no_rays(_checked_ray(ray)):
+            return dr.zeros(mi.PreliminaryIntersection3f, 0)
+        return self._preliminary(ray, coherent, active, (reorder, reorder_hint, reorder_hint_bits))
 
     def ray_intersect(self, ray, *args, ray_flags=mi.RayFlags.All, coherent=False, active=None,
                       reorder=False, reorder_hint=0, reorder_hint_bits=0):
@@ -368,7 +379,9 @@ class _Accel:
         """
         a = _bind_overloads(args, ("ray_flags", "coherent"),
                             dict(ray_flags=ray_flags, coherent=coherent, active=active))
-        return self._intersect(_checked_ray(ray), a["ray_flags"], a["coherent"], a["active"],
+        if _no_rays(_checked_ray(ray)):
+            return dr.zeros(mi.SurfaceInteraction3f, 0)
+        return self._intersect(ray, a["ray_flags"], a["coherent"], a["active"],
                                (reorder, reorder_hint, reorder_hint_bits))
 
     def ray_test(self, ray, *args, coherent=False, active=None):
@@ -378,7 +391,9 @@ class _Accel:
             Bool per ray: whether anything lies on it at 0 < t <= ``ray.maxt``.
         """
         a = _bind_overloads(args, ("coherent",), dict(coherent=coherent, active=active))
-        return self._test(_checked_ray(ray), a["coherent"], a["active"])
+        if _no_rays(_checked_ray(ray)):
+            return dr.zeros(mi.Bool, 0)  # Mitsuba's own query aborts the process on it
+        return self._test(ray, a["coherent"], a["active"])
 
     def _intersect(self, ray, ray_flags, coherent, active, reorder):
         """The closest hit, expanded by Mitsuba, as ``mi.Scene.ray_intersect`` does."""
@@ -524,7 +539,6 @@ class MeshGroup:
                 bvh = build(geometry.vertices, geometry.faces, previous=previous, **build_options)
             except ValueError as error:
                 raise _named_error(shapes, self.indices, error) from error
-            packed_records(bvh)  # now, not inside some integrator's symbolic loop
         self.geometry, self.bvh, self._built_indices = geometry, bvh, self.indices
         self.built_sah = None if bvh is None else bvh.stats.sah_cost
         self.builds += 1
@@ -537,7 +551,6 @@ class MeshGroup:
             self.bvh.refit(vertices)
         except ValueError as error:
             raise _named_error(shapes, self.indices, error) from error
-        packed_records(self.bvh)
         self.geometry.vertices = vertices
         self.refits += 1
         return self.bvh.stats.sah_cost / self.built_sah
@@ -595,7 +608,9 @@ class SceneAccel(_Accel):
         self.dynamic = MeshGroup("dynamic")
         self.last_update = None
         self._buffers = None  # each mesh's buffers at the last update
-        self._traced = []  # the groups with triangles, smallest first
+        self._traced = []  # the groups with triangles, static first
+        self._tree = None  # their joined traversal slots (None: no triangles)
+        self._prim_shape = self._prim_local = None  # mesh, in-mesh index per face index
         self.update()
 
     def is_for(self, scene) -> bool:
@@ -648,8 +663,9 @@ class SceneAccel(_Accel):
             else:
                 self.dynamic.keep()
         self._buffers = buffers  # only once every group is up to date
-        self._traced = sorted((g for g in (self.static, self.dynamic) if g.bvh is not None),
-                              key=lambda g: g.triangles)
+        traced = [g for g in (self.static, self.dynamic) if g.bvh is not None]
+        if traced != self._traced or any(g.last["decision"] != "kept" for g in traced):
+            self._join(traced)
         self.last_update = dict(
             decision=max((g.last["decision"] for g in (self.static, self.dynamic)),
                          key=DECISIONS.index),
@@ -659,6 +675,15 @@ class SceneAccel(_Accel):
             groups={g.name: dict(g.last) for g in (self.static, self.dynamic)},
         )
         return self
+
+    def _join(self, traced):
+        """One tree over the groups' BVHs (static first: its slots stay cached while
+        the dynamic group changes), packed now, not inside some integrator's symbolic
+        loop, and the mesh and in-mesh index of each of its face indices."""
+        self._traced = traced
+        self._tree = joined([g.bvh for g in traced]) if traced else None
+        self._prim_shape = concat([g.geometry.prim_shape for g in traced]) if traced else None
+        self._prim_local = concat([g.geometry.prim_local for g in traced]) if traced else None
 
     def _sah_cost(self):
         """SAH cost of both groups together (see :attr:`last_update`)."""
@@ -694,34 +719,23 @@ class SceneAccel(_Accel):
         return pi
 
     def _closest_mesh_hit(self, ray, active):
-        """(t, prim_uv, prim_index, shape_index) of the closest triangle hit over all
-        groups; t infinite where there is none. Each group after the first is traced
-        only up to the closest hit so far; on a tie the earlier group's hit stays."""
+        """(t, prim_uv, prim_index, shape_index) of the closest triangle hit of the
+        groups' joined tree; t infinite where there is none."""
         n = dr.width(ray)
-        t = dr.full(mi.Float, dr.inf, n)
-        prim_uv = dr.zeros(mi.Point2f, n)
-        prim_index = dr.zeros(mi.UInt32, n)
-        shape_index = dr.zeros(mi.UInt32, n)
-        maxt = mi.Float(ray.maxt)
-        for group in self._traced:
-            g_t, g_u, g_v, g_prim, g_valid = closest_hit(group.bvh, ray.o, ray.d, maxt, active)
-            g_t, g_prim = mi.Float(g_t), mi.UInt32(g_prim)
-            closer = mi.Bool(g_valid) & (g_t < t)
-            t = dr.select(closer, g_t, t)
-            prim_uv = dr.select(closer, mi.Point2f(mi.Float(g_u), mi.Float(g_v)), prim_uv)
-            geometry = group.geometry
-            prim_index = dr.select(
-                closer, dr.gather(mi.UInt32, geometry.prim_local, g_prim, closer), prim_index)
-            shape_index = dr.select(
-                closer, dr.gather(mi.UInt32, geometry.prim_shape, g_prim, closer), shape_index)
-            maxt = dr.select(closer, t, maxt)
-        return t, prim_uv, prim_index, shape_index
+        if self._tree is None:
+            return (dr.full(mi.Float, dr.inf, n), dr.zeros(mi.Point2f, n),
+                    dr.zeros(mi.UInt32, n), dr.zeros(mi.UInt32, n))
+        t, u, v, prim, valid = closest_hit(self._tree, ray.o, ray.d, ray.maxt, active)
+        valid = mi.Bool(valid)
+        return (dr.select(valid, mi.Float(t), dr.inf), mi.Point2f(mi.Float(u), mi.Float(v)),
+                dr.gather(mi.UInt32, self._prim_local, mi.UInt32(prim), valid),
+                dr.gather(mi.UInt32, self._prim_shape, mi.UInt32(prim), valid))
 
     def _test(self, ray, coherent, active):
         active = mi.Bool(active) & dr.full(mi.Bool, True, dr.width(ray))
         hit = dr.zeros(mi.Bool, dr.width(ray))
-        for group in self._traced:
-            hit |= mi.Bool(any_hit(group.bvh, ray.o, ray.d, ray.maxt, active & ~hit))
+        if self._tree is not None:
+            hit |= mi.Bool(any_hit(self._tree, ray.o, ray.d, ray.maxt, active))
         for _, shape in self.analytic:
             hit |= shape.ray_test(ray, active & ~hit)
         return hit & active

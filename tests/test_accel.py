@@ -314,6 +314,17 @@ def test13_nan_and_degenerate_rays_miss_cleanly():
     assert not dr.any(si.is_valid())
 
 
+@pytest.mark.parametrize("accel_name", ["native", "hlbvh"])
+def test13b_no_rays_give_empty_answers(accel_name):
+    """A ray of width 0 gives answers of width 0 from every query, as from mi.Scene."""
+    scene = mi.load_dict(analytic_scene())
+    accel = hlbvh.make_accel(scene, accel_name)
+    ray = mi.Ray3f(mi.Point3f(), mi.Vector3f())
+    assert dr.width(accel.ray_intersect_preliminary(ray).t) == 0
+    assert dr.width(accel.ray_test(ray)) == 0
+    assert dr.width(accel.ray_intersect(ray).t) == 0
+
+
 def test14_update_follows_params_update():
     """Move the Cornell box's geometry through params.update(): changed() notices,
     update() rebuilds, and the hits follow the native ones again."""

@@ -18,7 +18,7 @@ import mitsuba as mi
 sys.path.insert(0, os.path.dirname(__file__))
 from reference import brute_force, median_split_bvh, random_soup, triangle_grid  # noqa: E402
 
-from hlbvh.kernels import traversal  # noqa: E402
+from hlbvh.kernels import layout, traversal  # noqa: E402
 from hlbvh.kernels.arrays import namespace_of  # noqa: E402
 from hlbvh.kernels.bvh import BVH, BuildConfig, BuildStats  # noqa: E402
 from hlbvh.kernels.traversal import any_hit, closest_hit  # noqa: E402
@@ -497,34 +497,44 @@ def _caterpillar(levels, depth_in_stats):
     )
 
 
-def test14_too_deep_tree_is_refused_and_stack_overflow_ends_the_ray():
-    levels = traversal.STACK_SIZE + 10
-    with pytest.raises(ValueError, match="depth"):
-        trace(_caterpillar(levels, depth_in_stats=levels - 1), [[0.5, 0.5, 2]], [[0, 0, -1]])
-
-    # A tree whose statistics understate its depth: rays from above overflow the stack
-    # and end as misses (deterministically); rays from below hit the lowest square.
+def test14_too_deep_tree_is_refused_and_the_deepest_that_packs_traces():
+    """A chain deeper than the traversal stack allows is refused when packed, whatever
+    its statistics say (the packer measures the depth itself); the deepest chain that
+    packs traces: rays from above hit the top square, rays from below the lowest."""
+    too_deep = layout.MAX_DEPTH + 10
+    for depth_in_stats in (too_deep - 1, 0):
+        with pytest.raises(ValueError, match="depth"):
+            trace(_caterpillar(too_deep, depth_in_stats=depth_in_stats), [[0.5, 0.5, 2]],
+                  [[0, 0, -1]])
+    levels = layout.MAX_DEPTH
     bvh = _caterpillar(levels, depth_in_stats=0)
+    top = (levels - 1) * 0.01
     o = np.array([[0.3, 0.6, 2.0], [0.3, 0.6, -1.0], [0.3, 0.6, 0.5 * 0.01]], np.float32)
     d = np.array([[0, 0, -1], [0, 0, 1], [0, 0, -1]], np.float32)
-    for _ in range(2):
-        with dr.scoped_set_flag(dr.JitFlag.Debug, True):
-            ours = trace(bvh, o, d)
-        np.testing.assert_array_equal(ours["valid"], [False, True, True])
-        np.testing.assert_allclose(ours["t"][1:], [1.0, 0.5 * 0.01], rtol=1e-5)
+    with dr.scoped_set_flag(dr.JitFlag.Debug, True):
+        ours = trace(bvh, o, d)
+    np.testing.assert_array_equal(ours["valid"], [True, True, True])
+    np.testing.assert_allclose(ours["t"], [2.0 - top, 1.0, 0.5 * 0.01], rtol=1e-5)
 
 
-def test15_cycle_in_the_tree_ends_the_ray():
+def test15_cycle_or_shared_subtree_is_refused():
+    """A tree with a cycle (the root's left child has the root as a child) or a
+    subtree reached twice is refused when packed, naming the problem, before any ray
+    could loop in it."""
     vertices, faces = random_soup(64, seed=17)
     bvh = median_split_bvh(vertices, faces, 4)
     first = bvh.node_first.numpy()
-    first[first[0]] = 0  # the root's left child now has the root as its children
-    bvh.node_first = type(bvh.node_first)(first)
-    o = np.array([[0.5, 0.5, -1.0]] * 4, np.float32)
-    d = np.array([[0, 0, 1], [0.1, 0, 1], [0, 0.1, 1], [0.1, 0.1, 1]], np.float32)
-    results = [trace(bvh, o, d) for _ in range(2)]  # terminates, same answer twice
-    for key in ("t", "valid", "prim", "any"):
-        np.testing.assert_array_equal(results[0][key], results[1][key])
+    cycle = first.copy()
+    cycle[first[0]] = 0  # the root's left child now has the root as its children
+    shared = first.copy()
+    right = first[0] + 1
+    inner = np.flatnonzero(bvh.node_count.numpy() == 0)
+    shared[right] = first[inner[inner != 0][0]] if first[right] != 0 else first[right]
+    for broken, pattern in ((cycle, "cycle|child of two"), (shared, "child of two")):
+        bvh = median_split_bvh(vertices, faces, 4)
+        bvh.node_first = type(bvh.node_first)(broken)
+        with pytest.raises(ValueError, match=pattern):
+            trace(bvh, [[0.5, 0.5, -1.0]], [[0, 0, 1]])
 
 
 def test16_out_of_range_children_and_leaves_raise():
@@ -635,36 +645,90 @@ def test19_matches_mitsuba_native_on_cornell_box():
 # ---------------------------------------------------------------------------------------
 
 
-def test20_depth_first_and_index_order_records_trace_alike():
-    """A built tree is packed depth first (one record per internal node and per
-    triangle, the root's left child right after it); a tree whose ``levels`` do not
-    describe it (missing, or in the wrong order) is packed in index order (a record per
-    node, then one per triangle) and gives bit-identical hits."""
-    import dataclasses
+def _walk_wide_tree(records, root):
+    """Decode the packed slots the obvious way (numpy, one node at a time), from the
+    layout's documented fields: yields ``(box_lo, box_hi, slots)`` for every child of
+    every wide node (its decoded box, and the triangle slots of its subtree) and
+    returns the triangle slots reached from the root, in the order reached."""
+    rec = records.numpy().reshape(-1, layout.SLOT)
+    bits = rec.view(np.uint32)
+    children, reached = [], []
 
+    def subtree(ref):
+        if ref & layout.LEAF_BIT:
+            first = (ref & 0x7FFFFFFF) >> 4
+            slots = list(range(first, first + (ref & 15) + 1))
+            reached.extend(slots)
+            return slots
+        origin = rec[ref, layout.NODE_ORIGIN:layout.NODE_ORIGIN + 3].astype(np.float64)
+        scale = rec[ref, layout.NODE_SCALE:layout.NODE_SCALE + 3].astype(np.float64)
+        assert np.all(np.log2(scale) == np.round(np.log2(scale))), "steps are powers of two"
+        slots = []
+        refs = bits[ref, layout.NODE_REF:layout.NODE_REF + layout.WIDTH]
+        assert 2 <= np.sum(refs != layout.EMPTY), "a wide node has 2-4 children"
+        for k, child in enumerate(refs):
+            if child == layout.EMPTY:
+                continue
+            q_lo = [(bits[ref, layout.NODE_LO[a]] >> (8 * k)) & 255 for a in range(3)]
+            q_hi = [(bits[ref, layout.NODE_HI[a]] >> (8 * k)) & 255 for a in range(3)]
+            # q * scale is exact in double; one rounding to float32, as fma does.
+            lo = np.float32(np.array(q_lo) * scale + origin)
+            hi = np.float32(np.array(q_hi) * scale + origin)
+            below = subtree(int(child))
+            children.append((lo, hi, below))
+            slots += below
+        return slots
+
+    subtree(int(root))
+    return children, reached
+
+
+@pytest.mark.parametrize("builder", ["hlbvh", "lbvh", "sah", "median"])
+@pytest.mark.parametrize("mesh", ["soup", "grid"])
+def test20_wide_tree_invariants(builder, mesh):
+    """The packed 4-wide tree of every builder: every triangle in exactly one leaf,
+    with its own vertices and face index; every wide node with 2-4 children; every
+    decoded (quantised) child box containing the exact boxes of all the triangles
+    below it; the root's first child right after the root (depth first); and hits equal
+    to the brute force."""
     rng = np.random.default_rng(25)
-    vertices, faces = random_soup(400, seed=26)
-    bvh = build(vertices, faces, "hlbvh")
-    first, count = bvh.node_first.numpy(), bvh.node_count.numpy()
-    internal = int(np.sum(count == 0))
-    records, root = traversal.packed_records(bvh)
-    assert dr.width(records) == 16 * (internal + len(faces))
-    root_left = records.numpy()[:16].view(np.uint32)[12]
-    if count[first[0]] == 0:
-        assert root_left == 1  # the left child's record follows the root's
+    if mesh == "soup":
+        vertices, faces = random_soup(400, seed=26)
     else:
-        assert root_left & 0x7FFFFFFF == 1 << 4 | (count[first[0]] - 1)
-    o, d = random_rays(rng, 3000)
-    ref = brute_force(vertices, faces, o, d)
-    depth_first = trace(bvh, o, d)
-    assert_matches_reference(depth_first, ref, vertices, faces, o, d)
-    for levels in ([], bvh.levels[::-1]):
-        other = dataclasses.replace(bvh, levels=levels)
-        records, _ = traversal.packed_records(other)
-        assert dr.width(records) == 16 * (bvh.size + len(faces))
-        index_order = trace(other, o, d)
-        for key in depth_first:
-            np.testing.assert_array_equal(index_order[key], depth_first[key])
+        vertices, faces = triangle_grid(12, 12)
+        vertices = (vertices / 12).astype(np.float32)
+        vertices[:, 2] = 0.3 * vertices[:, 0] + 0.2
+    bvh = build(vertices, faces, builder, leaf_size=3)
+    records, root = traversal.packed_records(bvh)
+    children, reached = _walk_wide_tree(records, root)
+    assert len(set(reached)) == len(reached) == len(faces), "each slot in exactly one leaf"
+    rec = records.numpy().reshape(-1, layout.SLOT)
+    face = rec[reached, layout.TRI_FACE].view(np.uint32)
+    np.testing.assert_array_equal(np.sort(face), np.arange(len(faces)))
+    for k, p in enumerate(layout.TRI_P):
+        np.testing.assert_array_equal(rec[reached, p:p + 3], vertices[faces[face, k]])
+    for lo, hi, slots in children:
+        tri = rec[slots][:, :9].reshape(-1, 3)
+        assert np.all(lo <= tri.min(axis=0)) and np.all(hi >= tri.max(axis=0)), (lo, hi)
+    if not root & layout.LEAF_BIT:
+        first = rec[root, layout.NODE_REF:layout.NODE_REF + 1].view(np.uint32)[0]
+        assert (first & 0x7FFFFFFF) >> (4 if first & layout.LEAF_BIT else 0) == root + 1
+    o, d = random_rays(rng, 2000)
+    assert_matches_reference(trace(bvh, o, d), brute_force(vertices, faces, o, d),
+                             vertices, faces, o, d)
+
+
+def test20b_zero_area_triangles_pack_as_nan():
+    """A zero-area triangle's record holds NaN vertices (it is never hit); the others
+    keep their own."""
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0]], np.float32)
+    faces = np.array([[0, 1, 2], [0, 1, 3]], np.uint32)
+    bvh = build(vertices, faces, "lbvh")
+    records, root = traversal.packed_records(bvh)
+    _, reached = _walk_wide_tree(records, root)
+    rec = records.numpy().reshape(-1, layout.SLOT)[reached]
+    flat = rec[:, layout.TRI_FACE].view(np.uint32) == 0
+    assert np.all(np.isnan(rec[flat, :9])) and np.all(np.isfinite(rec[~flat, :9]))
 
 
 def test21_symbolic_even_when_loops_are_evaluated():

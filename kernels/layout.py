@@ -1,0 +1,379 @@
+"""The traversal layout: the BVH collapsed to a 4-wide tree and packed into one Float
+array of 16-float *slots*, which is what traversal reads. This module is the one place
+that encodes and decodes it; nothing else shifts or masks a reference by hand.
+
+The binary tree of ``hlbvh.kernels.bvh`` becomes a BVH4 by dropping every other level
+(the internal nodes at odd depths): a *wide node* is an internal node at even depth,
+and its 2-4 children are its binary children, each replaced by its own two children
+when it is internal. One traversal step then tests up to four boxes, and a ray takes
+about half the steps through the internal levels, with the same bytes read per box.
+
+Records, one slot each, laid out depth first (a wide node, then its children's
+subtrees in child order, a leaf's triangles where the leaf stands), so a ray that
+descends often reads the slot after the one it read, and every traversal step reads one
+slot whatever it finds there:
+
+=====================  ========================================================
+wide node              ``NODE_ORIGIN + a``, ``NODE_SCALE + a``: the node's box corner
+                       and a power-of-two step per axis ``a``; ``NODE_LO + a``,
+                       ``NODE_HI + a``: the four children's box planes on axis ``a`` as
+                       bytes ``q`` (child ``k`` in bits ``8k..8k+7``, the bits of a
+                       UInt32), the plane being ``fma(q, scale, origin)`` in float32;
+                       ``NODE_REF + k``: child ``k``'s reference (``EMPTY`` for none)
+triangle               ``TRI_P[0..2]``: p0, p1, p2 in the face's order, all NaN for a
+                       zero-area triangle (never hit: its normal would be NaN);
+                       ``TRI_FACE``: the input face index (the bits of a UInt32)
+=====================  ========================================================
+
+Quantised child boxes are conservative (Ylitie, Karras & Laine, HPG 2017, with the
+rounding checked): each lower plane is rounded down and each upper one up, and then
+checked with the very ``fma`` traversal evaluates, so a decoded box always contains
+the exact one and no hit is lost; a child box looks at most 1/255 of its parent's
+extent larger per side.
+
+A *reference* names a child: a wide node by its first slot (bit 31 clear); a leaf by
+``LEAF_BIT | first_slot << 4 | (count - 1)`` (at most ``MAX_LEAF_SIZE`` triangles, and
+the slots below ``MAX_SLOTS``), so a leaf needs no record of its own.
+
+The tree's depths come from a breadth-first walk from the root, not from the builder's
+bookkeeping, so any tree of ``node_first``/``node_count`` packs the same way; the walk
+checks that every node is reached exactly once and every primitive slot lies in exactly
+one leaf (a cycle, a shared subtree or an out-of-range child is a ValueError).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import drjit as dr
+
+from .arrays import concat, namespace_of
+
+#: Floats per slot: a wide node or a triangle.
+SLOT = 16
+#: Children of a wide node.
+WIDTH = 4
+#: Bit 31 of a reference marks a leaf.
+LEAF_BIT = 0x80000000
+#: Most triangles a leaf may hold (its count - 1 lives in the reference's low 4 bits).
+MAX_LEAF_SIZE = 16
+#: Slots a BVH may pack into (a leaf's first slot lives in bits 4..30 of its reference;
+#: the largest value is kept free for ``EMPTY``).
+MAX_SLOTS = (1 << 27) - 1
+#: The reference of a missing child.
+EMPTY = 0xFFFFFFFF
+#: Most binary levels a tree may have: ordered traversal of a wide node pushes at most
+#: ``WIDTH - 1`` entries, one wide level per two binary levels.
+MAX_DEPTH = 2 * 42
+
+#: Offsets of a wide node's fields in its slot.
+NODE_ORIGIN = 0
+NODE_SCALE = 3
+NODE_LO = (6, 8, 10)
+NODE_HI = (7, 9, 11)
+NODE_REF = 12
+#: Largest quantised plane (8 bits).
+_Q_MAX = 255
+#: Offsets of a triangle's fields in its slot.
+TRI_P = (0, 3, 6)
+TRI_FACE = 9
+
+
+def leaf_ref(first_slot, count):
+    """The reference of a leaf whose ``count`` triangles start at ``first_slot``."""
+    return LEAF_BIT | (first_slot << 4) | (count - 1)
+
+
+def node_ref(slot):
+    """The reference of a wide node whose record starts at ``slot``."""
+    return slot
+
+
+def open_ref(ref):
+    """``(cur, end)`` for a reference: a leaf's triangle slots ``cur .. end-1``; a wide
+    node's first slot with ``end = 0`` (so ``cur < end`` says a lane is in a leaf)."""
+    leaf = (ref & LEAF_BIT) != 0
+    first = (ref & ~type(ref)(LEAF_BIT)) >> 4
+    return dr.select(leaf, first, ref), dr.select(leaf, first + (ref & 15) + 1, 0)
+
+
+@dataclass
+class Packed:
+    """Slots ready to trace, and the reference of their root (what :func:`joined`
+    returns; traversal takes it wherever it takes a BVH)."""
+
+    records: Any
+    root: int
+
+
+def joined(bvhs) -> Packed:
+    """One traversal over up to ``WIDTH`` BVHs: a wide node over their roots (slot 0),
+    then each BVH's slots in turn, its face indices offset by the faces before it (so a
+    hit's face index counts the BVHs' faces in the order given). One BVH is packed as
+    it is. A caller that keeps rarely changing BVHs first repacks only the later ones
+    (each BVH's slots are cached for its place).
+
+    Raises:
+        ValueError: no BVH, or more than ``WIDTH``; and as :func:`packed_records`.
+    """
+    if not 1 <= len(bvhs) <= WIDTH:
+        raise ValueError(f"joined: {len(bvhs)} BVHs, expected 1 to {WIDTH}")
+    if len(bvhs) == 1:
+        return Packed(*packed_records(bvhs[0]))
+    ns = namespace_of(bvhs[0].node_count)
+    UInt32 = ns.UInt32
+    parts, roots = [], []
+    slot_base, face_base = 1, 0
+    for bvh in bvhs:
+        records, root = packed_records(bvh, slot_base, face_base)
+        parts.append(records)
+        roots.append(root)
+        slot_base += dr.width(records) // SLOT
+        face_base += bvh.prim_count
+    # The top node: its children are the roots, with the roots' own boxes.
+    zero = dr.zeros(UInt32, 1)
+    boxes = [(dr.gather(ns.Array3f, b.node_min, zero), dr.gather(ns.Array3f, b.node_max, zero))
+             for b in bvhs]
+    origin, top = boxes[0]
+    for lo, hi in boxes[1:]:
+        origin, top = dr.minimum(origin, lo), dr.maximum(top, hi)
+    rows = _node_rows(origin, top, [(lo, hi, dr.ones(ns.Bool, 1), UInt32(root))
+                                    for (lo, hi), root in zip(boxes, roots)])
+    return Packed(concat([dr.ravel(ns.ArrayXf(rows))] + parts), node_ref(0))
+
+
+def packed_records(bvh, slot_base: int = 0, face_base: int = 0):
+    """The packed slots of ``bvh`` (layout in the module docstring), built on first use
+    and cached on the BVH object (keyed by the Dr.Jit variables of its arrays, so a
+    refit, which assigns new arrays, repacks on the next call).
+
+    Args:
+        bvh: the BVH.
+        slot_base: the slot the records will start at (references count from there:
+            see :func:`joined`).
+        face_base: added to every face index.
+
+    Returns:
+        ``(records, root)``: Float (``SLOT`` per slot) and the Python int reference of
+        the root.
+    Raises:
+        ValueError: an empty tree, one deeper than ``MAX_DEPTH`` levels, a leaf of more
+            than ``MAX_LEAF_SIZE`` triangles, more than ``MAX_SLOTS`` slots, or a
+            corrupt tree (a child or leaf range outside its arrays, a node reached twice
+            or never, a slot in no leaf or in two).
+    """
+    arrays = (bvh.node_min, bvh.node_max, bvh.node_first, bvh.node_count, bvh.prim_ids,
+              bvh.tri_p0, bvh.tri_p1, bvh.tri_p2)
+    key = tuple(c.index for a in arrays for c in (a if dr.depth_v(a) > 1 else (a,)))
+    key += (slot_base, face_base)
+    cache = getattr(bvh, "_traversal_records", None)
+    if cache is not None and cache[0] == key:
+        return cache[1]
+    records = _pack(bvh, slot_base, face_base)
+    bvh._traversal_records = (key, records)
+    return records
+
+
+def _pack(bvh, slot_base, face_base):
+    ns = namespace_of(bvh.node_count)
+    UInt32, Float, ArrayXf = ns.UInt32, ns.Float, ns.ArrayXf
+    n_nodes, n_prims = bvh.size, bvh.prim_count
+    if n_nodes == 0 or n_prims == 0:
+        raise ValueError("BVH is empty: build it from at least one triangle")
+    first, count = UInt32(bvh.node_first), UInt32(bvh.node_count)
+    internal = count == 0
+    # Sizes enter kernels as opaque values: a literal would compile new kernels for
+    # every tree of a new size, i.e. every frame of an animation.
+    nodes_o, prims_o = dr.opaque(UInt32, n_nodes), dr.opaque(UInt32, n_prims)
+    bad = dr.select(internal, first + 1 >= nodes_o,
+                    (count > MAX_LEAF_SIZE) | (first + count > prims_o) | (first + count < first))
+    if dr.any(bad, axis=None)[0]:
+        raise ValueError(
+            "corrupt BVH: a child index or leaf range lies outside the node/slot "
+            f"arrays, or a leaf holds more than {MAX_LEAF_SIZE} triangles"
+        )
+    levels, node_depth = _levels(first, internal, n_nodes)
+    widest = int(dr.max(count, axis=None)[0])
+    _check_slots(first, count, ~internal, n_prims, widest)
+
+    # ---- Up: slots in each subtree (a wide node's own one, a leaf's triangles) ----
+    size = dr.select(internal, 0, count)
+    for depth in reversed(range(len(levels))):
+        nodes = levels[depth]
+        left = dr.gather(UInt32, first, nodes)
+        own = dr.opaque(UInt32, 1 if depth % 2 == 0 else 0)
+        grown = own + dr.gather(UInt32, size, left) + dr.gather(UInt32, size, left + 1)
+        dr.eval(grown)  # read before writing into the array the gathers read
+        dr.scatter(size, grown, nodes)
+    total = int(size[0])
+    if slot_base + total > MAX_SLOTS:
+        raise ValueError(
+            f"BVH of {n_prims} triangles in {n_nodes} nodes needs {total} slots; "
+            f"traversal supports at most {MAX_SLOTS}"
+        )
+
+    # ---- Down: a wide node at p, its first child's subtree at p + 1, the next after ----
+    position = dr.zeros(UInt32, n_nodes)
+    for depth, nodes in enumerate(levels):
+        left = dr.gather(UInt32, first, nodes)
+        after = dr.gather(UInt32, position, nodes) + dr.opaque(UInt32, 1 if depth % 2 == 0 else 0)
+        right = after + dr.gather(UInt32, size, left)
+        dr.eval(after, right)
+        dr.scatter(position, after, left)
+        dr.scatter(position, right, left + 1)
+
+    records = dr.zeros(Float, SLOT * total)
+    base = dr.opaque(UInt32, slot_base)
+    ref = dr.select(internal, node_ref(position + base), leaf_ref(position + base, count))
+
+    # ---- Wide nodes (internal nodes at even depth): children's boxes and references ----
+    wide = dr.compress(internal & ((node_depth & 1) == 0))
+    if dr.width(wide):
+        rows = _wide_rows(bvh, first, internal, ref, wide)
+        dr.scatter(records, ArrayXf(rows), dr.gather(UInt32, position, wide))
+
+    # ---- Triangles: each slot's record where its leaf stands ----
+    leaf = ~internal
+    record_of = dr.zeros(UInt32, n_prims)
+    for k in map(lambda k: dr.opaque(UInt32, k), range(widest)):
+        dr.scatter(record_of, position + k, first + k, leaf & (count > k))
+    slot = dr.arange(UInt32, n_prims)
+    p = [dr.gather(ns.Array3f, q, slot) for q in (bvh.tri_p0, bvh.tri_p1, bvh.tri_p2)]
+    # Zero-area (collinear vertices, in double: float32 products underflow at 1e-30 and
+    # overflow at 1e20) are never hit, as in Embree; NaN vertices fail every test.
+    p64 = [ns.Array3f64(q) for q in p]
+    normal = dr.cross(p64[1] - p64[0], p64[2] - p64[0])
+    flat = (normal.x == 0) & (normal.y == 0) & (normal.z == 0)
+    tri = [dr.select(flat, dr.nan, c) for q in p for c in q]
+    tri.append(dr.reinterpret_array(Float, UInt32(bvh.prim_ids) + dr.opaque(UInt32, face_base)))
+    tri += [dr.zeros(Float, n_prims)] * (SLOT - len(tri))
+    dr.scatter(records, ArrayXf(tri), record_of)
+    dr.eval(records)
+    return records, int(ref[0])
+
+
+def _wide_rows(bvh, first, internal, ref, wide):
+    """The 16 floats of each wide node in ``wide`` (layout in the module docstring)."""
+    ns = namespace_of(first)
+    UInt32 = ns.UInt32
+    children = []
+    for side in (0, 1):
+        c = dr.gather(UInt32, first, wide) + side
+        c_internal = dr.gather(ns.Bool, internal, c)
+        c_first = dr.gather(UInt32, first, c)
+        # An internal child (odd depth) hands over its two children; a leaf stays.
+        children.append((dr.select(c_internal, c_first, c), dr.ones(ns.Bool, dr.width(c))))
+        children.append((c_first + 1, c_internal))
+    return _node_rows(
+        dr.gather(ns.Array3f, bvh.node_min, wide), dr.gather(ns.Array3f, bvh.node_max, wide),
+        [(dr.gather(ns.Array3f, bvh.node_min, node, present),
+          dr.gather(ns.Array3f, bvh.node_max, node, present), present,
+          dr.gather(UInt32, ref, node, present)) for node, present in children])
+
+
+def _node_rows(origin, top, children):
+    """The 16 floats of wide nodes with boxes ``origin``..``top`` and up to ``WIDTH``
+    ``children``, each ``(lo, hi, present, ref)``: quantised boxes and references."""
+    ns = namespace_of(origin.x)
+    UInt32, Float = ns.UInt32, ns.Float
+    rows = [origin[a] for a in range(3)]
+    scale = [_step(origin[a], top[a]) for a in range(3)]
+    rows += scale
+    planes = [[UInt32(0), UInt32(0)] for _ in range(3)]
+    refs = []
+    for k, (lo, hi, present, ref) in enumerate(children):
+        for a in range(3):
+            q_lo = _quantized(lo[a], origin[a], scale[a], down=True)
+            q_hi = _quantized(hi[a], origin[a], scale[a], down=False)
+            # An absent child: an empty byte range (its reference also says EMPTY).
+            q_lo, q_hi = dr.select(present, q_lo, _Q_MAX), dr.select(present, q_hi, 0)
+            planes[a][0] |= q_lo << (8 * k)
+            planes[a][1] |= q_hi << (8 * k)
+        refs.append(dr.select(present, ref, EMPTY))
+    refs += [UInt32(EMPTY)] * (WIDTH - len(refs))
+    for a in range(3):
+        rows += [dr.reinterpret_array(Float, planes[a][0]), dr.reinterpret_array(Float, planes[a][1])]
+    rows += [dr.reinterpret_array(Float, r) for r in refs]
+    return rows
+
+
+def _step(lo, hi):
+    """A power of two ``s`` per node with ``fma(255, s, lo) >= hi`` in float32: the
+    quantisation step of the node's box on one axis (2**-126 for a flat box)."""
+    Float = type(lo)
+    span = dr.maximum(hi * (1 / _Q_MAX) - lo * (1 / _Q_MAX), 2.0**-126)  # no overflow
+    s = dr.exp2(dr.ceil(dr.log2(span)))
+    # log2/exp2 are approximations: settle on the exact power of two at or above.
+    s = dr.select(s * 0.5 >= span, s * 0.5, s)
+    s = dr.select(s < span, s * 2, s)
+    return dr.select(dr.fma(Float(_Q_MAX), s, lo) >= hi, s, s * 2)
+
+
+def _quantized(x, origin, step, down: bool):
+    """The byte ``q`` of plane ``x`` in a box starting at ``origin`` with ``step``:
+    ``fma(q, step, origin) <= x`` (``down``) or ``>= x``, checked in the float32
+    arithmetic traversal uses."""
+    UInt32 = namespace_of(x).UInt32
+    Float = type(x)
+    r = (x - origin) / step
+    q = dr.clip(dr.floor(r) if down else dr.ceil(r), 0, _Q_MAX)
+    for _ in range(2):  # the division and subtraction may round across a step
+        value = dr.fma(q, step, origin)
+        if down:
+            q = dr.select((value > x) & (q > 0), q - 1, q)
+        else:
+            q = dr.select((value < x) & (q < _Q_MAX), q + 1, q)
+    value = dr.fma(q, step, origin)
+    # What two steps could not fix (never seen) falls back to the parent's plane.
+    q = dr.select(value <= x if down else value >= x, q, Float(0 if down else _Q_MAX))
+    return UInt32(q)
+
+
+def _levels(first, internal, n_nodes):
+    """Internal nodes by depth, root first, from a breadth-first walk, and each node's
+    depth (UInt32[N]); ValueError when the tree is deeper than ``MAX_DEPTH`` (a cycle
+    is) or a node is reached twice or never."""
+    ns = namespace_of(first)
+    UInt32 = ns.UInt32
+    levels = []
+    node_depth = dr.zeros(UInt32, n_nodes)
+    reached = dr.zeros(UInt32, n_nodes)
+    dr.scatter(reached, UInt32(1), UInt32(0))
+    nodes = dr.arange(UInt32, 1 if bool(internal[0]) else 0)
+    visited = 1
+    while dr.width(nodes):
+        visited += 2 * dr.width(nodes)
+        if visited > n_nodes:  # a node reached twice: a cycle or a shared subtree
+            break
+        if len(levels) == MAX_DEPTH:
+            raise ValueError(
+                f"BVH depth above {MAX_DEPTH} levels (or a cycle) exceeds the traversal "
+                "stack: rebuild with a builder that bounds the depth"
+            )
+        levels.append(nodes)
+        dr.scatter(node_depth, dr.opaque(UInt32, len(levels) - 1), nodes)
+        # Both children of every node (no dr.concat: it would bake the width in).
+        pair = dr.arange(UInt32, 2 * dr.width(nodes))
+        children = dr.gather(UInt32, first, dr.gather(UInt32, nodes, pair >> 1)) + (pair & 1)
+        # Local, not Expand: Expand's kernel holds the array's size (a compile per size).
+        dr.scatter_add(reached, UInt32(1), children, mode=dr.ReduceMode.Local)
+        nodes = dr.gather(UInt32, children,
+                          dr.compress(dr.gather(ns.Bool, internal, children)))
+    if not dr.all(reached == 1, axis=None)[0]:
+        raise ValueError(
+            "corrupt BVH: a node is the child of two nodes, or of none (a node the root "
+            "does not reach)"
+        )
+    return levels, node_depth
+
+
+def _check_slots(first, count, leaf, n_prims, widest):
+    """ValueError unless every primitive slot lies in exactly one leaf."""
+    UInt32 = type(first)
+    covered = dr.zeros(UInt32, n_prims)
+    for k in map(lambda k: dr.opaque(UInt32, k), range(widest)):
+        dr.scatter_add(covered, UInt32(1), first + k, leaf & (count > k),
+                       mode=dr.ReduceMode.Local)  # Expand bakes the size in
+    if not dr.all(covered == 1, axis=None)[0]:
+        raise ValueError("corrupt BVH: a primitive slot lies in no leaf or in two")
