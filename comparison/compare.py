@@ -50,8 +50,8 @@ The report (``--out``)
 the native image, ours and the false-colour difference side by side, its scale written
 beside it; then the settings and one row per frame), ``results.json`` and
 ``results.csv`` (the same rows), ``diff/frame_NNNN.png`` (the difference maps, all on
-one scale: the largest difference of any frame, so frames can be compared by eye; it is
-recorded as ``difference_scale``), ``frame_ms.png`` and ``build_ms.png`` (frame and
+one scale, logarithmic from :data:`DIFFERENCE_FLOOR` to the largest difference of any
+frame, so frames can be compared by eye; the top is recorded as ``difference_scale``), ``frame_ms.png`` and ``build_ms.png`` (frame and
 build time per frame, both accelerators).
 """
 
@@ -80,6 +80,11 @@ from hlbvh.settings import RenderSettings, check_seed
 #: the absolute part of the tolerance tests/test_integrators.py::test11 justified from
 #: measurement (worst pixel over 40 seeds 7.7e-5; 5e-4 is 6x that).
 TOLERANCE = 5e-4
+
+#: The bottom of the difference maps' logarithmic scale: about one float32 step at 1
+#: (2^-23 = 1.2e-7), so a difference in the last bits of a pixel shows, and a one-pixel
+#: edge tie at the top of the scale does not turn every other pixel black.
+DIFFERENCE_FLOOR = 1e-7
 
 #: The accelerators in the order they are rendered and shown: the reference first.
 ACCELS = ("native", "hlbvh")
@@ -138,10 +143,11 @@ def compare_animation(animation, frames, out_dir, settings: RenderSettings,
 
     # ---- Difference maps, one scale for every frame ----
     scale = max((row["image"]["max_abs_diff"] for row in rows), default=0.0) or 1.0
+    low = DIFFERENCE_FLOOR if scale > DIFFERENCE_FLOOR else None
     pictures = {}
     for i, (native, ours) in pairs.items():
         difference = images.write_difference_map(out / "diff" / f"{frame_name(i)}.png",
-                                                  native, ours, vmax=scale)
+                                                  native, ours, vmax=scale, vmin=low)
         pictures[i] = {"native": out / "native" / f"{frame_name(i)}.png",
                        "hlbvh": out / "hlbvh" / f"{frame_name(i)}.png", "diff": difference}
 
@@ -162,8 +168,10 @@ def compare_animation(animation, frames, out_dir, settings: RenderSettings,
     # Every builder option and the policy as used, defaults included.
     recorded["build_options"] = asdict(BuildConfig.from_options(**settings.build_options))
     recorded["update"] = settings.update or UpdatePolicy().update
-    caption = (f"difference: black = identical, pale yellow = {scale:.3g} or more (largest "
-               f"channel difference; one scale for every frame), cyan = NaN/inf in one render")
+    caption = (f"difference (largest over R, G, B; one scale for every frame): "
+               + (f"log scale, black = {low:.0e} or less (or identical), pale yellow = "
+                  f"{scale:.3g}" if low else f"black = identical, pale yellow = {scale:.3g}")
+               + "; cyan = NaN/inf in one render only")
     files = report.write_report(out, f"hlbvh compare: {animation.name}", rows, pictures,
                                 recorded, plots=per_frame, verdict=verdict(rows, tolerance),
                                 captions={"diff": caption})

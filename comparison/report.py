@@ -75,7 +75,7 @@ th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; }
 td.num { text-align: right; font-variant-numeric: tabular-nums; }
 tr.winner td { background: #e6f4e6; font-weight: bold; }
 .images { display: flex; gap: 1em; flex-wrap: wrap; }
-.images figure { margin: 0; }
+.images figure { margin: 0; max-width: 320px; }
 .images img { width: 320px; image-rendering: pixelated; border: 1px solid #ccc; }
 img.plot { max-width: 100%; }
 p.warning { color: #a00; }

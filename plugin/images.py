@@ -16,8 +16,9 @@ Conventions:
   transfer function (IEC 61966-2-1) and rounded; an alpha channel (the 2nd of 2 or the
   4th of 4) is clamped and stored linearly. NaN becomes 0, +inf becomes 1.
 - The difference map shows, per pixel, the largest absolute difference over the
-  channels, scaled by ``vmax`` into a matplotlib colormap; pixels where either image is
-  non-finite (and the two are not bit-identical) are painted in one flag colour.
+  channels, scaled into a matplotlib colormap linearly up to ``vmax`` or
+  logarithmically from ``vmin`` to ``vmax``; pixels where either image is non-finite
+  (and the two are not bit-identical) are painted in one flag colour.
 """
 
 from __future__ import annotations
@@ -213,7 +214,8 @@ def srgb_encode(image) -> np.ndarray:
 
 
 def write_difference_map(
-    path, reference, test, vmax: float | None = None, colormap: str = "inferno"
+    path, reference, test, vmax: float | None = None, colormap: str = "inferno",
+    vmin: float | None = None,
 ) -> Path:
     """Write a false-colour PNG of where and how much two images differ.
 
@@ -224,6 +226,9 @@ def write_difference_map(
             finite per-pixel difference (which is ``max_abs_diff`` of
             :func:`hlbvh.comparison.metrics.image_metrics`), or 1 when the images agree.
         colormap: a matplotlib colormap name.
+        vmin: ``None`` for a linear scale from 0 to ``vmax``; a positive number below
+            ``vmax`` for a logarithmic one, ``vmin`` (and below) at the bottom of the
+            colormap: differences many decades under the largest stay visible.
 
     Returns:
         ``path`` as a :class:`~pathlib.Path`. Bit-identical pixels get the colormap's
@@ -254,7 +259,14 @@ def write_difference_map(
         raise ValueError(f"vmax={vmax!r}: expected a finite positive number")
     if colormap not in matplotlib.colormaps:
         raise ValueError(f"colormap={colormap!r}: not a matplotlib colormap (e.g. 'inferno')")
-    colours = matplotlib.colormaps[colormap](np.clip(difference / vmax, 0.0, 1.0))
+    if vmin is None:
+        position = difference / vmax
+    elif np.isfinite(vmin) and 0.0 < vmin < vmax:
+        with np.errstate(divide="ignore"):  # log(0): clipped to the bottom below
+            position = np.log(difference / vmin) / np.log(vmax / vmin)
+    else:
+        raise ValueError(f"vmin={vmin!r}: expected None or a number in (0, vmax={vmax!r})")
+    colours = matplotlib.colormaps[colormap](np.clip(position, 0.0, 1.0))
     rgb = np.round(colours[..., :3] * 255.0).astype(np.uint8)
     rgb[flagged] = NONFINITE_COLOUR
     spec = oiio.ImageSpec(rgb.shape[1], rgb.shape[0], 3, oiio.UINT8)

@@ -190,6 +190,15 @@ def test07_difference_map_marks_what_differs(tmp_path):
         images.write_difference_map(tmp_path / "d3.png", reference, test, vmax=0.0)
     with pytest.raises(ValueError, match="colormap"):
         images.write_difference_map(tmp_path / "d4.png", reference, test, colormap="nope")
+    # A logarithmic scale from vmin: 0.5 of vmax=5 over vmin=0.005 is 2 of 3 decades;
+    # a difference at or below vmin, and none, the bottom colour.
+    test[1, 1, 1] = 0.004
+    _, log = file_spec(images.write_difference_map(tmp_path / "d5.png", reference, test,
+                                                   vmax=5.0, vmin=0.005))
+    assert log[0, 1].tolist() == colour(2 / 3) and log[1, 1].tolist() == colour(0.0)
+    assert log[0, 0].tolist() == colour(0.0)
+    with pytest.raises(ValueError, match="vmin"):
+        images.write_difference_map(tmp_path / "d6.png", reference, test, vmax=1.0, vmin=2.0)
     assert not (tmp_path / "d2.png").exists() and no_temporary_files(tmp_path)
 
 

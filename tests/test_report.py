@@ -472,9 +472,10 @@ def test14_report_html_shows_every_image_in_chromium(run, tmp_path):
     frames = len(FRAMES) * len(ROLES)
     assert seen["total"] == frames + 1, seen
     assert seen["loaded"] == seen["total"], seen
-    for src, width, height in seen["images"][:frames]:
+    # The plot first (after the verdict), then the frames' images.
+    assert seen["images"][0][1:] == [700, 450]
+    for src, width, height in seen["images"][1:]:
         assert (width, height) == (SIZE, SIZE), src
-    assert seen["images"][-1][1:] == [700, 450]
 
     # The check can fail: a page with one broken link is caught, and that image named.
     broken = out / "broken.html"
