@@ -77,8 +77,8 @@ from hlbvh.render import render_animation
 from hlbvh.settings import RenderSettings, check_seed
 
 #: Largest absolute per-channel difference of a pixel still counted as equal to native:
-#: the absolute part of the tolerance tests/test_integrators.py::test11 justified from
-#: measurement (worst pixel over 40 seeds 7.7e-5; 5e-4 is 6x that).
+#: the absolute part of tests/test_integrators.py::test11's tolerance, several times the
+#: worst pixel difference seen there (docs/decisions.md).
 TOLERANCE = 5e-4
 
 #: The bottom of the difference maps' logarithmic scale: about one float32 step at 1
@@ -168,7 +168,7 @@ def compare_animation(animation, frames, out_dir, settings: RenderSettings,
     # Every builder option and the policy as used, defaults included.
     recorded["build_options"] = asdict(BuildConfig.from_options(**settings.build_options))
     recorded["update"] = settings.update or UpdatePolicy().update
-    caption = (f"difference (largest over R, G, B; one scale for every frame): "
+    caption = ("difference (largest over R, G, B; one scale for every frame): "
                + (f"log scale, black = {low:.0e} or less (or identical), pale yellow = "
                   f"{scale:.3g}" if low else f"black = identical, pale yellow = {scale:.3g}")
                + "; cyan = NaN/inf in one render only")

@@ -4,10 +4,9 @@ than ours: the one definition the frame benchmark, the sweep and their plots sha
 A frame costs a build (constant in spp) plus a render (proportional to spp), so
 between two measured spp the frame time is a straight line and linear interpolation
 between the measured medians is exact there. The crossover is where the two
-interpolated lines first meet, going up in spp. Outside the measured range nothing is
-claimed (``None``): an extrapolated crossover would read as a measurement. A
-least-squares line through every measured spp was the other candidate; it moves the
-crossover with a mis-measured point far from it, and it extrapolates.
+interpolated lines first meet, going up in spp; it depends only on the two measured spp
+around it. Outside the measured range nothing is claimed (``None``): an extrapolated
+crossover would read as a measurement.
 """
 
 from __future__ import annotations

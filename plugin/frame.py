@@ -25,9 +25,9 @@ STATS_FIELDS = ("frame", "accel", "triangles", "seed", "geometry_ms", "mitsuba_u
 #: 2^32 - 1 entries, and ``mi.render`` traces them as one wavefront.
 MAX_SAMPLES = 2**32 - 1
 
-#: Memory a frame takes per pixel and per sample, in bytes: measured peaks of
-#: ``mi.render`` on the LLVM backend (about 40 per pixel at 1 spp, 15 per sample at
-#: 4 spp; film, wavefront and the developed image), doubled.
+#: Memory a frame takes per pixel and per sample, in bytes: about twice the peak of
+#: ``mi.render`` on the LLVM backend (film, wavefront and the developed image;
+#: docs/decisions.md), so a frame refused here would not have fit.
 BYTES_PER_PIXEL, BYTES_PER_SAMPLE = 64, 32
 
 
