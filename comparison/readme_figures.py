@@ -36,7 +36,7 @@ import drjit as dr
 import mitsuba as mi
 
 from hlbvh.comparison import bench_build, bench_frame, bench_trace, sweep
-from hlbvh.comparison.report import flatten, markdown_table, read_results, to_json
+from hlbvh.comparison.tables import flatten, markdown_table, read_results, to_json
 from hlbvh.images import atomic_output
 from hlbvh.options import open_animation
 from hlbvh.settings import RenderSettings

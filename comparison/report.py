@@ -4,24 +4,15 @@ HTML), the images side by side, the plots, and the raw numbers as JSON and CSV.
 Every report directory holds ``report.md``, ``report.html``, ``results.json`` and
 ``results.csv``. A comparison's page leads with its verdict (a paragraph the caller
 writes), then the plots, then each frame's images (the difference map's scale written
-beside it), then the tables. The tables are formatted by :func:`format_value` from
-exactly the rows written to ``results.json`` (nested dicts flattened by
-:func:`flatten` to dotted keys, e.g. ``build_ms.native``), so a number on the page is
-the JSON number, shortened; their headers are the keys made readable
-(:func:`column_title`), the JSON and CSV keep the keys. Columns are the rows' keys in
-order of first appearance: a new statistic shows up without touching this module.
-:func:`markdown_table` and :func:`to_json` are the one table and JSON writer of the
-harness (the README's figures use them too).
+beside it), then the tables. Tables and JSON are written by
+:mod:`hlbvh.comparison.tables` from exactly the rows written to ``results.json``, so a
+number on the page is the JSON number, shortened; columns are the rows' keys in order of
+first appearance: a new statistic shows up without touching this module.
 
 Links in the HTML and Markdown are relative and percent-encoded; images and plots
 outside the report directory are copied into it (``images/``, ``plots/``), so the
 directory can be moved or archived whole and still opens from ``file://``.
 ``results.json`` holds the same links as plain relative paths.
-
-``results.json`` is strict JSON (it parses in a browser): the non-finite floats a
-comparison can produce (a PSNR of ``inf`` for identical images) are written as the
-strings ``"inf"``, ``"-inf"`` and ``"nan"``; :func:`read_results` turns them back into
-floats.
 """
 
 from __future__ import annotations
@@ -32,12 +23,13 @@ import io
 import json
 import math
 import os
-import re
 import shutil
 import urllib.parse
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from hlbvh.comparison.tables import (column_keys, column_title, csv_value, flatten, format_value,
+                                    is_number, markdown_table, to_json)
 from hlbvh.images import atomic_output
 
 #: Image formats a browser shows; EXR is not one of them.
@@ -45,27 +37,6 @@ BROWSER_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".gif", ".webp", ".svg")
 
 #: Captions of the per-frame images, in the order they are shown; other roles follow.
 IMAGE_ROLES = {"native": "native", "hlbvh": "hlbvh (ours)", "diff": "difference"}
-
-_NONFINITE_STRINGS = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}
-
-#: Headers of the keys whose readable name is not their words (:func:`column_title`).
-COLUMN_TITLES = {
-    "decision": "our update",
-    "build_speedup": "build speedup (native / ours)",
-    "sah_cost": "SAH cost",
-    "build_cold_ms": "first build [ms]",
-    "mrays_primary": "primary rays [M/s]",
-    "mrays_secondary": "secondary rays [M/s]",
-    "image.max_abs_diff": "largest pixel difference",
-    "image.mean_abs_diff": "mean pixel difference",
-    "image.fraction_identical": "pixels bit-identical",
-    "image.fraction_within_tolerance": "pixels within tolerance",
-    "image.psnr_db": "PSNR [dB]",
-    "image.nonfinite_mismatch_pixels": "pixels NaN/inf in one render only",
-    "hits.fraction_agree": "camera hits agree",
-    "hits.fraction_shape_agree": "camera hits on the same shape",
-    "hits.differ_pixels": "pixels hitting another primitive",
-}
 
 _CSS = """
 body { font-family: system-ui, sans-serif; margin: 2em; color: #222; }
@@ -82,66 +53,6 @@ p.warning { color: #a00; }
 """
 
 
-def format_value(value) -> str:
-    """The table text of one result value.
-
-    Integers and strings as they are; floats with six significant digits, but never
-    rounded to a whole number they are not (``0.9999995`` stays ``0.9999995``, not
-    ``1``), so a fraction just below one cannot read as "all"; non-finite floats as
-    ``inf``, ``-inf``, ``nan``; ``None`` as ``-``; booleans as ``yes``/``no``; lists
-    element by element.
-    """
-    if value is None:
-        return "-"
-    if isinstance(value, bool):
-        return "yes" if value else "no"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
-        digits = 6
-        text = f"{value:.{digits}g}"
-        while float(text) != value and float(text) == round(float(text)) and digits < 17:
-            digits += 1
-            text = f"{value:.{digits}g}"
-        return text
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(format_value(item) for item in value) + "]"
-    return str(value)
-
-
-def column_title(key: str) -> str:
-    """The header a table shows for a row key: :data:`COLUMN_TITLES`, else the key's
-    words (``build_ms.native`` -> ``build, native [ms]``, ``frame_ms_spp16`` ->
-    ``frame at 16 spp [ms]``, ``hits.differ_pixels`` -> ``hits: differ pixels``)."""
-    if key in COLUMN_TITLES:
-        return COLUMN_TITLES[key]
-    head, _, rest = key.partition(".")
-    unit = ""
-    at = re.fullmatch(r"(\w+)_ms_spp(\d+)", head)
-    if at:
-        head, unit = f"{at.group(1)} at {at.group(2)} spp", " [ms]"
-    elif head.endswith("_ms"):
-        head, unit = head[:-3], " [ms]"
-    words = head.replace("_", " ")
-    if rest:
-        words += (", " if unit else ": ") + rest.replace("_", " ").replace(".", " ")
-    return words + unit
-
-
-def markdown_table(rows: Sequence[Mapping], columns: Sequence[str] | None = None) -> str:
-    """A Markdown table of flat ``rows`` (``columns``: their keys, by default every key
-    in order of first appearance), headed by :func:`column_title`, cells by
-    :func:`format_value`."""
-    columns = _columns(rows) if columns is None else list(columns)
-    lines = ["| " + " | ".join(_md_escape(column_title(c)) for c in columns) + " |",
-             "|" + "|".join("---" for _ in columns) + "|"]
-    lines += ["| " + " | ".join(_md_escape(format_value(row.get(c))) for c in columns) + " |"
-              for row in rows]
-    return "\n".join(lines)
-
-
 def winner(rows: Sequence[Mapping], objective: str = "frame_ms") -> Mapping:
     """The row with the smallest finite ``objective`` (the first such row on ties).
 
@@ -155,7 +66,7 @@ def winner(rows: Sequence[Mapping], objective: str = "frame_ms") -> Mapping:
     if not candidates:
         raise ValueError(
             f"objective={objective!r}: no row has a finite number under that key; "
-            f"the rows have keys {_columns(rows)}"
+            f"the rows have keys {column_keys(rows)}"
         )
     return min(candidates, key=lambda row: row[objective])
 
@@ -298,12 +209,6 @@ def write_sweep_report(
     return _write_files(out_dir, page, results)
 
 
-def read_results(path) -> dict:
-    """``results.json`` back as Python values, the strings ``"inf"``, ``"-inf"`` and
-    ``"nan"`` turned back into floats."""
-    return _from_json(json.loads(Path(path).read_text()))
-
-
 # ---- The page: Markdown and HTML built side by side ----
 
 
@@ -326,7 +231,7 @@ class _Page:
         self.html.append(f'<p class="warning">Warning: {html.escape(text)}</p>')
 
     def table(self, heading: str, rows: Sequence[Mapping], highlight: int | None = None) -> None:
-        columns = _columns(rows)
+        columns = column_keys(rows)
         self.markdown.append(f"## {heading}\n")
         self.html.append(f"<h2>{html.escape(heading)}</h2>")
         if not rows:
@@ -338,7 +243,7 @@ class _Page:
         for index, (row, line) in enumerate(zip(rows, cells)):
             tds = "".join(
                 f'<td class="num">{html.escape(text)}</td>'
-                if _is_number(row.get(column))
+                if is_number(row.get(column))
                 else f"<td>{html.escape(text)}</td>"
                 for column, text in zip(columns, line)
             )
@@ -393,12 +298,12 @@ class _Page:
 
 def _write_files(out_dir: Path, page: _Page, results: dict) -> dict[str, Path]:
     """Write report.md, report.html, results.json and results.csv atomically."""
-    columns = _columns(results["rows"])
+    columns = column_keys(results["rows"])
     table = io.StringIO()
     writer = csv.writer(table, lineterminator="\n")
     writer.writerow(columns)
     for row in results["rows"]:
-        writer.writerow([_csv_value(row.get(column)) for column in columns])
+        writer.writerow([csv_value(row.get(column)) for column in columns])
     texts = {
         "md": ("report.md", "\n".join(page.markdown)),
         "html": ("report.html", page.render_html()),
@@ -452,84 +357,14 @@ def _ordered_roles(roles: Mapping) -> list[tuple[str, object]]:
     return known + [(role, path) for role, path in roles.items() if role not in IMAGE_ROLES]
 
 
-# ---- Values ----
-
-
-def flatten(row: Mapping, prefix: str = "") -> dict:
-    """Nested dicts -> one level with dotted keys (``{"a": {"b": 1}}`` -> ``{"a.b":
-    1}``); numpy scalars and paths -> Python values."""
-    flat = {}
-    for key, value in row.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, Mapping):
-            flat.update(flatten(value, f"{name}."))
-        else:
-            flat[name] = _plain(value)
-    return flat
-
-
-def _plain(value):
-    if hasattr(value, "item") and getattr(value, "ndim", None) == 0:
-        return value.item()
-    if isinstance(value, os.PathLike):
-        return os.fspath(value)
-    if isinstance(value, (list, tuple)) or hasattr(value, "tolist"):
-        return [_plain(item) for item in (value.tolist() if hasattr(value, "tolist") else value)]
-    return value
-
-
 def _nonfinite_mismatch(row: Mapping) -> bool:
     """Whether a flattened row counts pixels non-finite in one render only."""
     return any(
         (key == "nonfinite_mismatch_pixels" or key.endswith(".nonfinite_mismatch_pixels"))
-        and _is_number(value) and value > 0
+        and is_number(value) and value > 0
         for key, value in row.items()
     )
 
 
 def _setting_rows(settings: Mapping) -> list[dict]:
     return [{"setting": key, "value": value} for key, value in flatten(settings).items()]
-
-
-def _columns(rows: Sequence[Mapping]) -> list[str]:
-    return list(dict.fromkeys(key for row in rows for key in row))
-
-
-def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
-def _md_escape(text: str) -> str:
-    return text.replace("|", "\\|").replace("\n", " ")
-
-
-def _csv_value(value):
-    if value is None:
-        return ""
-    if isinstance(value, float):
-        return repr(value)
-    if isinstance(value, list):
-        return json.dumps(to_json(value))
-    return value
-
-
-def to_json(value):
-    """``value`` as strict JSON values: non-finite floats as the strings ``"inf"``,
-    ``"-inf"``, ``"nan"`` (:func:`read_results` reads them back), tuples as lists."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return format_value(value)
-    if isinstance(value, Mapping):
-        return {str(key): to_json(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [to_json(item) for item in value]
-    return value
-
-
-def _from_json(value):
-    if isinstance(value, str) and value in _NONFINITE_STRINGS:
-        return _NONFINITE_STRINGS[value]
-    if isinstance(value, dict):
-        return {key: _from_json(item) for key, item in value.items()}
-    if isinstance(value, list):
-        return [_from_json(item) for item in value]
-    return value

@@ -13,7 +13,7 @@ import pytest
 from hlbvh import cli, images
 from hlbvh.comparison import compare
 from hlbvh.comparison.metrics import hit_agreement, image_metrics
-from hlbvh.comparison.report import column_title, format_value, read_results
+from hlbvh.comparison.tables import column_title, format_value, read_results
 
 FRAMES = (0, 1)
 SIZE = 24

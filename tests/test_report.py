@@ -20,7 +20,7 @@ import pytest
 from hlbvh import images
 from hlbvh.comparison import crossover, plots, report
 from hlbvh.comparison.metrics import hit_agreement, image_metrics
-from hlbvh.comparison.report import format_value, read_results
+from hlbvh.comparison.tables import column_title, format_value, read_results
 
 SIZE = 16
 FRAMES = (0, 1)
@@ -185,7 +185,7 @@ def test03_markdown_numbers_are_the_json_numbers(run):
     table = markdown_table(text, "Frames")
     assert len(table) == len(rows)
     for row, cells in zip(rows, table):
-        assert list(cells) == [report.column_title(key) for key in row]
+        assert list(cells) == [column_title(key) for key in row]
         cells = dict(zip(row, cells.values()))  # by key
         for key, value in row.items():
             assert cells[key] == format_value(value), key
@@ -197,7 +197,7 @@ def test03_markdown_numbers_are_the_json_numbers(run):
                     assert parsed == value, key
             elif isinstance(value, int) and not isinstance(value, bool):
                 assert int(cells[key]) == value, key
-    title = report.column_title
+    title = column_title
     assert table[0][title("note")] == "a | pipe" and table[1][title("note")] == "-"
     assert table[0][title("fraction_like")] == "0.9999995"  # not rounded up to "1"
     assert table[1][title("image.fraction_identical")] != "1"
@@ -211,7 +211,7 @@ def test04_html_tables_show_the_same_cells(run):
     rows = read_results(run["files"]["json"])["rows"]
     page = parse_html(run["files"]["html"])
     header, *body = page.tables["Frames"]
-    assert header == [report.column_title(key) for key in rows[0]]
+    assert header == [column_title(key) for key in rows[0]]
     assert body == [[format_value(row[key]) for key in rows[0]] for row in rows]
     assert ["setting", "value"] == page.tables["Settings"][0]
 
@@ -318,7 +318,7 @@ def test10_sweep_report_names_the_winner_by_its_own_numbers(tmp_path):
     assert "Fastest by frame_ms: hlbvh (frame_ms = 61.25)" in text
     table = markdown_table(text, "Sweep")
     assert [r["setting"] for r in table] == ["native", "lbvh", "hlbvh", "broken"]
-    assert table[3][report.column_title("frame_ms")] == "nan"
+    assert table[3][column_title("frame_ms")] == "nan"
     assert '<tr class="winner"><td>hlbvh</td>' in files["html"].read_text()
     with pytest.raises(ValueError, match="objective"):
         report.winner(rows, "mrays")

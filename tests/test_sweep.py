@@ -11,7 +11,7 @@ import pytest
 
 from hlbvh import cli
 from hlbvh.comparison import sweep
-from hlbvh.comparison.report import column_title, format_value, read_results
+from hlbvh.comparison.tables import column_title, format_value, read_results
 
 SIZE = 24
 SPP = 2
