@@ -10,6 +10,7 @@ import math
 import OpenImageIO as oiio
 import pytest
 
+from cli_helpers import run_cli
 from hlbvh import cli, images
 from hlbvh.comparison import compare
 from hlbvh.comparison.metrics import hit_agreement, image_metrics
@@ -21,11 +22,7 @@ TINY = ["--triangles", "2000", "--resolution", str(SIZE), "--spp", "2", "--frame
         "--quiet"]
 
 
-def hlbvh(capsys, *argv):
-    """``hlbvh argv`` in this process: (exit status, stdout, non-empty stderr lines)."""
-    status = cli.main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return status, out, [line for line in err.splitlines() if line.strip()]
+hlbvh = run_cli
 
 
 @pytest.fixture(scope="module")

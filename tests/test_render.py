@@ -2,11 +2,8 @@
 ones within the plugin's tolerance, resuming, user errors, mesh sequences; and the
 frame benchmark's rows."""
 
-import csv
-import json
 import math
 import pathlib
-import shutil
 import subprocess
 import sys
 
@@ -14,11 +11,11 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from hlbvh import cli, images, scenes
+from cli_helpers import read_stats, run_cli, write_twist_scene
+from hlbvh import cli, images
 from hlbvh.comparison import bench_frame
 from hlbvh.integrators.aov import CHANNELS
 from hlbvh.frame import STATS_FIELDS
-from hlbvh.scenes.procedural import mesh_object
 
 
 
@@ -29,16 +26,10 @@ def tiny(spp=4):
 
 def render(capsys, *argv):
     """``hlbvh render argv`` in this process: (exit status, stdout, stderr lines)."""
-    status = cli.main(["render", *map(str, argv)])
-    out, err = capsys.readouterr()
-    return status, out, [line for line in err.splitlines() if line.strip()]
+    return run_cli(capsys, "render", *argv)
 
 
-def stats(directory):
-    document = json.loads((directory / "stats.json").read_text())
-    with open(directory / "stats.csv", newline="") as f:
-        table = list(csv.DictReader(f))
-    return document, table
+stats = read_stats
 
 
 def frame_files(directory, i):
@@ -165,25 +156,7 @@ def test03_resume_renders_only_incomplete_frames_and_cleans_temporary_files(tmp_
 def sequence(tmp_path):
     """A scene file with a twisting bar (PLY) over a floor, and 4 frames of the bar
     written by Mitsuba."""
-    twist = scenes.get("twist", triangles=800, frames=4)
-    faces = twist.parts["bar"].faces
-    frames_dir = tmp_path / "frames" / "bar"
-    frames_dir.mkdir(parents=True)
-    for i in range(4):
-        positions = twist.frame(i)["bar"].positions.reshape(-1, 3)
-        mesh_object("bar", positions, faces, {"type": "diffuse"}).write_ply(
-            str(frames_dir / f"frame_{i + 1:04d}.ply"))
-    shutil.copy(frames_dir / "frame_0001.ply", tmp_path / "bar.ply")
-    (tmp_path / "scene.xml").write_text("""<scene version="3.0.0">
-  <sensor type="perspective">
-    <transform name="to_world"><lookat origin="4,2.5,6" target="0,1.5,0" up="0,1,0"/></transform>
-    <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="16"/></film>
-  </sensor>
-  <shape type="ply" id="bar"><string name="filename" value="bar.ply"/></shape>
-  <shape type="rectangle" id="floor">
-    <transform name="to_world"><rotate x="1" angle="-90"/><scale value="10"/></transform></shape>
-  <emitter type="constant"/>
-</scene>""")
+    write_twist_scene(tmp_path, triangles=800, frames=4)
     return tmp_path
 
 

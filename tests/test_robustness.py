@@ -4,7 +4,6 @@ writers on one folder, huge numbers, bad paths, Ctrl-C inside a Dr.Jit loop, ins
 scenes, corrupt meshes. Every case ends in complete frames only and, for a user error,
 one line naming the flag or file, exit status 2."""
 
-import csv
 import errno
 import fcntl
 import json
@@ -19,7 +18,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from hlbvh import cli, images, output, scenes
+from cli_helpers import read_stats, run_cli, write_twist_scene
+from hlbvh import images, output, scenes
 from hlbvh.frame import FrameRenderer
 from hlbvh.output import LOCK_NAME
 from hlbvh.render import render_animation
@@ -30,17 +30,8 @@ TINY = ["--triangles", "200", "--resolution", "16", "--spp", "1", "--accel", "na
         "--quiet"]
 
 
-def run_cli(capsys, *argv):
-    """``hlbvh argv`` in this process: (exit status, stdout, non-empty stderr lines)."""
-    status = cli.main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return status, out, [line for line in err.splitlines() if line.strip()]
-
-
 def stats(directory):
-    document = json.loads((directory / "stats.json").read_text())
-    with open(directory / "stats.csv", newline="") as f:
-        table = list(csv.DictReader(f))
+    document, table = read_stats(directory)
     return [row["frame"] for row in document["frames"]], [int(r["frame"]) for r in table]
 
 
@@ -80,33 +71,8 @@ def mount_tmpfs(path, options):
 
 def write_scene(root, instances=False, frames=3):
     """A twisting bar (PLY frames) over a floor; with ``instances`` also a shape group
-    instanced once. Box filter, ``path`` with max depth 8: what ``hlbvh render`` renders."""
-    twist = scenes.get("twist", triangles=400, frames=frames)
-    faces = twist.parts["bar"].faces
-    frames_dir = root / "frames" / "bar"
-    frames_dir.mkdir(parents=True)
-    for i in range(frames):
-        positions = twist.frame(i)["bar"].positions.reshape(-1, 3)
-        mesh_object("bar", positions, faces, {"type": "diffuse"}).write_ply(
-            str(frames_dir / f"frame_{i + 1:04d}.ply"))
-    shutil.copy(frames_dir / "frame_0001.ply", root / "bar.ply")
-    group = """
-  <shape type="shapegroup" id="grp"><shape type="sphere"><float name="radius" value="0.8"/></shape></shape>
-  <shape type="instance" id="inst"><ref id="grp"/><transform name="to_world"><translate x="-1.5" y="1"/></transform></shape>"""
-    (root / "scene.xml").write_text(f"""<scene version="3.0.0">
-  <integrator type="path"><integer name="max_depth" value="8"/></integrator>
-  <sensor type="perspective">
-    <transform name="to_world"><lookat origin="4,2.5,6" target="0,1.5,0" up="0,1,0"/></transform>
-    <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="16"/>
-      <rfilter type="box"/></film>
-    <sampler type="independent"><integer name="sample_count" value="1"/></sampler>
-  </sensor>
-  <shape type="ply" id="bar"><string name="filename" value="bar.ply"/></shape>{group if instances else ""}
-  <shape type="rectangle" id="floor">
-    <transform name="to_world"><rotate x="1" angle="-90"/><scale value="10"/></transform></shape>
-  <emitter type="constant"/>
-</scene>""")
-    return root / "scene.xml", root / "frames"
+    instanced once (:func:`cli_helpers.write_twist_scene`)."""
+    return write_twist_scene(root, triangles=400, frames=frames, instances=instances)
 
 
 # ---------------------------------------------------------------------------------------

@@ -9,6 +9,7 @@ import math
 import OpenImageIO as oiio
 import pytest
 
+from cli_helpers import run_cli
 from hlbvh import cli
 from hlbvh.comparison import sweep
 from hlbvh.comparison.tables import column_title, format_value, read_results
@@ -19,11 +20,7 @@ TINY = ["--triangles", "2000", "--resolution", str(SIZE), "--spp", str(SPP),
         "--spp-curve", "1,4", "--frames", "0:3", "--quiet"]
 
 
-def hlbvh(capsys, *argv):
-    """``hlbvh argv`` in this process: (exit status, stdout, non-empty stderr lines)."""
-    status = cli.main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return status, out, [line for line in err.splitlines() if line.strip()]
+hlbvh = run_cli
 
 
 @pytest.fixture(scope="module")
