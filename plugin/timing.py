@@ -21,3 +21,11 @@ def timed(fn, *args, **kwargs):
     start = clock_ms()
     result = fn(*args, **kwargs)
     return clock_ms() - start, result
+
+
+def timed_cpu(fn, *args, **kwargs):
+    """``(wall ms, process CPU ms, fn(*args, **kwargs))``: :func:`timed` with the CPU
+    time of every thread of the process beside it (how busy the cores were)."""
+    cpu = time.process_time()
+    ms, result = timed(fn, *args, **kwargs)
+    return ms, (time.process_time() - cpu) * 1e3, result

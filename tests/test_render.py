@@ -258,3 +258,16 @@ def test08_frame_benchmark_rows_have_the_promised_keys():
     assert rows[0]["crossover_spp"] == rows[1]["crossover_spp"]
     table = bench_frame.format_table(rows)
     assert "fracture" in table and "crossover" in table
+
+
+def test09_timing_returns_the_result_and_a_non_negative_time():
+    """hlbvh.timing: the one clock of the frame rows, the sweep and the benchmarks."""
+    from hlbvh import timing
+
+    calls = []
+    ms, result = timing.timed(lambda a, b=0: calls.append((a, b)) or a + b, 2, b=3)
+    assert result == 5 and calls == [(2, 3)] and ms >= 0
+    wall, cpu, result = timing.timed_cpu(sum, [1, 2])
+    assert result == 3 and wall >= 0 and cpu >= 0
+    first = timing.clock_ms()
+    assert timing.clock_ms() >= first
