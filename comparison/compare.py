@@ -91,7 +91,8 @@ ACCELS = ("native", "hlbvh")
 
 #: Image metrics shown per frame (all of them are in ``results.json`` under ``image``).
 _IMAGE_COLUMNS = ("max_abs_diff", "mean_abs_diff", "fraction_identical",
-                  "fraction_within_tolerance", "psnr_db", "nonfinite_mismatch_pixels")
+                  "fraction_within_tolerance", "outside_tolerance_pixels", "psnr_db",
+                  "nonfinite_mismatch_pixels")
 
 
 # ---------------------------------------------------------------------------------------
@@ -180,6 +181,7 @@ def compare_animation(animation, frames, out_dir, settings: RenderSettings,
 
 def _frame_row(i: int, native: dict, ours: dict, image: dict, hits: dict) -> dict:
     """One frame's numbers: what both renders measured, and how they compare."""
+    image = {**image, "outside_tolerance_pixels": image["pixels"] - image["within_tolerance_pixels"]}
     build = {"native": native["build_ms"], "hlbvh": ours["build_ms"]}
     render = {"native": native["render_ms"], "hlbvh": ours["render_ms"]}
     return {
@@ -207,20 +209,20 @@ def verdict(rows: list[dict], tolerance: float) -> str:
     ours = statistics.median(row["frame_ms"]["hlbvh"] for row in rows)
     native = statistics.median(row["frame_ms"]["native"] for row in rows)
     faster = f"{native / ours:.2f}x faster" if ours <= native else f"{ours / native:.2f}x slower"
-    equal = sum(m["fraction_within_tolerance"] == 1.0 for m in image)
-    images = ("every pixel of every frame equals native's within the tolerance"
-              if equal == len(rows) else
-              f"{equal} of {len(rows)} frames equal native's within the tolerance on every "
-              f"pixel; the worst has "
-              f"{100 * min(m['fraction_within_tolerance'] for m in image):.4f}% of its pixels "
-              f"within it")
+    outside = [m["outside_tolerance_pixels"] for m in image]
+    images = (f"every pixel of every frame equals native's within {tolerance:g} per channel"
+              if not any(outside) else
+              f"equal to native's within {tolerance:g} per channel but for {sum(outside)} "
+              f"pixels over the {len(rows)} frames (at most {max(outside)} in a frame, at "
+              f"least {100 * min(m['fraction_within_tolerance'] for m in image):.4f}% of a "
+              f"frame's pixels within it)")
     return (
         f"A frame (build + render, median of {len(rows)}) takes {ours:.1f} ms with hlbvh "
         f"and {native:.1f} ms with native: hlbvh is {faster}. Median build speedup "
         f"{statistics.median(r['build_speedup'] for r in rows):.2f}x (Mitsuba's rebuild / "
-        f"ours). Images: {images} ({tolerance:g} per channel; largest pixel difference "
+        f"ours). Images: {images}; largest pixel difference "
         f"{max(m['max_abs_diff'] for m in image):.3g}, at least "
-        f"{100 * min(m['fraction_identical'] for m in image):.1f}% of pixels bit-identical). "
+        f"{100 * min(m['fraction_identical'] for m in image):.1f}% of pixels bit-identical. "
         f"Camera rays hit the same primitive first on at least "
         f"{100 * min(r['hits']['fraction_agree'] for r in rows):.3f}% of pixels."
     )

@@ -34,6 +34,7 @@ COLUMN_TITLES = {
     "image.mean_abs_diff": "mean pixel difference",
     "image.fraction_identical": "pixels bit-identical",
     "image.fraction_within_tolerance": "pixels within tolerance",
+    "image.outside_tolerance_pixels": "pixels outside tolerance",
     "image.psnr_db": "PSNR [dB]",
     "image.nonfinite_mismatch_pixels": "pixels NaN/inf in one render only",
     "hits.fraction_agree": "camera hits agree",

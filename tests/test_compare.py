@@ -134,6 +134,8 @@ def test03_numbers_are_those_of_the_rendered_files(compared):
         for key in ("max_abs_diff", "mean_abs_diff", "fraction_identical",
                     "fraction_within_tolerance", "psnr_db"):
             assert row[f"image.{key}"] == expected[key], key
+        assert row["image.outside_tolerance_pixels"] == (
+            expected["pixels"] - expected["within_tolerance_pixels"])
         hits = hit_agreement(*(images.read_exr(out / f"hits-{a}" / name,
                                                ["shape_index", "prim_index"])
                                for a in ("native", "hlbvh")))
@@ -193,3 +195,26 @@ def test06_other_settings_in_the_directory_are_refused(compared, capsys):
     assert status == 2 and len(errors) == 1 and "other settings" in errors[0]
     assert (out / "results.json").read_bytes() == before
 
+
+
+def test07_verdict_states_the_numbers_of_the_rows():
+    """The report's opening paragraph, on hand-made rows: medians of frame time and build
+    speedup, pixels outside the tolerance counted, the worst hit agreement."""
+    def row(ours, native, outside, speedup, agree):
+        return {"frame_ms": {"hlbvh": ours, "native": native}, "build_speedup": speedup,
+                "image": {"outside_tolerance_pixels": outside,
+                          "fraction_within_tolerance": 1 - outside / 1000,
+                          "max_abs_diff": 0.01 * outside, "fraction_identical": 0.5},
+                "hits": {"fraction_agree": agree}}
+
+    rows = [row(50.0, 100.0, 0, 4.0, 1.0), row(60.0, 90.0, 2, 6.0, 0.999),
+            row(500.0, 95.0, 1, 5.0, 1.0)]
+    text = compare.verdict(rows, 5e-4)
+    assert text.startswith("A frame (build + render, median of 3) takes 60.0 ms with hlbvh "
+                           "and 95.0 ms with native: hlbvh is 1.58x faster.")
+    assert "Median build speedup 5.00x" in text
+    assert "but for 3 pixels over the 3 frames (at most 2 in a frame, at least 99.8000%" in text
+    assert "largest pixel difference 0.02" in text and "at least 99.900% of pixels" in text
+    clean = compare.verdict([row(50.0, 40.0, 0, 0.5, 1.0)], 5e-4)
+    assert "hlbvh is 1.25x slower" in clean
+    assert "every pixel of every frame equals native's within 0.0005 per channel" in clean
