@@ -2,11 +2,13 @@
 on the LLVM backend, OptiX on CUDA) on the same rays, in the same process.
 
 For each scene (a displaced grid of about ``size`` triangles per entry of ``sizes``, and
-Cornell box), two ray sets:
+Cornell box), three ray sets, the three kinds a path tracer traces:
 
 - ``coherent``: primary camera rays, one per pixel centre of the scene's sensor;
 - ``incoherent``: secondary rays, one cosine-distributed bounce from each primary hit
   (spawned from Mitsuba's surface interaction, on the side the camera sees);
+- ``shadow``: from each primary hit to a point sampled on the scene's emitters (to a
+  point above the scene when it has none), ending there (``maxt``);
 
 and two queries: ``closest`` (ours: :func:`hlbvh.kernels.traversal.closest_hit`;
 native: ``scene.ray_intersect_preliminary(ray, coherent=...)``) and ``any``
@@ -21,6 +23,11 @@ also counts the time other processes hold the cores, CPU time hardly does, so
 to measure one core). ``agree`` is the fraction of rays whose hit/miss and primitive
 (closest) or occlusion (any) equal the native result.
 
+Where our time goes: ``steps`` is the mean number of traversal steps (wide nodes and
+triangles visited) per ray, and ``lanes`` the fraction of the lane-steps paid for that
+did work: rays run in packets of the SIMD width (consecutive rays), and a packet steps
+until its slowest ray is done.
+
 Run: ``python -m hlbvh.comparison.bench_trace`` (the CLI's ``hlbvh bench trace``).
 """
 
@@ -33,6 +40,7 @@ import time
 import drjit as dr
 import mitsuba as mi
 
+from hlbvh.kernels import traversal
 from hlbvh.kernels.traversal import any_hit, closest_hit
 
 
@@ -112,6 +120,47 @@ def secondary_rays(scene, primary: mi.Ray3f, seed: int = 1) -> mi.Ray3f:
     return dr.gather(mi.Ray3f, ray, keep)
 
 
+def shadow_rays(scene, primary: mi.Ray3f, seed: int = 2) -> mi.Ray3f:
+    """From every primary hit (misses dropped) to a point sampled on the scene's
+    emitters, or to a point above the scene's bounding box when it has none; ``maxt``
+    ends each ray just short of its target."""
+    si = scene.ray_intersect(primary, mi.RayFlags.All, True)
+    keep = dr.compress(si.is_valid())
+    si = dr.gather(type(si), si, keep)
+    if scene.emitters():
+        rng = mi.PCG32(dr.width(si.t), seed)
+        ds, _ = scene.sample_emitter_direction(
+            si, mi.Point2f(rng.next_float32(), rng.next_float32()), False)
+        target = ds.p
+    else:
+        box = scene.bbox()
+        target = mi.Point3f(box.center() + mi.Vector3f(0, 0, 2 * dr.max(box.extents())))
+    return si.spawn_ray_to(target)
+
+
+def _packet_width() -> int:
+    """SIMD lanes per packet of the variant's backend (a CUDA warp: 32)."""
+    if dr.backend_v(mi.Float) == dr.JitBackend.CUDA:
+        return 32
+    try:
+        with open("/proc/cpuinfo") as f:
+            return 16 if " avx512f" in f.read() else 8
+    except OSError:
+        return 8
+
+
+def _step_profile(bvh, ray, any_hit: bool) -> tuple[float, float]:
+    """(mean steps per ray, fraction of the packets' lane-steps that did work)."""
+    import numpy as np
+
+    count = traversal.steps(bvh, ray.o, ray.d, ray.maxt, any_hit=any_hit).numpy()
+    width = _packet_width()
+    padded = np.zeros(-(-len(count) // width) * width, count.dtype)
+    padded[:len(count)] = count
+    paid = width * padded.reshape(-1, width).max(axis=1).sum()
+    return float(count.mean()), float(count.sum() / paid) if paid else 1.0
+
+
 def _scene_triangles(scene):
     """All mesh triangles of ``scene`` in one buffer, with each triangle's shape and
     local primitive index (for comparing primitives with the native result)."""
@@ -155,8 +204,10 @@ def _timed_pair(ours, native, repeats: int):
     return tuple((runs[fn][0], runs[fn][1:], cpus[fn][1:], outs[fn]) for fn in (ours, native))
 
 
-def _measure(scene, bvh, prim_shape, prim_local, ray, coherent: bool, repeats: int):
-    """Rows for closest and any hit of ``ray`` against ``scene`` (native) and ``bvh``."""
+def _measure(scene, bvh, prim_shape, prim_local, ray, kind: str, repeats: int):
+    """Rows for closest and any hit of ``ray`` (of ``kind``) against ``scene``
+    (native) and ``bvh``."""
+    coherent = kind == "coherent"
     dr.eval(ray)
     rows = []
     rays = dr.width(ray.o)
@@ -192,10 +243,13 @@ def _measure(scene, bvh, prim_shape, prim_local, ray, coherent: bool, repeats: i
         else:
             same = mi.Bool(o_out) == n_out
         ours_min, native_min = min(o_warm), min(n_warm)
+        steps, lanes = _step_profile(bvh, ray, any_hit=query == "any")
         rows.append({
             "rays": rays,
-            "kind": "coherent" if coherent else "incoherent",
+            "kind": kind,
             "query": query,
+            "steps": steps,
+            "lanes": lanes,
             "ours_cold_ms": o_cold,
             "ours_min_ms": ours_min,
             "ours_median_ms": statistics.median(o_warm),
@@ -234,7 +288,8 @@ def run(sizes=(1_000_000,), repeats: int = 5, resolution: int = 512,
         options: builder options (``builder="hlbvh"``, ``leaf_size``, ...).
     Returns:
         One dict per (scene, ray kind, query): ``scene``, ``triangles``, ``rays``,
-        ``kind``, ``query``, ``ours_/native_`` ``cold_ms``/``min_ms``/``median_ms``/
+        ``kind`` (``coherent``, ``incoherent``, ``shadow``), ``query``, ``steps``,
+        ``lanes``, ``ours_/native_`` ``cold_ms``/``min_ms``/``median_ms``/
         ``cpu_ms`` (the least process CPU time of the warm runs), ``ours_mrays``,
         ``native_mrays`` (from the minimum), ``ratio`` (ours/native throughput, from the
         minima), ``ratio_median`` (from the medians), ``ratio_cpu`` (from the CPU
@@ -263,14 +318,14 @@ def run(sizes=(1_000_000,), repeats: int = 5, resolution: int = 512,
         bvh = build(vertices, faces, **options)
         build_ms = 1e3 * (time.perf_counter() - start)
         primary = primary_rays(scene)
-        secondary = secondary_rays(scene, primary)
+        kinds = {"coherent": primary, "incoherent": secondary_rays(scene, primary),
+                 "shadow": shadow_rays(scene, primary)}
         default_threads = dr.thread_count()
         try:
             if threads is not None:
                 dr.set_thread_count(threads)
-            for ray, coherent in ((primary, True), (secondary, False)):
-                for row in _measure(scene, bvh, prim_shape, prim_local, ray, coherent,
-                                    repeats):
+            for kind, ray in kinds.items():
+                for row in _measure(scene, bvh, prim_shape, prim_local, ray, kind, repeats):
                     rows.append({"scene": name, "triangles": len(faces) // 3,
                                  "build_ms": build_ms, **row})
         finally:
@@ -282,7 +337,8 @@ def format_table(rows: list[dict]) -> str:
     """The rows as a fixed-width text table."""
     head = (f"{'scene':<12} {'tris':>8} {'rays':>8} {'rays kind':<10} {'query':<7} "
             f"{'ours Mr/s':>9} {'Embree':>8} {'ratio':>6} {'(med)':>6} {'(cpu)':>6} "
-            f"{'ours min/med/cold ms':>22} {'native min/med/cold ms':>24} {'agree':>9}")
+            f"{'ours min/med/cold ms':>22} {'native min/med/cold ms':>24} {'agree':>9} "
+            f"{'steps':>6} {'lanes':>6}")
     lines = [head, "-" * len(head)]
     for r in rows:
         ours = f"{r['ours_min_ms']:.1f}/{r['ours_median_ms']:.1f}/{r['ours_cold_ms']:.0f}"
@@ -293,7 +349,7 @@ def format_table(rows: list[dict]) -> str:
             f"{r['query']:<7} {r['ours_mrays']:>9.2f} {r['native_mrays']:>8.2f} "
             f"{r['ratio']:>6.2f} {r['ratio_median']:>6.2f} {r['ratio_cpu']:>6.2f} "
             f"{ours:>22} {nat:>24} "
-            f"{100 * r['agree']:>8.4f}%"
+            f"{100 * r['agree']:>8.4f}% {r['steps']:>6.1f} {100 * r['lanes']:>5.0f}%"
         )
     return "\n".join(lines)
 

@@ -6,30 +6,25 @@ The binary tree of ``hlbvh.kernels.bvh`` becomes a BVH4 by dropping every other 
 (the internal nodes at odd depths): a *wide node* is an internal node at even depth,
 and its 2-4 children are its binary children, each replaced by its own two children
 when it is internal. One traversal step then tests up to four boxes, and a ray takes
-about half the steps through the internal levels, with the same bytes read per box.
+about 40% fewer steps than through the binary tree.
 
-Records, one slot each, laid out depth first (a wide node, then its children's
-subtrees in child order, a leaf's triangles where the leaf stands), so a ray that
-descends often reads the slot after the one it read, and every traversal step reads one
-slot whatever it finds there:
+Records, laid out depth first (a wide node, then its children's subtrees in child
+order, a leaf's triangles where the leaf stands), so a ray that descends often reads
+the slots after the one it read:
 
 =====================  ========================================================
-wide node              ``NODE_ORIGIN + a``, ``NODE_SCALE + a``: the node's box corner
-                       and a power-of-two step per axis ``a``; ``NODE_LO + a``,
-                       ``NODE_HI + a``: the four children's box planes on axis ``a`` as
-                       bytes ``q`` (child ``k`` in bits ``8k..8k+7``, the bits of a
-                       UInt32), the plane being ``fma(q, scale, origin)`` in float32;
-                       ``NODE_REF + k``: child ``k``'s reference (``EMPTY`` for none)
-triangle               ``TRI_P[0..2]``: p0, p1, p2 in the face's order, all NaN for a
+wide node (2 slots)    ``NODE_LO[a] + k``, ``NODE_HI[a] + k``: child ``k``'s box on
+                       axis ``a`` (k = 0..3, structure of arrays, float32 as the
+                       builder computed them); ``NODE_REF + k``: child ``k``'s
+                       reference (the bits of a UInt32), ``EMPTY`` for none
+triangle (1 slot)      ``TRI_P[0..2]``: p0, p1, p2 in the face's order, all NaN for a
                        zero-area triangle (never hit: its normal would be NaN);
                        ``TRI_FACE``: the input face index (the bits of a UInt32)
 =====================  ========================================================
 
-Quantised child boxes are conservative (Ylitie, Karras & Laine, HPG 2017, with the
-rounding checked): each lower plane is rounded down and each upper one up, and then
-checked with the very ``fma`` traversal evaluates, so a decoded box always contains
-the exact one and no hit is lost; a child box looks at most 1/255 of its parent's
-extent larger per side.
+Child boxes are kept in full float32: quantising them to bytes relative to the node's
+box (one slot a node) halved the bytes read but cost more in decoding than the second
+packet gather it saved, on this CPU.
 
 A *reference* names a child: a wide node by its first slot (bit 31 clear); a leaf by
 ``LEAF_BIT | first_slot << 4 | (count - 1)`` (at most ``MAX_LEAF_SIZE`` triangles, and
@@ -50,8 +45,10 @@ import drjit as dr
 
 from .arrays import concat, namespace_of
 
-#: Floats per slot: a wide node or a triangle.
+#: Floats per slot: a triangle takes one, a wide node two.
 SLOT = 16
+#: Slots of a wide node.
+NODE_SLOTS = 2
 #: Children of a wide node.
 WIDTH = 4
 #: Bit 31 of a reference marks a leaf.
@@ -67,14 +64,10 @@ EMPTY = 0xFFFFFFFF
 #: ``WIDTH - 1`` entries, one wide level per two binary levels.
 MAX_DEPTH = 2 * 42
 
-#: Offsets of a wide node's fields in its slot.
-NODE_ORIGIN = 0
-NODE_SCALE = 3
-NODE_LO = (6, 8, 10)
-NODE_HI = (7, 9, 11)
-NODE_REF = 12
-#: Largest quantised plane (8 bits).
-_Q_MAX = 255
+#: Offsets of a wide node's fields in its two slots (per axis, four children).
+NODE_LO = (0, 4, 8)
+NODE_HI = (12, 16, 20)
+NODE_REF = 24
 #: Offsets of a triangle's fields in its slot.
 TRI_P = (0, 3, 6)
 TRI_FACE = 9
@@ -108,7 +101,7 @@ class Packed:
 
 
 def joined(bvhs) -> Packed:
-    """One traversal over up to ``WIDTH`` BVHs: a wide node over their roots (slot 0),
+    """One traversal over up to ``WIDTH`` BVHs: a wide node over their roots (slots 0-1),
     then each BVH's slots in turn, its face indices offset by the faces before it (so a
     hit's face index counts the BVHs' faces in the order given). One BVH is packed as
     it is. A caller that keeps rarely changing BVHs first repacks only the later ones
@@ -124,7 +117,7 @@ def joined(bvhs) -> Packed:
     ns = namespace_of(bvhs[0].node_count)
     UInt32 = ns.UInt32
     parts, roots = [], []
-    slot_base, face_base = 1, 0
+    slot_base, face_base = NODE_SLOTS, 0
     for bvh in bvhs:
         records, root = packed_records(bvh, slot_base, face_base)
         parts.append(records)
@@ -135,11 +128,8 @@ def joined(bvhs) -> Packed:
     zero = dr.zeros(UInt32, 1)
     boxes = [(dr.gather(ns.Array3f, b.node_min, zero), dr.gather(ns.Array3f, b.node_max, zero))
              for b in bvhs]
-    origin, top = boxes[0]
-    for lo, hi in boxes[1:]:
-        origin, top = dr.minimum(origin, lo), dr.maximum(top, hi)
-    rows = _node_rows(origin, top, [(lo, hi, dr.ones(ns.Bool, 1), UInt32(root))
-                                    for (lo, hi), root in zip(boxes, roots)])
+    rows = _node_rows([(lo, hi, dr.ones(ns.Bool, 1), UInt32(root))
+                       for (lo, hi), root in zip(boxes, roots)])
     return Packed(concat([dr.ravel(ns.ArrayXf(rows))] + parts), node_ref(0))
 
 
@@ -197,12 +187,12 @@ def _pack(bvh, slot_base, face_base):
     widest = int(dr.max(count, axis=None)[0])
     _check_slots(first, count, ~internal, n_prims, widest)
 
-    # ---- Up: slots in each subtree (a wide node's own one, a leaf's triangles) ----
+    # ---- Up: slots in each subtree (a wide node's own two, a leaf's triangles) ----
     size = dr.select(internal, 0, count)
     for depth in reversed(range(len(levels))):
         nodes = levels[depth]
         left = dr.gather(UInt32, first, nodes)
-        own = dr.opaque(UInt32, 1 if depth % 2 == 0 else 0)
+        own = dr.opaque(UInt32, NODE_SLOTS if depth % 2 == 0 else 0)
         grown = own + dr.gather(UInt32, size, left) + dr.gather(UInt32, size, left + 1)
         dr.eval(grown)  # read before writing into the array the gathers read
         dr.scatter(size, grown, nodes)
@@ -213,11 +203,11 @@ def _pack(bvh, slot_base, face_base):
             f"traversal supports at most {MAX_SLOTS}"
         )
 
-    # ---- Down: a wide node at p, its first child's subtree at p + 1, the next after ----
+    # ---- Down: a wide node at p, its first child's subtree at p + 2, the next after ----
     position = dr.zeros(UInt32, n_nodes)
     for depth, nodes in enumerate(levels):
         left = dr.gather(UInt32, first, nodes)
-        after = dr.gather(UInt32, position, nodes) + dr.opaque(UInt32, 1 if depth % 2 == 0 else 0)
+        after = dr.gather(UInt32, position, nodes) + dr.opaque(UInt32, NODE_SLOTS if depth % 2 == 0 else 0)
         right = after + dr.gather(UInt32, size, left)
         dr.eval(after, right)
         dr.scatter(position, after, left)
@@ -231,7 +221,9 @@ def _pack(bvh, slot_base, face_base):
     wide = dr.compress(internal & ((node_depth & 1) == 0))
     if dr.width(wide):
         rows = _wide_rows(bvh, first, internal, ref, wide)
-        dr.scatter(records, ArrayXf(rows), dr.gather(UInt32, position, wide))
+        at = dr.gather(UInt32, position, wide)
+        dr.scatter(records, ArrayXf(rows[:SLOT]), at)
+        dr.scatter(records, ArrayXf(rows[SLOT:]), at + 1)
 
     # ---- Triangles: each slot's record where its leaf stands ----
     leaf = ~internal
@@ -254,7 +246,7 @@ def _pack(bvh, slot_base, face_base):
 
 
 def _wide_rows(bvh, first, internal, ref, wide):
-    """The 16 floats of each wide node in ``wide`` (layout in the module docstring)."""
+    """The 32 floats of each wide node in ``wide`` (layout in the module docstring)."""
     ns = namespace_of(first)
     UInt32 = ns.UInt32
     children = []
@@ -266,68 +258,24 @@ def _wide_rows(bvh, first, internal, ref, wide):
         children.append((dr.select(c_internal, c_first, c), dr.ones(ns.Bool, dr.width(c))))
         children.append((c_first + 1, c_internal))
     return _node_rows(
-        dr.gather(ns.Array3f, bvh.node_min, wide), dr.gather(ns.Array3f, bvh.node_max, wide),
         [(dr.gather(ns.Array3f, bvh.node_min, node, present),
           dr.gather(ns.Array3f, bvh.node_max, node, present), present,
           dr.gather(UInt32, ref, node, present)) for node, present in children])
 
 
-def _node_rows(origin, top, children):
-    """The 16 floats of wide nodes with boxes ``origin``..``top`` and up to ``WIDTH``
-    ``children``, each ``(lo, hi, present, ref)``: quantised boxes and references."""
-    ns = namespace_of(origin.x)
-    UInt32, Float = ns.UInt32, ns.Float
-    rows = [origin[a] for a in range(3)]
-    scale = [_step(origin[a], top[a]) for a in range(3)]
-    rows += scale
-    planes = [[UInt32(0), UInt32(0)] for _ in range(3)]
-    refs = []
-    for k, (lo, hi, present, ref) in enumerate(children):
-        for a in range(3):
-            q_lo = _quantized(lo[a], origin[a], scale[a], down=True)
-            q_hi = _quantized(hi[a], origin[a], scale[a], down=False)
-            # An absent child: an empty byte range (its reference also says EMPTY).
-            q_lo, q_hi = dr.select(present, q_lo, _Q_MAX), dr.select(present, q_hi, 0)
-            planes[a][0] |= q_lo << (8 * k)
-            planes[a][1] |= q_hi << (8 * k)
-        refs.append(dr.select(present, ref, EMPTY))
-    refs += [UInt32(EMPTY)] * (WIDTH - len(refs))
-    for a in range(3):
-        rows += [dr.reinterpret_array(Float, planes[a][0]), dr.reinterpret_array(Float, planes[a][1])]
-    rows += [dr.reinterpret_array(Float, r) for r in refs]
-    return rows
-
-
-def _step(lo, hi):
-    """A power of two ``s`` per node with ``fma(255, s, lo) >= hi`` in float32: the
-    quantisation step of the node's box on one axis (2**-126 for a flat box)."""
-    Float = type(lo)
-    span = dr.maximum(hi * (1 / _Q_MAX) - lo * (1 / _Q_MAX), 2.0**-126)  # no overflow
-    s = dr.exp2(dr.ceil(dr.log2(span)))
-    # log2/exp2 are approximations: settle on the exact power of two at or above.
-    s = dr.select(s * 0.5 >= span, s * 0.5, s)
-    s = dr.select(s < span, s * 2, s)
-    return dr.select(dr.fma(Float(_Q_MAX), s, lo) >= hi, s, s * 2)
-
-
-def _quantized(x, origin, step, down: bool):
-    """The byte ``q`` of plane ``x`` in a box starting at ``origin`` with ``step``:
-    ``fma(q, step, origin) <= x`` (``down``) or ``>= x``, checked in the float32
-    arithmetic traversal uses."""
-    UInt32 = namespace_of(x).UInt32
-    Float = type(x)
-    r = (x - origin) / step
-    q = dr.clip(dr.floor(r) if down else dr.ceil(r), 0, _Q_MAX)
-    for _ in range(2):  # the division and subtraction may round across a step
-        value = dr.fma(q, step, origin)
-        if down:
-            q = dr.select((value > x) & (q > 0), q - 1, q)
-        else:
-            q = dr.select((value < x) & (q < _Q_MAX), q + 1, q)
-    value = dr.fma(q, step, origin)
-    # What two steps could not fix (never seen) falls back to the parent's plane.
-    q = dr.select(value <= x if down else value >= x, q, Float(0 if down else _Q_MAX))
-    return UInt32(q)
+def _node_rows(children):
+    """The 32 floats of wide nodes with up to ``WIDTH`` ``children``, each ``(lo, hi,
+    present, ref)``: their boxes and references (an absent child: a zero box and
+    ``EMPTY``)."""
+    ns = namespace_of(children[0][3])
+    Float = ns.Float
+    children = children + [children[-1][:2] + (ns.Bool(False), ns.UInt32(EMPTY))] * (
+        WIDTH - len(children))
+    rows = [dr.select(present, box[a], 0.0) for box_index in (0, 1) for a in range(3)
+            for box, present in ((c[box_index], c[2]) for c in children)]
+    rows += [dr.reinterpret_array(Float, dr.select(present, ref, EMPTY))
+             for _, _, present, ref in children]
+    return rows + [dr.zeros(Float, dr.width(rows[0]))] * (NODE_SLOTS * SLOT - len(rows))
 
 
 def _levels(first, internal, n_nodes):

@@ -2,7 +2,8 @@
 and any hit.
 
 Each ray runs one symbolic ``dr.while_loop``. Every iteration reads one 64-byte slot
-(one packet gather, whatever the lane finds there) and advances every lane by one step:
+(one packet gather, whatever the lane finds there; a wide node reads its second slot
+too) and advances every lane by one step:
 a lane at a wide node tests its up to four children's boxes, a lane inside a leaf tests
 one triangle. The two tests sit in symbolic ifs, so a packet whose lanes are all at
 nodes (or all in leaves) skips the other test, and no lane waits for the rest of its
@@ -18,10 +19,8 @@ its own loops evaluated still gets one traversal kernel per query.
 - **Conservative slab test** (Ize, "Robust BVH ray traversal", JCGT 2013): the exit
   distance of a box is scaled by ``1 + 2·gamma(3)`` so rounding never culls a box the
   ray touches; so is the closest hit so far when a box's entry distance is compared
-  with it. The child boxes are the packer's quantised ones, decoded with the same
-  ``fma`` the packer checked them with, so they contain the exact boxes. Reciprocal
-  directions come from directions clamped away from zero (``|d| >= FLT_MIN``, sign
-  kept), so no ``0 · inf = NaN`` reaches the min/max.
+  with it. Reciprocal directions come from directions clamped away from zero
+  (``|d| >= FLT_MIN``, sign kept), so no ``0 · inf = NaN`` reaches the min/max.
 - **Watertight ray/triangle test** (Woop, Benthin & Wald, JCGT 2013): vertices are
   translated to the ray origin, permuted so the ray's dominant axis is z and sheared so
   the ray becomes the z axis. Every vertex is transformed the same way whichever
@@ -106,6 +105,13 @@ def any_hit(bvh, o, d, maxt, active=True):
     Arguments as in :func:`closest_hit`. Returns a Bool of width R.
     """
     return _trace(bvh, o, d, maxt, active, any_hit=True)
+
+
+def steps(bvh, o, d, maxt, active=True, any_hit=False):
+    """Loop iterations each ray takes in :func:`closest_hit` (or :func:`any_hit`): one
+    per wide node and per triangle it visits; for benchmarks (a packet of rays costs
+    its slowest lane's steps). Arguments as in :func:`closest_hit`; UInt32 of width R."""
+    return _trace(bvh, o, d, maxt, active, any_hit, count_steps=True)
 
 
 def intersect(bvh, ray, active=True):
@@ -193,7 +199,7 @@ def _ratios_in_double(ax, ay, az, bx, by, bz, cx, cy, cz, edges, det, t_scaled):
     return Float(e0 * inv_det), Float(e1 * inv_det), Float(e2 * inv_det), Float(t64)
 
 
-def _trace(bvh, o, d, maxt, active, any_hit):
+def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False):
     if not dr.is_array_v(o) or not dr.is_array_v(d):
         raise TypeError("ray origin and direction must be Dr.Jit Array3f/Point3f/Vector3f")
     ns = namespace_of(o)
@@ -203,7 +209,8 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         raise ValueError(f"ray arrays of different widths {sorted(widths)}: expected one")
     n = widths.pop() if widths else 1
     if n == 0:
-        return Bool() if any_hit else (Float(), Float(), Float(), UInt32(), Bool())
+        return UInt32() if count_steps else Bool() if any_hit else \
+            (Float(), Float(), Float(), UInt32(), Bool())
     if isinstance(bvh, layout.Packed):
         records, root = bvh.records, bvh.root
     else:
@@ -293,25 +300,17 @@ def _trace(bvh, o, d, maxt, active, any_hit):
     def t_of(entry):
         return node_t if any_hit else dr.reinterpret_array(Float, UInt32(entry >> 32))
 
-    def children(rec, t_best):
-        """The wide node in ``rec``: entries of the children the ray enters before
-        ``t_best``, sorted ascending, a missed or absent child as ``miss`` (so the hit
-        ones come first)."""
-        origin = [rec[layout.NODE_ORIGIN + i] for i in range(3)]
-        scale = [rec[layout.NODE_SCALE + i] for i in range(3)]
-        lo_bytes = [dr.reinterpret_array(UInt32, rec[layout.NODE_LO[i]]) for i in range(3)]
-        hi_bytes = [dr.reinterpret_array(UInt32, rec[layout.NODE_HI[i]]) for i in range(3)]
+    def children(rec, cur, t_best):
+        """The wide node whose first slot is ``rec`` (at slot ``cur``; its second slot
+        is read here): entries of the children the ray enters before ``t_best``, sorted
+        ascending, a missed or absent child as ``miss`` (so the hit ones come first)."""
+        rec = [*rec, *slot(cur + 1)]
         keys = []
         limit = t_best * _TFAR_SCALE
         for k in range(layout.WIDTH):
             ref = dr.reinterpret_array(UInt32, rec[layout.NODE_REF + k])
-            t0, t1 = [], []
-            for i in range(3):
-                # The decoded planes, exactly as the packer checked them.
-                lo = dr.fma(Float((lo_bytes[i] >> (8 * k)) & 0xFF), scale[i], origin[i])
-                hi = dr.fma(Float((hi_bytes[i] >> (8 * k)) & 0xFF), scale[i], origin[i])
-                t0.append((lo - o[i]) * inv_d[i])
-                t1.append((hi - o[i]) * inv_d[i])
+            t0 = [(rec[layout.NODE_LO[i] + k] - o[i]) * inv_d[i] for i in range(3)]
+            t1 = [(rec[layout.NODE_HI[i] + k] - o[i]) * inv_d[i] for i in range(3)]
             near = [_min(a, b) for a, b in zip(t0, t1)]
             far = [_max(a, b) for a, b in zip(t0, t1)]
             t_near = _max(_max(near[0], near[1]), _max(near[2], 0.0))
@@ -323,7 +322,7 @@ def _trace(bvh, o, d, maxt, active, any_hit):
             keys[i], keys[j] = _min(keys[i], keys[j]), _max(keys[i], keys[j])
         return tuple(keys)
 
-    def no_children(rec, t_best):
+    def no_children(rec, cur, t_best):
         return tuple(dr.full(Entry, miss, n) for _ in range(layout.WIDTH))
 
     # ---- Short stack: REGISTERS entries in registers (top first), the rest in local
@@ -392,17 +391,18 @@ def _trace(bvh, o, d, maxt, active, any_hit):
     v_best = dr.zeros(Float, n)
     hit_slot = dr.zeros(UInt32, n)  # slot of the closest hit's triangle
     found = dr.zeros(Bool, n)
+    counted = dr.zeros(UInt32, n)  # loop iterations (count_steps only)
     state = (cur, end, node_t, entering, held, depth, sp, alive, t_best, u_best, v_best,
-             hit_slot, found)
+             hit_slot, found) + ((counted,) if count_steps else ())
     labels = ("cur", "end", "node_t", "entering", "held", "depth", "sp", "alive", "t_best",
-              "u_best", "v_best", "hit_slot", "found")
+              "u_best", "v_best", "hit_slot", "found") + (("steps",) if count_steps else ())
 
     def trace_cond(cur, end, node_t, entering, held, depth, sp, alive, *rest):
         return alive
 
     def trace_body(cur, end, node_t, entering, held, depth, sp, alive, t_best, u_best,
-                   v_best, hit_slot, found):
-        rec = slot(cur)  # one packet gather per step, node or triangle alike
+                   v_best, hit_slot, found, *counted):
+        rec = slot(cur)  # a triangle, or a wide node's first slot
         in_leaf = cur < end
         # A node (or leaf) popped from beyond the closest hit so far is skipped.
         stale = dr.zeros(Bool, n) if any_hit else entering & (node_t > t_best * _TFAR_SCALE)
@@ -424,8 +424,8 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         # ---- A lane at a wide node: test its children's boxes, go to the first ----
         at_node = ~in_leaf & ~stale
         keys = dr.if_stmt(
-            args=(rec, t_best), cond=at_node, true_fn=children, false_fn=no_children,
-            arg_labels=("rec", "t_best"), rv_labels=tuple(f"key{k}" for k in range(4)),
+            args=(rec, cur, t_best), cond=at_node, true_fn=children, false_fn=no_children,
+            arg_labels=("rec", "cur", "t_best"), rv_labels=tuple(f"key{k}" for k in range(4)),
             label="hlbvh_boxes", mode="symbolic",
         )
         hits = [k != miss for k in keys]
@@ -449,11 +449,13 @@ def _trace(bvh, o, d, maxt, active, any_hit):
         node_t = dr.select(more, node_t, t_of(entry))
         entering = ~more
         return (cur, end, node_t, entering, held, depth, sp, alive, t_best, u_best, v_best,
-                hit_slot, found)
+                hit_slot, found) + tuple(c + 1 for c in counted)
 
     state = dr.while_loop(state=state, cond=trace_cond, body=trace_body, labels=labels,
                           label="hlbvh_trace", mode="symbolic")
-    t_best, u_best, v_best, hit_slot, valid = state[8:]
+    if count_steps:
+        return state[-1]
+    t_best, u_best, v_best, hit_slot, valid = state[8:13]
     if any_hit:
         return valid
     prim = dr.reinterpret_array(UInt32, dr.gather(Float, records,

@@ -647,9 +647,9 @@ def test19_matches_mitsuba_native_on_cornell_box():
 
 def _walk_wide_tree(records, root):
     """Decode the packed slots the obvious way (numpy, one node at a time), from the
-    layout's documented fields: yields ``(box_lo, box_hi, slots)`` for every child of
-    every wide node (its decoded box, and the triangle slots of its subtree) and
-    returns the triangle slots reached from the root, in the order reached."""
+    layout's documented fields: returns ``(children, reached)``, for every child of
+    every wide node its box and the triangle slots of its subtree, and the triangle
+    slots reached from the root in the order reached."""
     rec = records.numpy().reshape(-1, layout.SLOT)
     bits = rec.view(np.uint32)
     children, reached = [], []
@@ -660,20 +660,15 @@ def _walk_wide_tree(records, root):
             slots = list(range(first, first + (ref & 15) + 1))
             reached.extend(slots)
             return slots
-        origin = rec[ref, layout.NODE_ORIGIN:layout.NODE_ORIGIN + 3].astype(np.float64)
-        scale = rec[ref, layout.NODE_SCALE:layout.NODE_SCALE + 3].astype(np.float64)
-        assert np.all(np.log2(scale) == np.round(np.log2(scale))), "steps are powers of two"
-        slots = []
-        refs = bits[ref, layout.NODE_REF:layout.NODE_REF + layout.WIDTH]
+        node = rec[ref:ref + layout.NODE_SLOTS].ravel()
+        refs = node[layout.NODE_REF:layout.NODE_REF + layout.WIDTH].view(np.uint32)
         assert 2 <= np.sum(refs != layout.EMPTY), "a wide node has 2-4 children"
+        slots = []
         for k, child in enumerate(refs):
             if child == layout.EMPTY:
                 continue
-            q_lo = [(bits[ref, layout.NODE_LO[a]] >> (8 * k)) & 255 for a in range(3)]
-            q_hi = [(bits[ref, layout.NODE_HI[a]] >> (8 * k)) & 255 for a in range(3)]
-            # q * scale is exact in double; one rounding to float32, as fma does.
-            lo = np.float32(np.array(q_lo) * scale + origin)
-            hi = np.float32(np.array(q_hi) * scale + origin)
+            lo = np.array([node[layout.NODE_LO[a] + k] for a in range(3)])
+            hi = np.array([node[layout.NODE_HI[a] + k] for a in range(3)])
             below = subtree(int(child))
             children.append((lo, hi, below))
             slots += below
@@ -688,9 +683,8 @@ def _walk_wide_tree(records, root):
 def test20_wide_tree_invariants(builder, mesh):
     """The packed 4-wide tree of every builder: every triangle in exactly one leaf,
     with its own vertices and face index; every wide node with 2-4 children; every
-    decoded (quantised) child box containing the exact boxes of all the triangles
-    below it; the root's first child right after the root (depth first); and hits equal
-    to the brute force."""
+    child box containing all the triangles below it; the root's first child right after
+    the root's two slots (depth first); and hits equal to the brute force."""
     rng = np.random.default_rng(25)
     if mesh == "soup":
         vertices, faces = random_soup(400, seed=26)
@@ -711,8 +705,10 @@ def test20_wide_tree_invariants(builder, mesh):
         tri = rec[slots][:, :9].reshape(-1, 3)
         assert np.all(lo <= tri.min(axis=0)) and np.all(hi >= tri.max(axis=0)), (lo, hi)
     if not root & layout.LEAF_BIT:
-        first = rec[root, layout.NODE_REF:layout.NODE_REF + 1].view(np.uint32)[0]
-        assert (first & 0x7FFFFFFF) >> (4 if first & layout.LEAF_BIT else 0) == root + 1
+        node = rec[root:root + layout.NODE_SLOTS].ravel()
+        first = int(node[layout.NODE_REF:layout.NODE_REF + 1].view(np.uint32)[0])
+        assert (first & 0x7FFFFFFF) >> (4 if first & layout.LEAF_BIT else 0) == \
+            root + layout.NODE_SLOTS
     o, d = random_rays(rng, 2000)
     assert_matches_reference(trace(bvh, o, d), brute_force(vertices, faces, o, d),
                              vertices, faces, o, d)
@@ -766,11 +762,31 @@ def test22_bench_trace_rows_threads_and_agreement():
     assert dr.thread_count() == threads
     assert [(r["kind"], r["query"]) for r in rows] == [
         ("coherent", "closest"), ("coherent", "any"),
-        ("incoherent", "closest"), ("incoherent", "any")]
+        ("incoherent", "closest"), ("incoherent", "any"),
+        ("shadow", "closest"), ("shadow", "any")]
     for r in rows:
         assert r["ours_cpu_ms"] > 0 and r["native_cpu_ms"] > 0
         assert r["ratio_cpu"] == pytest.approx(r["native_cpu_ms"] / r["ours_cpu_ms"])
         assert 0.99 <= r["agree"] <= 1
+        assert r["steps"] >= 1 and 0 < r["lanes"] <= 1
     assert "(cpu)" in bench_trace.format_table(rows)
     with pytest.raises(ValueError, match="threads"):
         bench_trace.run(sizes=(2000,), repeats=1, resolution=8, cornell=False, threads=0)
+
+
+def test23_steps_count_the_nodes_and_triangles_visited():
+    """``traversal.steps``: a ray into a one-triangle tree (a root leaf) takes one
+    step, a ray that misses everything (or is invalid) none beyond the root's test, and
+    a ray through a larger tree at least a node and a triangle."""
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    faces = np.array([[0, 1, 2]], np.uint32)
+    bvh = build(vertices, faces, "lbvh")
+    o = mi.Point3f([0.2, 0.2, np.nan], [0.2, 0.2, 0.0], [1, 1, 1])
+    d = mi.Vector3f([0, 0, 0], [0, 0, 0], [-1, 1, -1])
+    np.testing.assert_array_equal(traversal.steps(bvh, o, d, np.inf).numpy(), [1, 1, 0])
+    vertices, faces = random_soup(200, seed=30)
+    bvh = build(vertices, faces, "hlbvh")
+    o, d = random_rays(np.random.default_rng(31), 500)
+    hit = trace(bvh, o, d)["valid"]
+    count = traversal.steps(bvh, mi.Point3f(o.T), mi.Vector3f(d.T), np.inf).numpy()
+    assert np.all(count[hit] >= 2) and np.all(count >= 1)
