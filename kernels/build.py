@@ -183,7 +183,6 @@ def _morton_topology(config: BuildConfig, stats: BuildStats, clock, points, face
     if config.builder == "lbvh" or coarse_bits == 0 or csd.coarse_clusters == 1:
         level = 0 if config.builder == "lbvh" else coarse_bits
         roots = (UInt32(0), UInt32(prim_count), UInt32(0), UInt32(0))
-        prim_root = dr.zeros(UInt32, prim_count)
     else:
         with clock("sah_top"):
             slots = dr.arange(UInt32, prim_count)
@@ -195,11 +194,9 @@ def _morton_topology(config: BuildConfig, stats: BuildStats, clock, points, face
             records.total = dr.opaque(UInt32, top.tree.size)
         level = coarse_bits
         roots = (top.start, top.end, top.node, top.depth)
-        prim_root = top.cluster_of
 
     with clock("emission"):
-        emit_hierarchy(csd.sorted_keys, bits, level, roots, prim_root, records,
-                       config.leaf_size, config.p)
+        emit_hierarchy(csd.sorted_keys, bits, level, roots, records, config.leaf_size, config.p)
         used = dr.arange(UInt32, int(records.total[0]))
         node_first, node_count, node_depth = (
             dr.gather(UInt32, a, used) for a in (records.first, records.count, records.depth))

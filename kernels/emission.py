@@ -5,14 +5,19 @@ A *segment* is a run of sorted primitives that share a node of the tree being em
 all its keys agree on the bit planes above the current ``level``. Each pass considers
 ``p`` bit planes ``[level, level + p)`` at once:
 
-1. *Block splits* (one lane per primitive): primitive ``i`` starts a split at bit plane
-   ``level + j`` when the highest bit where ``key[i-1]`` and ``key[i]`` differ is that
-   plane and both lie in one segment. Inside a segment such a split is unique for its
-   plane and for the ``j`` key bits above it, so it owns the slot ``2^j - 1 + q`` of the
-   segment's *treelet*, a complete binary tree of ``P = 2^p - 1`` slots in breadth-first
-   order (``q`` = the key's bits on planes ``level .. level+j-1``).
+1. *Splits* (found by the treelet walk below): a range of sorted keys that agree on
+   the planes above ``level + j`` splits at plane ``level + j`` before its first key
+   with a 1 there, found by a binary search over the range (its keys are sorted, so
+   that bit is 0 up to some index and 1 after). A range whose keys all have the same
+   bit there has no split at that plane and passes to the child that bit selects. The
+   splits of a segment's *treelet*, a complete binary tree of ``P = 2^p - 1`` slots in
+   breadth-first order (slot ``2^j - 1 + q`` at plane ``level + j`` under the key
+   bits ``q`` above it), are those of its reached slots. (The paper finds them with one
+   lane per primitive and pass, comparing each key with the previous one; searching
+   per slot touches only the slots' ranges and needs no per-primitive segment ids.)
 2. *Treelet emission* (one lane per segment, then one per treelet position): a segment's
-   lane walks its treelet top-down in breadth-first order. A slot reached by a range of
+   lane walks its treelet top-down in breadth-first order, finding the splits as it
+   goes. A slot reached by a range of
    more than ``leaf_size`` primitives and holding a split emits two children; a range
    without a split at a slot passes to the child its keys' bit selects. Children are
    numbered by an exclusive prefix sum over the segments' split counts, two adjacent
@@ -38,7 +43,7 @@ import drjit as dr
 from .arrays import namespace_of
 
 
-NONE = 0xFFFFFFFF  # "no segment": the primitive lies in a finished leaf
+NONE = 0xFFFFFFFF  # a range still owned by its segment's node (no split created it)
 
 
 @dataclass
@@ -67,7 +72,7 @@ class NodeRecords:
     total: object  # UInt32[1]
 
 
-def emit_hierarchy(keys, key_bits: int, level: int, roots, prim_root, records: NodeRecords,
+def emit_hierarchy(keys, key_bits: int, level: int, roots, records: NodeRecords,
                    leaf_size: int, p: int) -> int:
     """Emit the tree below ``roots`` from bit plane ``level`` down, then split
     identical-key segments at their middle.
@@ -79,35 +84,25 @@ def emit_hierarchy(keys, key_bits: int, level: int, roots, prim_root, records: N
             keys of every root must agree on the planes above it.
         roots: (start, end, node, depth), UInt32[R] each: the ranges ``[start, end)``
             (sorted, non-empty, covering all primitives) below already allocated nodes.
-        prim_root: UInt32[N], the root each primitive belongs to.
         records: node arrays, written in place; ``records.total`` grows.
         leaf_size: most primitives in a leaf.
         p: bit planes per pass.
     Returns:
         The number of passes run.
     """
-    ns = namespace_of(prim_root)
-    segments, remap = _open_roots(*roots, records, leaf_size)
-    sid = dr.gather(ns.UInt32, remap, prim_root)
+    segments = _open_roots(*roots, records, leaf_size)
     passes = 0
-    while len(segments) > 0 and level < key_bits:
-        pe = min(p, key_bits - level)
-        splits, sid = _block_splits(keys, key_bits, level, pe, len(segments), sid)
-        segments, remap = _emit_treelets(keys, key_bits, level, pe, segments, splits, records, leaf_size)
-        sid = _next_segment(keys, key_bits, level, pe, sid, remap)
-        level += pe
-        passes += 1
     while len(segments) > 0:
-        # All keys of each segment are equal: split at the middle index.
-        mid = (segments.start + segments.end) >> 1
-        segments, _ = _emit_treelets(keys, key_bits, key_bits, 1, segments, mid, records, leaf_size)
+        # Past the last bit plane all keys of a segment are equal: middle splits.
+        pe = min(p, key_bits - level) if level < key_bits else 1
+        segments = _emit_treelets(keys, key_bits, level, pe, segments, records, leaf_size)
+        level = min(level + pe, key_bits)
         passes += 1
     return passes
 
 
 def _open_roots(start, end, node, depth, records: NodeRecords, leaf_size: int):
-    """Finalise the roots small enough as leaves; return the open ones as Segments and
-    UInt32[R] ``remap``: each root's segment index, NONE for the finished."""
+    """Finalise the roots small enough as leaves; return the open ones as Segments."""
     ns = namespace_of(start)
     UInt32 = ns.UInt32
     dr.make_opaque(start, end, node, depth)  # sizes vary: never bake them into kernels
@@ -118,74 +113,36 @@ def _open_roots(start, end, node, depth, records: NodeRecords, leaf_size: int):
     dr.scatter(records.depth, depth, node, is_leaf)
     dr.eval(records.first, records.count, records.depth)
     keep = dr.compress(~is_leaf)
-    remap = dr.full(UInt32, NONE, len(start))
-    dr.scatter(remap, dr.arange(UInt32, len(keep)), keep)
-    segments = Segments(*(dr.gather(UInt32, a, keep) for a in (start, end, node, depth)))
-    return segments, remap
+    return Segments(*(dr.gather(UInt32, a, keep) for a in (start, end, node, depth)))
 
 
-def _plane_bits(keys, key_bits: int, level, pe: int, key):
-    """The ``pe`` bits of ``key`` on bit planes ``level .. level+pe-1``, as UInt32."""
+def _first_with_bit(keys, key_bits: int, plane: int, lo, hi, active):
+    """The first index in ``[lo, hi)`` whose key has a 1 on bit plane ``plane``
+    (``hi`` if none), for sorted keys that agree on the planes above it: a binary
+    search, one symbolic loop (inactive lanes return ``lo``)."""
     Key = type(keys)
-    shift = Key(key_bits - pe) - Key(level)
-    return namespace_of(level).UInt32((key >> shift) & ((1 << pe) - 1))
+    shift = key_bits - 1 - plane
+
+    def body(a, b):
+        m = (a + b) >> 1
+        one = ((dr.gather(Key, keys, m) >> shift) & 1) == 1
+        return dr.select(one, a, m + 1), dr.select(one, m, b)
+
+    a, _ = dr.while_loop(state=(lo, dr.select(active, hi, lo)), cond=lambda a, b: a < b,
+                         body=body, labels=("a", "b"))
+    return a
 
 
-def _block_splits(keys, key_bits: int, level: int, pe: int, segment_count: int, sid):
-    """emit_block_splits of Figure 4 (one lane per primitive).
-
-    Returns UInt32[S * P], the primitive that starts the split of each treelet slot (0
-    where the slot has none: a split never starts at primitive 0), and ``sid``
-    evaluated.
-    """
-    ns = namespace_of(sid)
-    UInt32 = ns.UInt32
-    Key = type(keys)
-    n = len(keys)
-    P = (1 << pe) - 1
-    width = 64 if dr.type_v(keys) == dr.VarType.UInt64 else 32
-
-    # ---- Highest bit plane where a primitive differs from its predecessor ----
-    # Segment heads differ on a plane above ``level`` (or are primitive 0), so a plane
-    # in [level, level + pe) marks a split inside the primitive's segment.
-    i = dr.arange(UInt32, n)
-    active = (sid != NONE) & (i > 0)
-    key = dr.gather(Key, keys, i, active)
-    prev = dr.gather(Key, keys, i - 1, active)
-    plane = UInt32(dr.lzcnt(key ^ prev)) - (width - key_bits)
-    lvl = dr.opaque(UInt32, level)
-    is_split = active & (key != prev) & (plane >= lvl) & (plane < lvl + pe)
-    j = dr.select(is_split, plane - lvl, 0)
-
-    # ---- Treelet slot: plane j under the j key bits above it ----
-    q = UInt32((key >> Key(key_bits - lvl - j)) & ((Key(1) << Key(j)) - 1))
-    slot = (UInt32(1) << j) - 1 + q
-    splits = dr.zeros(UInt32, segment_count * P)
-    dr.scatter(splits, i, sid * P + slot, is_split)
-    dr.eval(splits, sid)
-    return splits, sid
-
-
-def _next_segment(keys, key_bits: int, level: int, pe: int, sid, remap):
-    """Each primitive's segment after a pass: the treelet bottom position its key's
-    ``pe`` bits select (lazy; evaluated by the next pass's block splits)."""
-    ns = namespace_of(sid)
-    active = sid != NONE
-    key = dr.gather(type(keys), keys, dr.arange(ns.UInt32, len(keys)), active)
-    q = _plane_bits(keys, key_bits, dr.opaque(ns.UInt32, level), pe, key)
-    return dr.select(active, dr.gather(ns.UInt32, remap, sid * (1 << pe) + q, active), ns.UInt32(NONE))
-
-
-def _walk_treelets(keys, key_bits, level, pe, seg, splits, leaf_size):
+def _walk_treelets(keys, key_bits, level, pe, seg, leaf_size):
     """Evaluate every segment's treelet top-down, one lane per segment, positions in
     breadth-first order (slots ``0..P-1``, then the ``P+1`` bottom positions).
 
-    A slot reached by a range of more than ``leaf_size`` primitives and holding a split
-    gives its two children the halves of the range (they are *created*); without a
-    split, the range passes to the child its keys' bit on that plane selects (for
-    middle splits, ``level == key_bits``, every open slot holds one). The ``k``-th
-    split of a segment's treelet in breadth-first order creates its children
-    ``2k, 2k+1`` of the segment's block of new nodes.
+    A slot reached by a range of more than ``leaf_size`` primitives splits it at its
+    plane's split (:func:`_first_with_bit`; for middle splits, ``level == key_bits``,
+    at the range's middle index) and gives its two children the halves (they are
+    *created*); a range whose keys agree on that plane passes to the child their bit
+    selects. The ``k``-th split of a segment's treelet in breadth-first order creates
+    its children ``2k, 2k+1`` of the segment's block of new nodes.
 
     Returns ``(states, splits_at, keeps_at)``: per position the tuple ``(lo, hi,
     depth, owner, reached, created)`` (``owner``: the created child's offset ``2k +
@@ -204,16 +161,17 @@ def _walk_treelets(keys, key_bits, level, pe, seg, splits, leaf_size):
     splits_at, rank = [], dr.zeros(UInt32, lanes)
     for t in range(P):
         lo, hi, depth, owner, reached, _ = states[t]
-        plane = level + (t + 1).bit_length() - 1
         step = reached & (hi - lo > leaf_size)
-        sp = dr.gather(UInt32, splits, s * P + t, step)
-        has = step & (sp != 0)
-        splits_at.append(has)
         if level < key_bits:
-            k = dr.gather(type(keys), keys, lo, step & ~has)
-            bit_right = ((k >> (key_bits - 1 - plane)) & 1) == 1
+            sp = _first_with_bit(keys, key_bits, level + (t + 1).bit_length() - 1, lo, hi, step)
+            has = step & (sp > lo) & (sp < hi)
+            all_ones = sp == lo  # without a split the range follows its keys' bit
+        else:
+            sp = (lo + hi) >> 1
+            has = step
+        splits_at.append(has)
         for right in (False, True):
-            follows = has | (step & (bit_right == right if level < key_bits else True))
+            follows = has if level >= key_bits else has | (step & (all_ones == right))
             states.append((
                 dr.select(has & right, sp, lo),
                 dr.select(has & (not right), sp, hi),
@@ -227,7 +185,7 @@ def _walk_treelets(keys, key_bits, level, pe, seg, splits, leaf_size):
     return states, splits_at, keeps_at
 
 
-def _emit_treelets(keys, key_bits, level, pe, seg, splits, records: NodeRecords, leaf_size):
+def _emit_treelets(keys, key_bits, level, pe, seg, records: NodeRecords, leaf_size):
     """emit_treelets of Figure 4: write the nodes of every segment's treelet.
 
     Two kernels: one lane per segment walks its treelet (:func:`_walk_treelets`) and
@@ -236,16 +194,16 @@ def _emit_treelets(keys, key_bits, level, pe, seg, splits, records: NodeRecords,
     next-pass segment of each), one lane per position writes its node record and, at
     the bottom, its next-pass segment.
 
-    Returns the segments of the next pass and UInt32[S * 2^pe] ``remap``: the index
-    among them of every treelet bottom position, NONE where no segment continues."""
+    Returns the segments of the next pass, in (segment, bottom position) order, so
+    sorted by ``start``."""
     ns = namespace_of(seg.start)
-    UInt32, Bool = ns.UInt32, ns.Bool
+    UInt32 = ns.UInt32
     S = len(seg)
     P = (1 << pe) - 1
     width = 2 * P + 1
 
     # ---- One lane per segment: every position's range, the segment's counts ----
-    states, splits_at, keeps_at = _walk_treelets(keys, key_bits, level, pe, seg, splits, leaf_size)
+    states, splits_at, keeps_at = _walk_treelets(keys, key_bits, level, pe, seg, leaf_size)
     flags = [UInt32(reached) | (UInt32(created) << 1) for *_, reached, created in states]
     flags[:P] = [f | (UInt32(has) << 2) for f, has in zip(flags[:P], splits_at)]
     keep_rank, kept = [], dr.zeros(UInt32, S)
@@ -272,7 +230,7 @@ def _emit_treelets(keys, key_bits, level, pe, seg, splits, records: NodeRecords,
     records.total = records.total + UInt32(total >> 32) * 2
     dr.eval(node_base, seg_base, records.total)
 
-    # ---- One lane per position: node records, next-pass segments, remap ----
+    # ---- One lane per position: node records, next-pass segments ----
     lane = dr.arange(UInt32, S * width)
     ls, pos = lane // width, lane % width
     lo, hi, depth, owner, flag, rank = (dr.gather(UInt32, t, lane) for t in tables)
@@ -291,13 +249,11 @@ def _emit_treelets(keys, key_bits, level, pe, seg, splits, records: NodeRecords,
     bottom = pos >= P
     keep = bottom & reached & (size > leaf_size)
     index = dr.gather(UInt32, seg_base, ls) + rank
-    remap = dr.empty(UInt32, S * (P + 1))
-    dr.scatter(remap, dr.select(keep, index, NONE), ls * (P + 1) + pos - P, bottom)
     # Every entry of the new segments is written below: no need to clear them.
     out = Segments(*(dr.empty(UInt32, count) for _ in range(4)))
     if count:
         for target, value in zip((out.start, out.end, out.node, out.depth), (lo, hi, node, depth)):
             dr.scatter(target, value, index, keep)
     dr.eval(records.first, records.count, records.depth, out.start, out.end, out.node,
-            out.depth, remap)
-    return out, remap
+            out.depth)
+    return out

@@ -193,7 +193,6 @@ class TopLevel:
         start, end: UInt32[C], each cluster's slot range ``[start, end)``.
         node, depth: UInt32[C], each cluster's leaf in ``tree`` and that leaf's depth:
             where the cluster's own sub-tree is rooted.
-        cluster_of: UInt32[N], each slot's cluster.
     """
 
     tree: SahTree
@@ -201,7 +200,6 @@ class TopLevel:
     end: Any
     node: Any
     depth: Any
-    cluster_of: Any
 
 
 def top_level(cluster_start, slot_lo, slot_hi, bins: int = 16) -> TopLevel:
@@ -240,8 +238,8 @@ def top_level(cluster_start, slot_lo, slot_hi, bins: int = 16) -> TopLevel:
     node, depth = dr.zeros(UInt32, clusters), dr.zeros(UInt32, clusters)
     dr.scatter(node, nodes, leaf_cluster, leaf)
     dr.scatter(depth, tree.leaf_depth, leaf_cluster, leaf)
-    dr.eval(node, depth, cluster_of)
-    return TopLevel(tree, cluster_start, end, node, depth, cluster_of)
+    dr.eval(node, depth)
+    return TopLevel(tree, cluster_start, end, node, depth)
 
 
 @dataclass

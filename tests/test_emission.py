@@ -21,7 +21,7 @@ def emitted_tree(keys, key_bits, leaf_size, p):
     U = ns.UInt32
     rec = NodeRecords(*(dr.zeros(U, cap) for _ in range(3)), total=U(1))
     roots = (U([0]), U([n]), U([0]), U([0]))
-    emit_hierarchy(Key(np.asarray(keys)), key_bits, 0, roots, dr.zeros(U, n), rec, leaf_size, p)
+    emit_hierarchy(Key(np.asarray(keys)), key_bits, 0, roots, rec, leaf_size, p)
     total = int(rec.total[0])
     first = rec.first.numpy()[:total]
     count = rec.count.numpy()[:total]
