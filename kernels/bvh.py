@@ -65,7 +65,7 @@ class BuildConfig:
     morton_bits: int | str = 30
     quantization: str = "cube"
     coarse_bits: int = 12
-    p: int = 3
+    p: int = 2
     sah_bins: int = 16
 
     def validated(self) -> "BuildConfig":
