@@ -69,13 +69,12 @@ import mitsuba as mi
 from hlbvh.comparison import plots, report
 from hlbvh.comparison.bench_build import cpu_model
 from hlbvh.comparison.bench_trace import primary_rays, secondary_rays
-from hlbvh.accel import UPDATES
+from hlbvh.accel import BUILD_OPTIONS, UPDATES
 from hlbvh.comparison.compare import TOLERANCE
 from hlbvh.comparison.metrics import image_metrics
 from hlbvh.errors import UserError
 from hlbvh.frame import FrameRenderer
 from hlbvh.images import as_image
-from hlbvh.integrators.common import BUILD_OPTIONS
 from hlbvh.options import (add_scene_options, int_flag, open_animation, option_value, out_flag,
                            render_settings)
 from hlbvh.output import output_directory

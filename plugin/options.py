@@ -9,12 +9,12 @@ import re
 from pathlib import Path
 
 from hlbvh import scenes
-from hlbvh.accel import UPDATES
+from hlbvh.accel import BUILD_OPTIONS, UPDATES
 from hlbvh.errors import UserError
-from hlbvh.integrators.common import BUILD_OPTIONS
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.scenes.sequence import TOPOLOGIES
 from hlbvh.settings import DEFAULT_MAX_DEPTH, MAX_SEED, RenderSettings
+
 
 def add_scene_options(parser, out: str, *, builder_options: bool = True,
                       frames: str | None = None, spp: int | None = None) -> None:
@@ -48,7 +48,6 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
     add("--seed", default="0", help="frame i is rendered with seed SEED + i (default 0)")
     add("--out", help=f"output directory (default {out})")
     add("--quiet", action="store_true", help="no progress bars")
-
 
 
 def out_flag(text: str | None, default: Path) -> Path:

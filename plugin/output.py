@@ -265,7 +265,6 @@ def write_frame(directory: Path, i: int, image, renderer: FrameRenderer, row: di
                         f"or fix the directory, then run the same command again") from None
 
 
-
 def _reason(error: OSError) -> str:
     """What an ``OSError`` says, without its file name."""
     return error.strerror or str(error)

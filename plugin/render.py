@@ -124,7 +124,6 @@ def render_animation(animation, frames, out_dir, settings: RenderSettings,
     return statistics.ordered(), rendered
 
 
-
 # ---------------------------------------------------------------------------------------
 # Command line
 # ---------------------------------------------------------------------------------------
@@ -145,7 +144,6 @@ def configure(parser) -> None:
     parser.add_argument("--chunk-size", help="frames per task with --cluster/--scheduler "
                                              "(default: at least two chunks per worker, at "
                                              "most 16 frames)")
-
 
 
 def run(args) -> int:
@@ -180,7 +178,6 @@ def run(args) -> int:
           f"median build {_median(ours, 'build_ms'):.1f} ms, render "
           f"{_median(ours, 'render_ms'):.1f} ms; statistics in {out / 'stats.csv'}")
     return 0
-
 
 
 def _median(rows: list[dict], key: str) -> float:
