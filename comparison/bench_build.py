@@ -28,7 +28,6 @@ import ctypes
 import os
 import platform
 import statistics
-import time
 
 import drjit as dr
 import mitsuba as mi
@@ -37,6 +36,7 @@ import numpy as np
 import hlbvh
 from hlbvh.comparison.bench_trace import displaced_grid, mesh_scene
 from hlbvh.kernels.traversal import packed_records
+from hlbvh.timing import timed, timed_cpu
 from hlbvh.scenes import meshes as scene_meshes
 
 
@@ -95,15 +95,6 @@ def cpu_model() -> str:
     return platform.processor() or "unknown CPU"
 
 
-def _timed(fn):
-    """(wall ms, process CPU ms, result) of ``fn``, the device synchronised."""
-    dr.sync_thread()
-    start, cpu = time.perf_counter(), time.process_time()
-    out = fn()
-    dr.sync_thread()
-    return 1e3 * (time.perf_counter() - start), 1e3 * (time.process_time() - cpu), out
-
-
 def _summary(times: list[float]) -> dict:
     """Cold (the first), warm min and median (the rest) of a list of ms."""
     return {"cold": times[0], "min": min(times[1:]), "median": statistics.median(times[1:])}
@@ -122,13 +113,13 @@ class _Ours:
         vertices, faces = self.args
         dr.set_flag(dr.JitFlag.KernelHistory, True)
         dr.kernel_history()
-        b_ms, b_cpu, bvh = _timed(lambda: hlbvh.build(vertices, faces, builder=self.builder))
-        p_ms, p_cpu, _ = _timed(lambda: packed_records(bvh))
+        b_ms, b_cpu, bvh = timed_cpu(lambda: hlbvh.build(vertices, faces, builder=self.builder))
+        p_ms, p_cpu, _ = timed_cpu(lambda: packed_records(bvh))
         self.launches = len(dr.kernel_history())
         dr.set_flag(dr.JitFlag.KernelHistory, False)
-        s_ms = _timed(lambda: packed_records(
+        s_ms = timed_cpu(lambda: packed_records(
             hlbvh.build(self.moved, faces, builder=self.builder, previous=bvh)))[0]
-        r_ms = _timed(lambda: bvh.refit(self.moved * (1 + 1e-5 * k)))[0]
+        r_ms = timed_cpu(lambda: bvh.refit(self.moved * (1 + 1e-5 * k)))[0]
         for key, value in (("build", b_ms), ("pack", p_ms), ("ready", b_ms + p_ms),
                            ("ready_cpu", b_cpu + p_cpu), ("seeded", s_ms), ("refit", r_ms)):
             self.ms[key].append(value)
@@ -147,7 +138,7 @@ class _Native:
 
     def round(self, k: int):
         self.params[self.key] = self.variants[k]
-        self.ms.append(_timed(self.params.update)[0])
+        self.ms.append(timed_cpu(self.params.update)[0])
 
 
 class _Embree:
@@ -199,9 +190,7 @@ class _Embree:
     def build_ms(self, vertices, faces, quality: int) -> float:
         """ms to commit a new scene of this quality."""
         scene, geom = self._scene(vertices, faces, quality, refit=False)
-        start = time.perf_counter()
-        self.lib.rtcCommitScene(scene)
-        ms = 1e3 * (time.perf_counter() - start)
+        ms, _ = timed(self.lib.rtcCommitScene, scene)
         self.lib.rtcReleaseGeometry(geom), self.lib.rtcReleaseScene(scene)
         return ms
 
@@ -213,13 +202,14 @@ class _Embree:
         self.lib.rtcCommitScene(scene)
         self._keep = (buffer, scene, geom)
 
-        def refit(k: int) -> float:
-            buffer[:] = vertices * np.float32(1 + 1e-4 * (k + 1))
-            start = time.perf_counter()
+        def update():
             self.lib.rtcUpdateGeometryBuffer(geom, self._VERTEX, 0)
             self.lib.rtcCommitGeometry(geom)
             self.lib.rtcCommitScene(scene)
-            return 1e3 * (time.perf_counter() - start)
+
+        def refit(k: int) -> float:
+            buffer[:] = vertices * np.float32(1 + 1e-4 * (k + 1))
+            return timed(update)[0]
 
         return refit
 
