@@ -17,9 +17,9 @@ all its keys agree on the bit planes above the current ``level``. Each pass cons
    per slot touches only the slots' ranges and needs no per-primitive segment ids.)
 2. *Treelet emission* (one lane per segment, then one per treelet position): a segment's
    lane walks its treelet top-down in breadth-first order, finding the splits as it
-   goes. A slot reached by a range of
-   more than ``leaf_size`` primitives and holding a split emits two children; a range
-   without a split at a slot passes to the child its keys' bit selects. Children are
+   goes. A slot reached by a range of more than ``leaf_size`` primitives and holding a
+   split emits two children; a range without a split at a slot passes to the child its
+   keys' bit selects. Children are
    numbered by an exclusive prefix sum over the segments' split counts, two adjacent
    indices per split, in (segment, slot) order. Then one lane per position writes its
    record: ranges of at most ``leaf_size`` primitives become leaves where they are
@@ -28,7 +28,7 @@ all its keys agree on the bit planes above the current ``level``. Each pass cons
 
 Once every bit plane is used, a segment still larger than ``leaf_size`` holds identical
 keys: it is split at its middle index, pass after pass (the same treelet machinery with
-``p = 1`` and the split given), so every tree is finite and balanced there.
+``p = 1``, the split the middle), so every tree is finite and balanced there.
 
 Each node's record (``node_first``, ``node_count``, ``node_depth``) is written exactly
 once, when the node is finalised as an internal node or a leaf.
