@@ -140,8 +140,13 @@ def gather_triangles(points, faces, prims):
         faces: flat UInt32[3·F] vertex indices.
         prims: UInt32 face indices.
     """
-    ns = namespace_of(faces)
-    face = dr.gather(ns.Array3u, faces, prims)
+    return triangles_of(points, dr.gather(namespace_of(faces).Array3u, faces, prims))
+
+
+def triangles_of(points, face):
+    """Matrix3f: row k holds vertex k of each face ``face`` (Array3u of vertex indices
+    into flat Float[3·V] ``points``)."""
+    ns = namespace_of(points)
     return ns.Matrix3f(*(dr.gather(ns.Array3f, points, face[k]) for k in range(3)))
 
 
