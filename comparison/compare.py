@@ -66,7 +66,7 @@ import drjit as dr
 import mitsuba as mi
 
 from hlbvh import images
-from hlbvh.accel import UpdatePolicy
+from hlbvh.policy import UpdatePolicy
 from hlbvh.comparison import plots, report
 from hlbvh.comparison.metrics import hit_agreement, image_metrics
 from hlbvh.errors import UserError

@@ -69,7 +69,7 @@ import mitsuba as mi
 from hlbvh.comparison import plots, report
 from hlbvh.comparison.bench_build import cpu_model
 from hlbvh.comparison.bench_trace import primary_rays, secondary_rays
-from hlbvh.accel import BUILD_OPTIONS, UPDATES
+from hlbvh.policy import BUILD_OPTIONS, UPDATES
 from hlbvh.comparison.compare import TOLERANCE
 from hlbvh.comparison.metrics import image_metrics
 from hlbvh.errors import UserError

@@ -12,7 +12,7 @@ import drjit as dr
 import mitsuba as mi
 
 from hlbvh import scenes
-from hlbvh.accel import scene_shapes
+from hlbvh.scene_geometry import scene_shapes
 from hlbvh.errors import UserError
 from hlbvh.settings import RenderSettings
 from hlbvh.timing import clock_ms, timed

@@ -9,7 +9,7 @@ import re
 from pathlib import Path
 
 from hlbvh import scenes
-from hlbvh.accel import BUILD_OPTIONS, UPDATES
+from hlbvh.policy import BUILD_OPTIONS, UPDATES
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.scenes.sequence import TOPOLOGIES

@@ -66,7 +66,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hlbvh.accel import ACCELS
+from hlbvh.policy import ACCELS
 from hlbvh.errors import UserError
 from hlbvh.frame import FrameRenderer
 from hlbvh.options import (add_scene_options, choice, int_flag, open_animation, out_flag,

@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from hlbvh.accel import ACCELS, UPDATES
+from hlbvh.policy import ACCELS, UPDATES
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BuildConfig
 

@@ -8,7 +8,7 @@ import hlbvh
 import mitsuba as mi
 import numpy as np
 import pytest
-from hlbvh.accel import collect_geometry
+from hlbvh.scene_geometry import collect_geometry
 
 T = mi.ScalarTransform4f
 

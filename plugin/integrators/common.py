@@ -13,8 +13,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from hlbvh.accel import (ACCELS, BUILD_OPTIONS, UPDATE_OPTIONS, NativeAccel, SceneAccel,
-                         split_options)
+from hlbvh.accel import NativeAccel, SceneAccel
+from hlbvh.policy import ACCELS, BUILD_OPTIONS, UPDATE_OPTIONS, split_options
 
 
 class AccelIntegrator(mi.SamplingIntegrator):
@@ -26,7 +26,7 @@ class AccelIntegrator(mi.SamplingIntegrator):
             options of :func:`hlbvh.build` (see :class:`hlbvh.BuildConfig`).
         update, refit_tolerance, static_builder: the per-frame policy of the accelerator
             (``"rebuild"``, ``"fresh"``, ``"refit"`` or ``"auto"``, the SAH drift ``"auto"``
-            accepts, the builder of the static group; see :class:`hlbvh.accel.UpdatePolicy`).
+            accepts, the builder of the static group; see :class:`hlbvh.policy.UpdatePolicy`).
 
     The accelerator is built on the first render of a scene and kept for the next
     renders of that scene; it is built anew when another scene is rendered, and

@@ -1,0 +1,127 @@
+"""A group of a scene's meshes that share one BVH (the static or the dynamic group of
+:class:`hlbvh.SceneAccel`), rebuilt or refit as the update policy says, with what its
+last update did."""
+
+from __future__ import annotations
+
+from hlbvh.kernels.build import build
+from hlbvh.policy import UpdatePolicy
+from hlbvh.scene_geometry import _concat, _named_error, collect_geometry
+from hlbvh.timing import clock_ms
+
+
+class MeshGroup:
+    """Meshes of a scene that share one BVH, and what the last update did to it.
+
+    Args:
+        name: what the group is called in statistics (``"static"``, ``"dynamic"``).
+
+    Attributes:
+        name: as given.
+        indices: indices into ``scene.shapes()`` of the group's meshes, ascending.
+        geometry: the :class:`SceneGeometry` of the meshes as last built or refit.
+        bvh: the group's :class:`hlbvh.BVH`; None while the group has no triangles.
+        built_sah: SAH cost of the group's last build, against which ``"auto"``
+            measures a refit tree's drift.
+        builds, refits: how often the group was built and refit so far.
+        last: what the group's last update did: ``decision`` (one of
+            :data:`DECISIONS`), ``ms`` (wall time, device synchronised, including the
+            packing of the traversal records), ``triangles``, ``sah_cost`` (of the tree
+            now; None without triangles), ``seeded`` (a build whose CSD sort started
+            from the previous tree's order), ``drift`` (a refit tree's SAH cost over
+            ``built_sah``; None when the update did not refit).
+    """
+
+    def __init__(self, name: str):
+        self.name = name
+        self.indices: tuple = ()
+        self.geometry = None
+        self.bvh = None
+        self.built_sah = None
+        self.builds = 0
+        self.refits = 0
+        self.last = None
+        self._built_indices = ()  # the meshes the tree was built over
+        self.keep()
+
+    @property
+    def triangles(self) -> int:
+        return 0 if self.geometry is None else self.geometry.prim_count
+
+    @property
+    def stale(self) -> bool:
+        """Whether the group's meshes are not those its BVH was built over (they
+        changed, and the build that followed failed or has not run yet)."""
+        return self.indices != self._built_indices
+
+    def update(self, shapes, build_options: dict, policy: UpdatePolicy, reshaped: bool,
+               decision: str = "rebuild"):
+        """Bring the BVH up to date with the meshes' current buffers.
+
+        Args:
+            shapes: ``scene.shapes()``.
+            build_options: options of :func:`hlbvh.build`.
+            policy: the :class:`UpdatePolicy`.
+            reshaped: the meshes' faces or vertex counts changed (forces a rebuild; so
+                does a change of :attr:`indices` since the last build).
+            decision: what to call a rebuild in :attr:`last` (``"build"`` for the
+                accelerator's first one).
+        """
+        start = clock_ms()
+        seeded, drift = False, None
+        reshaped = reshaped or self.bvh is None or self.stale
+        if reshaped or policy.update in ("rebuild", "fresh"):
+            seeded = self._build(shapes, build_options, seed=policy.update != "fresh")
+        else:
+            drift = self._refit(shapes)
+            decision = "refit"
+            if policy.update == "auto" and drift > policy.refit_tolerance:
+                seeded = self._build(shapes, build_options)
+                decision = "rebuild"
+        self.last = dict(
+            decision=decision, ms=clock_ms() - start, triangles=self.triangles,
+            sah_cost=None if self.bvh is None else float(self.bvh.stats.sah_cost),
+            seeded=seeded, drift=drift,
+        )
+
+    def keep(self):
+        """Record that the last update left the group as it was."""
+        self.last = dict(
+            decision="kept", ms=0.0, triangles=self.triangles,
+            sah_cost=None if self.bvh is None else float(self.bvh.stats.sah_cost),
+            seeded=False, drift=None,
+        )
+
+    def root_box(self) -> tuple[list, list]:
+        """Lower and upper corner of the BVH's root box, as Python floats."""
+        return ([float(c[0]) for c in self.bvh.node_min],
+                [float(c[0]) for c in self.bvh.node_max])
+
+    def _build(self, shapes, build_options, seed: bool = True) -> bool:
+        """A new BVH over the meshes' current triangles, its CSD sort seeded with the
+        previous tree's order when ``seed`` and the triangle count is unchanged; whether
+        it was. On failure the group is left as it was (and rebuilds on its next
+        update)."""
+        previous = self.bvh if seed else None
+        geometry = collect_geometry(shapes, self.indices)
+        bvh = None
+        if geometry.prim_count:
+            try:
+                bvh = build(geometry.vertices, geometry.faces, previous=previous, **build_options)
+            except ValueError as error:
+                raise _named_error(shapes, self.indices, error) from error
+        self.geometry, self.bvh, self._built_indices = geometry, bvh, self.indices
+        self.built_sah = None if bvh is None else bvh.stats.sah_cost
+        self.builds += 1
+        return bvh is not None and previous is not None and previous.prim_count == bvh.prim_count
+
+    def _refit(self, shapes) -> float:
+        """The same tree with boxes for the meshes' new positions; its SAH drift."""
+        vertices = _concat([shapes[i].vertex_positions_buffer() for i in self.indices])
+        try:
+            self.bvh.refit(vertices)
+        except ValueError as error:
+            raise _named_error(shapes, self.indices, error) from error
+        self.geometry.vertices = vertices
+        self.refits += 1
+        return self.bvh.stats.sah_cost / self.built_sah

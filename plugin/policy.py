@@ -1,0 +1,91 @@
+"""What a user chooses for an accelerator: which one (``ACCELS``), and how it follows
+the scene from frame to frame (:class:`UpdatePolicy`), with the builder's options
+beside it; :func:`split_options` checks a mixed dict of both and names a bad one."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+from dataclasses import dataclass
+
+from hlbvh.kernels.bvh import BUILDERS, BuildConfig
+
+ACCELS = ("hlbvh", "native")
+#: Per-frame policies of :meth:`SceneAccel.update` (option ``update``).
+UPDATES = ("rebuild", "fresh", "refit", "auto")
+#: The options of :func:`hlbvh.build` an accelerator accepts.
+BUILD_OPTIONS = tuple(f.name for f in dataclasses.fields(BuildConfig))
+#: The accelerator's own options (:class:`UpdatePolicy`).
+UPDATE_OPTIONS = ("update", "refit_tolerance", "static_builder")
+#: What an update did to a group, from the least work to the most: ``kept`` (nothing
+#: changed), ``refit``, ``rebuild``, ``build`` (the accelerator's first build).
+DECISIONS = ("kept", "refit", "rebuild", "build")
+
+
+@dataclass
+class UpdatePolicy:
+    """How :meth:`SceneAccel.update` brings the dynamic group up to date when only its
+    meshes' vertex positions changed (new faces or vertex counts always rebuild).
+
+    Attributes:
+        update: ``"rebuild"`` (default): a new BVH every update, its CSD sort seeded
+            with last frame's order (temporal coherence); always the best tree.
+            ``"fresh"``: the same without the seed (temporal reuse off, for
+            comparison). ``"refit"``: the tree of the
+            last build with new boxes (:meth:`hlbvh.BVH.refit`), much cheaper, never
+            wrong, but slower to trace as the geometry moves away from the pose it was
+            built for. ``"auto"``: refit, then rebuild if the refit tree's SAH cost
+            exceeds ``refit_tolerance`` times the SAH cost of the group's last build.
+        refit_tolerance: the drift ``"auto"`` accepts, a number >= 1 (default 1.3).
+        static_builder: the builder of the static group once meshes have moved out of
+            it (``"sah"`` by default: it is built once and traced every frame, so the
+            best tree pays; measured on the cloth scene's ground and pole: SAH cost 7.9
+            with "hlbvh", 4.5 with "sah", 1.5x the primary rays per second), or
+            ``"same"`` for the scene's own builder.
+    """
+
+    update: str = "rebuild"
+    refit_tolerance: float = 1.3
+    static_builder: str = "sah"
+
+    def validated(self) -> "UpdatePolicy":
+        """Self, after checking both fields; raises ValueError naming the bad one."""
+        if self.update not in UPDATES:
+            raise ValueError(f"update={self.update!r}: expected one of {UPDATES}")
+        tolerance = self.refit_tolerance
+        if (isinstance(tolerance, (bool, str)) or not isinstance(tolerance, numbers.Real)
+                or not math.isfinite(tolerance) or tolerance < 1):
+            raise ValueError(
+                f"refit_tolerance={tolerance!r}: expected a finite number >= 1 (the SAH "
+                "cost a refit tree may reach, relative to a fresh build's)"
+            )
+        self.refit_tolerance = float(tolerance)
+        if self.static_builder not in BUILDERS + ("same",):
+            raise ValueError(
+                f"static_builder={self.static_builder!r}: expected one of {BUILDERS + ('same',)}"
+            )
+        return self
+
+
+def split_options(options: dict) -> tuple[UpdatePolicy, dict]:
+    """The update policy and the builder's options among an accelerator's options,
+    both validated.
+
+    Args:
+        options: keyword options: :data:`UPDATE_OPTIONS` and :data:`BUILD_OPTIONS`.
+    Returns:
+        ``(UpdatePolicy, build options dict)``.
+    Raises:
+        ValueError: an unknown option or a bad value, naming it.
+    """
+    known = BUILD_OPTIONS + UPDATE_OPTIONS
+    unknown = sorted(set(options) - set(known))
+    if unknown:
+        raise ValueError(
+            f"unknown accelerator option(s) {unknown}: expected some of {sorted(known)}"
+        )
+    policy = UpdatePolicy(**{k: v for k, v in options.items() if k in UPDATE_OPTIONS})
+    build_options = {k: v for k, v in options.items() if k not in UPDATE_OPTIONS}
+    BuildConfig.from_options(**build_options)
+    return policy.validated(), build_options
