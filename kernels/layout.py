@@ -183,7 +183,14 @@ def _pack(bvh, slot_base, face_base):
             "corrupt BVH: a child index or leaf range lies outside the node/slot "
             f"arrays, or a leaf holds more than {MAX_LEAF_SIZE} triangles"
         )
-    levels, node_depth = _levels(first, internal, n_nodes)
+    _check_parents(first, internal, n_nodes)
+    # The builder's levels when they hold every internal node (the layout below is
+    # checked slot by slot, so stale levels cannot pass); a walk from the root else.
+    levels = list(bvh.levels)
+    if sum(dr.width(level) for level in levels) != int(dr.count(internal)[0]):
+        levels = _levels(first, internal, n_nodes)
+    if len(levels) > MAX_DEPTH:
+        raise ValueError(_too_deep())
     widest = int(dr.max(count, axis=None)[0])
     _check_slots(first, count, ~internal, n_prims, widest)
 
@@ -218,7 +225,7 @@ def _pack(bvh, slot_base, face_base):
     ref = dr.select(internal, node_ref(position + base), leaf_ref(position + base, count))
 
     # ---- Wide nodes (internal nodes at even depth): children's boxes and references ----
-    wide = dr.compress(internal & ((node_depth & 1) == 0))
+    wide = concat(levels[0::2]) if levels else UInt32()
     if dr.width(wide):
         rows = _wide_rows(bvh, first, internal, ref, wide)
         at = dr.gather(UInt32, position, wide)
@@ -242,6 +249,7 @@ def _pack(bvh, slot_base, face_base):
     tri += [dr.zeros(Float, n_prims)] * (SLOT - len(tri))
     dr.scatter(records, ArrayXf(tri), record_of)
     dr.eval(records)
+    _check_layout(dr.gather(UInt32, position, wide), record_of, total)
     return records, int(ref[0])
 
 
@@ -279,41 +287,63 @@ def _node_rows(children):
 
 
 def _levels(first, internal, n_nodes):
-    """Internal nodes by depth, root first, from a breadth-first walk, and each node's
-    depth (UInt32[N]); ValueError when the tree is deeper than ``MAX_DEPTH`` (a cycle
-    is) or a node is reached twice or never."""
+    """Internal nodes by depth, root first, from a breadth-first walk (every node has
+    one parent, :func:`_check_parents`, so the walk meets each node once, or loops in a
+    cycle, which the node count bounds); ValueError when deeper than ``MAX_DEPTH``."""
     ns = namespace_of(first)
     UInt32 = ns.UInt32
     levels = []
-    node_depth = dr.zeros(UInt32, n_nodes)
-    reached = dr.zeros(UInt32, n_nodes)
-    dr.scatter(reached, UInt32(1), UInt32(0))
     nodes = dr.arange(UInt32, 1 if bool(internal[0]) else 0)
     visited = 1
     while dr.width(nodes):
         visited += 2 * dr.width(nodes)
-        if visited > n_nodes:  # a node reached twice: a cycle or a shared subtree
-            break
+        if visited > n_nodes:
+            raise ValueError("corrupt BVH: the tree holds a cycle (a node is its own ancestor)")
         if len(levels) == MAX_DEPTH:
-            raise ValueError(
-                f"BVH depth above {MAX_DEPTH} levels (or a cycle) exceeds the traversal "
-                "stack: rebuild with a builder that bounds the depth"
-            )
+            raise ValueError(_too_deep())
         levels.append(nodes)
-        dr.scatter(node_depth, dr.opaque(UInt32, len(levels) - 1), nodes)
         # Both children of every node (no dr.concat: it would bake the width in).
         pair = dr.arange(UInt32, 2 * dr.width(nodes))
         children = dr.gather(UInt32, first, dr.gather(UInt32, nodes, pair >> 1)) + (pair & 1)
-        # Local, not Expand: Expand's kernel holds the array's size (a compile per size).
-        dr.scatter_add(reached, UInt32(1), children, mode=dr.ReduceMode.Local)
         nodes = dr.gather(UInt32, children,
                           dr.compress(dr.gather(ns.Bool, internal, children)))
-    if not dr.all(reached == 1, axis=None)[0]:
+    return levels
+
+
+def _too_deep() -> str:
+    return (f"BVH depth above {MAX_DEPTH} levels exceeds the traversal stack: rebuild "
+            "with a builder that bounds the depth")
+
+
+def _check_parents(first, internal, n_nodes):
+    """ValueError unless every node but the root is the child of exactly one node (and
+    the root of none): a shared subtree or a cycle through the root fails here."""
+    UInt32 = type(first)
+    parents = dr.zeros(UInt32, n_nodes)
+    left = dr.compress(internal)
+    children = dr.gather(UInt32, first, left)
+    # Local, not Expand: Expand's kernel holds the array's size (a compile per size).
+    for child in (children, children + 1) if dr.width(children) else ():
+        dr.scatter_add(parents, UInt32(1), child, mode=dr.ReduceMode.Local)
+    expected = dr.select(dr.arange(UInt32, n_nodes) == 0, 0, 1)  # the root has no parent
+    if not dr.all(parents == expected, axis=None)[0]:
         raise ValueError(
-            "corrupt BVH: a node is the child of two nodes, or of none (a node the root "
-            "does not reach)"
+            "corrupt BVH: a node is the child of two nodes, or of none, or the root is a "
+            "child (a cycle)"
         )
-    return levels, node_depth
+
+
+def _check_layout(node_slot, record_of, total):
+    """ValueError unless the wide nodes' two slots each and the triangles' one slot
+    each cover every slot exactly once (what stale levels or an unreachable part of
+    the tree would break)."""
+    UInt32 = type(record_of)
+    written = dr.zeros(UInt32, total)
+    node_slots = [node_slot, node_slot + 1] if dr.width(node_slot) else []
+    for slots in node_slots + [record_of]:
+        dr.scatter_add(written, UInt32(1), slots, mode=dr.ReduceMode.Local)
+    if not dr.all(written == 1, axis=None)[0]:
+        raise ValueError("corrupt BVH: its levels or child links do not describe one tree")
 
 
 def _check_slots(first, count, leaf, n_prims, widest):

@@ -102,6 +102,21 @@ def plane_hits(V, F, o, d):
     return t, u, v
 
 
+def edge_bands(V, F, o):
+    """Per triangle, the barycentric band around its edges where float32 may go either
+    way: ``EDGE``, or wider for a sliver, whose barycentrics the float32 rounding of the
+    coordinates (relative to the ray origins: the watertight test translates the
+    vertices there) moves by that rounding over the triangle's smallest height."""
+    p = np.asarray(V, np.float64)[np.asarray(F, np.int64)]
+    edges = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 1], p[:, 0] - p[:, 2]], 1)
+    twice_area = np.linalg.norm(np.cross(edges[:, 0], -edges[:, 2]), axis=-1)
+    longest = np.linalg.norm(edges, axis=-1).max(axis=1)
+    rounding = 2.0**-21 * max(float(np.abs(V).max()), float(np.abs(o).max()))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        height = np.where(longest > 0, twice_area / longest, 0.0)
+        return np.maximum(EDGE, np.where(height > 0, rounding / height, np.inf))
+
+
 def build(V, F, builder, leaf_size, bits):
     return hlbvh.build(mi.Float(V.ravel()), mi.UInt32(F.ravel()), builder=builder,
                        leaf_size=leaf_size, morton_bits=bits)
@@ -115,13 +130,14 @@ def assert_traces_like_brute_force(bvh, V, F, o, d, maxt):
     occluded = bvh.occluded(ray).numpy()
 
     t_all, u, v = plane_hits(V, F, o, d)  # (R, F) each
+    band = edge_bands(V, F, o)[None, :]
     with np.errstate(invalid="ignore"):
         margin = np.minimum(np.minimum(u, v), 1 - u - v)
         slack = T_TIE * np.abs(t_all) + 1e-6 * np.max(np.abs(V)) / np.linalg.norm(d, axis=1)[:, None]
         # Clearly inside, clearly after 0 and before maxt: we must find it (or nearer).
-        certain = (margin > EDGE) & (t_all > slack) & (t_all < maxt[:, None] - slack)
+        certain = (margin > band) & (t_all > slack) & (t_all < maxt[:, None] - slack)
         # Near an edge, near maxt, or near t = 0: either answer is right.
-        possible = (margin > -EDGE) & (t_all > -slack) & (t_all < maxt[:, None] + slack)
+        possible = (margin > -band) & (t_all > -slack) & (t_all < maxt[:, None] + slack)
     must_hit = certain.any(axis=1)
     nearest_certain = np.where(certain, t_all, np.inf).min(axis=1)
 
