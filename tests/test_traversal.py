@@ -397,8 +397,9 @@ def test10_intersect_and_occluded_return_mitsuba_types():
 
 def test11_debug_mode_finds_no_out_of_bounds_access(capfd):
     """Dr.Jit's debug mode range-checks every local-memory (stack) and gather access;
-    a loop-state variable of width 1 (DRJIT_NOTES pitfall 1) would show up here as
-    wrong hits or as out-of-bounds reports. Rays of width 1 are broadcast."""
+    a loop-state variable of width 1 (which makes all lanes share one local-memory
+    stack) would show up here as wrong hits or as out-of-bounds reports. Rays of
+    width 1 are broadcast."""
     rng = np.random.default_rng(14)
     vertices, faces = random_soup(400, seed=15)
     bvh = build(vertices, faces, "lbvh", leaf_size=2)
