@@ -192,7 +192,6 @@ def _pack(bvh, slot_base, face_base):
     if len(levels) > MAX_DEPTH:
         raise ValueError(_too_deep())
     widest = int(dr.max(count, axis=None)[0])
-    _check_slots(first, count, ~internal, n_prims, widest)
 
     # ---- Up: slots in each subtree (a wide node's own two, a leaf's triangles) ----
     size = dr.select(internal, 0, count)
@@ -335,23 +334,16 @@ def _check_parents(first, internal, n_nodes):
 
 def _check_layout(node_slot, record_of, total):
     """ValueError unless the wide nodes' two slots each and the triangles' one slot
-    each cover every slot exactly once (what stale levels or an unreachable part of
-    the tree would break)."""
+    each cover every slot exactly once: what stale levels, an unreachable part of the
+    tree, or a primitive slot in no leaf or in two (two triangles on one record, none
+    on another) would break."""
     UInt32 = type(record_of)
     written = dr.zeros(UInt32, total)
     node_slots = [node_slot, node_slot + 1] if dr.width(node_slot) else []
     for slots in node_slots + [record_of]:
         dr.scatter_add(written, UInt32(1), slots, mode=dr.ReduceMode.Local)
     if not dr.all(written == 1, axis=None)[0]:
-        raise ValueError("corrupt BVH: its levels or child links do not describe one tree")
-
-
-def _check_slots(first, count, leaf, n_prims, widest):
-    """ValueError unless every primitive slot lies in exactly one leaf."""
-    UInt32 = type(first)
-    covered = dr.zeros(UInt32, n_prims)
-    for k in map(lambda k: dr.opaque(UInt32, k), range(widest)):
-        dr.scatter_add(covered, UInt32(1), first + k, leaf & (count > k),
-                       mode=dr.ReduceMode.Local)  # Expand bakes the size in
-    if not dr.all(covered == 1, axis=None)[0]:
-        raise ValueError("corrupt BVH: a primitive slot lies in no leaf or in two")
+        raise ValueError(
+            "corrupt BVH: its levels, child links or leaf ranges do not describe one tree "
+            "holding every primitive slot once"
+        )

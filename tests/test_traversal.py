@@ -548,6 +548,14 @@ def test16_out_of_range_children_and_leaves_raise():
         setattr(bvh, field, type(getattr(bvh, field))(arr))
         with pytest.raises(ValueError, match="corrupt BVH"):
             trace(bvh, [[0.5, 0.5, -1]], [[0, 0, 1]])
+    # Two leaves over the same primitive slots (and none over another leaf's).
+    bvh = median_split_bvh(vertices, faces, 4)
+    first, count = bvh.node_first.numpy(), bvh.node_count.numpy()
+    leaves = np.flatnonzero(count)
+    first[leaves[1]] = first[leaves[0]]
+    bvh.node_first = type(bvh.node_first)(first)
+    with pytest.raises(ValueError, match="corrupt BVH"):
+        trace(bvh, [[0.5, 0.5, -1]], [[0, 0, 1]])
 
 
 def test17_refit_is_seen_by_the_next_trace():
