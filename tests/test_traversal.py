@@ -660,7 +660,6 @@ def _walk_wide_tree(records, root):
     every wide node its box and the triangle slots of its subtree, and the triangle
     slots reached from the root in the order reached."""
     rec = records.numpy().reshape(-1, layout.SLOT)
-    bits = rec.view(np.uint32)
     children, reached = [], []
 
     def subtree(ref):
