@@ -219,7 +219,9 @@ def _pack(bvh, slot_base, face_base):
         dr.scatter(position, after, left)
         dr.scatter(position, right, left + 1)
 
-    records = dr.zeros(Float, SLOT * total)
+    # Not zeroed: the wide nodes and triangles write every slot whole, and
+    # _check_layout below refuses a tree for which they would not.
+    records = dr.empty(Float, SLOT * total)
     base = dr.opaque(UInt32, slot_base)
     ref = dr.select(internal, node_ref(position + base), leaf_ref(position + base, count))
 
