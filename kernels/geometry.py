@@ -1,5 +1,7 @@
-"""Triangle input: validation of what users pass, the centroids the Morton keys are made
-of (input order), and the triangles and their boxes in slot order."""
+"""Triangle input: validation of what users pass; the faces read once in input order
+(their centroids, which the Morton keys are made of, and packed triangle records); the
+triangles and their boxes in slot order (from those records when building, through the
+faces when refitting)."""
 
 from __future__ import annotations
 
