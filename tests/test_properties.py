@@ -157,6 +157,15 @@ def assert_traces_like_brute_force(bvh, V, F, o, d, maxt):
     assert np.all(~occluded[~possible.any(axis=1)]), "occluded where nothing can be hit"
 
 
+def moved_vertices(data, V):
+    """``V`` moved by a drawn amount (none, 1% or 100% of the mesh's size) of seeded
+    normal noise, float32."""
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**31 - 1)))
+    size = max(float(np.abs(V).max()), 1e-3)
+    amount = data.draw(st.sampled_from([0.0, 0.01, 1.0]))
+    return (V + rng.normal(size=V.shape) * size * amount).astype(np.float32)
+
+
 @pytest.mark.parametrize("builder", ["hlbvh", "lbvh", "sah"])
 @SETTINGS
 @given(data=st.data(), leaf_size=st.sampled_from([1, 2, 4, 16]), bits=st.sampled_from([30, 60, "auto"]))
@@ -172,9 +181,7 @@ def test01_every_builder_traces_like_brute_force(builder, data, leaf_size, bits)
 @given(data=st.data(), leaf_size=st.sampled_from([1, 4]))
 def test02_refit_to_moved_vertices_traces_like_brute_force(builder, data, leaf_size):
     V, F = data.draw(meshes())
-    rng = np.random.default_rng(data.draw(st.integers(0, 2**31 - 1)))
-    size = max(float(np.abs(V).max()), 1e-3)
-    moved = (V + rng.normal(size=V.shape) * size * data.draw(st.sampled_from([0.0, 0.01, 1.0]))).astype(np.float32)
+    moved = moved_vertices(data, V)
     bvh = build(V, F, builder, leaf_size, 30)
     bvh.refit(mi.Float(moved.ravel()))
     check_bvh(bvh, moved, F, leaf_size)
@@ -187,9 +194,7 @@ def test02_refit_to_moved_vertices_traces_like_brute_force(builder, data, leaf_s
 def test03_a_seeded_and_a_fresh_build_give_the_same_hits(builder, data, leaf_size):
     # previous= only reorders primitives with equal keys; what a ray hits must not change
     V, F = data.draw(meshes())
-    rng = np.random.default_rng(data.draw(st.integers(0, 2**31 - 1)))
-    size = max(float(np.abs(V).max()), 1e-3)
-    moved = (V + rng.normal(size=V.shape) * size * data.draw(st.sampled_from([0.0, 0.01, 1.0]))).astype(np.float32)
+    moved = moved_vertices(data, V)
     earlier = build(V, F, builder, leaf_size, 30)
     seeded = hlbvh.build(mi.Float(moved.ravel()), mi.UInt32(F.ravel()), builder=builder,
                          leaf_size=leaf_size, previous=earlier)
