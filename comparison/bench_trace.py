@@ -1,8 +1,8 @@
 """Trace benchmark: our traversal kernels against Mitsuba's native intersector (Embree
 on the LLVM backend, OptiX on CUDA) on the same rays, in the same process.
 
-For each scene (a displaced grid of about ``size`` triangles per entry of ``sizes``, and
-Cornell box), three ray sets, the three kinds a path tracer traces:
+For each scene (a displaced grid of about ``size`` triangles per entry of ``sizes``,
+Cornell box, and the main job's cloth scene), three ray sets, the three kinds a path tracer traces:
 
 - ``coherent``: primary camera rays, one per pixel centre of the scene's sensor;
 - ``incoherent``: secondary rays, one cosine-distributed bounce from each primary hit
@@ -24,8 +24,8 @@ to measure one core). ``agree`` is the fraction of rays whose hit/miss and primi
 (closest) or occlusion (any) equal the native result.
 
 Where our time goes: ``steps`` is the mean number of traversal steps (wide nodes and
-triangles visited) per ray, and ``lanes`` the fraction of the lane-steps paid for that
-did work: rays run in packets of the SIMD width (consecutive rays), and a packet steps
+triangles visited) per ray, ``p90`` and ``max`` its tail, and ``lanes`` the fraction of
+the lane-steps paid for that did work: rays run in packets of the SIMD width (consecutive rays), and a packet steps
 until its slowest ray is done.
 
 Run: ``python -m hlbvh.comparison.bench_trace`` (the CLI's ``hlbvh bench trace``).
@@ -42,6 +42,9 @@ import mitsuba as mi
 
 from hlbvh.kernels import traversal
 from hlbvh.kernels.traversal import any_hit, closest_hit
+
+#: The frame of the cloth animation traced (mid-animation: the flag is folded).
+CLOTH_FRAME = 6
 
 
 # ---------------------------------------------------------------------------------------
@@ -149,16 +152,22 @@ def _packet_width() -> int:
         return 8
 
 
-def _step_profile(bvh, ray, any_hit: bool) -> tuple[float, float]:
-    """(mean steps per ray, fraction of the packets' lane-steps that did work)."""
+def _step_profile(bvh, ray, any_hit: bool) -> dict:
+    """Where a ray kind's traversal time goes: ``steps`` (mean steps per ray),
+    ``steps_p90`` and ``steps_max`` (the tail, which decides what a packet pays),
+    ``lanes`` (fraction of the packets' lane-steps that did work)."""
     import numpy as np
 
     count = traversal.steps(bvh, ray.o, ray.d, ray.maxt, any_hit=any_hit).numpy()
+    if len(count) == 0:
+        return {"steps": 0.0, "steps_p90": 0.0, "steps_max": 0, "lanes": 1.0}
     width = _packet_width()
     padded = np.zeros(-(-len(count) // width) * width, count.dtype)
     padded[:len(count)] = count
     paid = width * padded.reshape(-1, width).max(axis=1).sum()
-    return float(count.mean()), float(count.sum() / paid) if paid else 1.0
+    return {"steps": float(count.mean()), "steps_p90": float(np.percentile(count, 90)),
+            "steps_max": int(count.max()),
+            "lanes": float(count.sum() / paid) if paid else 1.0}
 
 
 def _scene_triangles(scene):
@@ -243,13 +252,11 @@ def _measure(scene, bvh, prim_shape, prim_local, ray, kind: str, repeats: int):
         else:
             same = mi.Bool(o_out) == n_out
         ours_min, native_min = min(o_warm), min(n_warm)
-        steps, lanes = _step_profile(bvh, ray, any_hit=query == "any")
         rows.append({
             "rays": rays,
             "kind": kind,
             "query": query,
-            "steps": steps,
-            "lanes": lanes,
+            **_step_profile(bvh, ray, any_hit=query == "any"),
             "ours_cold_ms": o_cold,
             "ours_min_ms": ours_min,
             "ours_median_ms": statistics.median(o_warm),
@@ -273,9 +280,20 @@ def _measure(scene, bvh, prim_shape, prim_local, ray, kind: str, repeats: int):
 # ---------------------------------------------------------------------------------------
 
 
+def cloth_scene(resolution: int, frame: int = CLOTH_FRAME):
+    """The README's main-job scene (``hlbvh.scenes`` "cloth": a 200k-triangle flag on a
+    pole over a ground quad) at ``frame``, square film of ``resolution`` pixels."""
+    from hlbvh import scenes
+
+    animation = scenes.get("cloth")
+    scene = mi.load_dict(animation.scene_dict(resolution=(resolution, resolution), spp=1))
+    scenes.apply_frame(scene, None, animation.frame(frame))
+    return scene
+
+
 def run(sizes=(1_000_000,), repeats: int = 5, resolution: int = 512,
         cornell: bool = True, build=None, threads: int | None = None,
-        **options) -> list[dict]:
+        cloth: bool = True, **options) -> list[dict]:
     """Measure traversal speed, ours vs native, on the same rays.
 
     Args:
@@ -283,13 +301,14 @@ def run(sizes=(1_000_000,), repeats: int = 5, resolution: int = 512,
         repeats: warm runs per measurement (after one cold run).
         resolution: the camera's width and height in pixels (rays = resolution²).
         cornell: also trace Cornell box (``mi.cornell_box()``).
+        cloth: also trace the main job's cloth scene (:func:`cloth_scene`).
         build: ``build(vertices, faces, **options) -> BVH``; ``hlbvh.build`` when None.
         threads: Dr.Jit's worker threads while tracing (``None``: as they are).
         options: builder options (``builder="hlbvh"``, ``leaf_size``, ...).
     Returns:
         One dict per (scene, ray kind, query): ``scene``, ``triangles``, ``rays``,
         ``kind`` (``coherent``, ``incoherent``, ``shadow``), ``query``, ``steps``,
-        ``lanes``, ``ours_/native_`` ``cold_ms``/``min_ms``/``median_ms``/
+        ``steps_p90``, ``steps_max``, ``lanes`` (:func:`_step_profile`), ``ours_/native_`` ``cold_ms``/``min_ms``/``median_ms``/
         ``cpu_ms`` (the least process CPU time of the warm runs), ``ours_mrays``,
         ``native_mrays`` (from the minimum), ``ratio`` (ours/native throughput, from the
         minima), ``ratio_median`` (from the medians), ``ratio_cpu`` (from the CPU
@@ -310,6 +329,8 @@ def run(sizes=(1_000_000,), repeats: int = 5, resolution: int = 512,
         box = mi.cornell_box()
         box["sensor"]["film"]["width"] = box["sensor"]["film"]["height"] = resolution
         scenes.append(("cornell box", mi.load_dict(box)))
+    if cloth:
+        scenes.append(("cloth", cloth_scene(resolution)))
 
     rows = []
     for name, scene in scenes:
@@ -338,7 +359,7 @@ def format_table(rows: list[dict]) -> str:
     head = (f"{'scene':<12} {'tris':>8} {'rays':>8} {'rays kind':<10} {'query':<7} "
             f"{'ours Mr/s':>9} {'Embree':>8} {'ratio':>6} {'(med)':>6} {'(cpu)':>6} "
             f"{'ours min/med/cold ms':>22} {'native min/med/cold ms':>24} {'agree':>9} "
-            f"{'steps':>6} {'lanes':>6}")
+            f"{'steps':>6} {'p90':>4} {'max':>5} {'lanes':>6}")
     lines = [head, "-" * len(head)]
     for r in rows:
         ours = f"{r['ours_min_ms']:.1f}/{r['ours_median_ms']:.1f}/{r['ours_cold_ms']:.0f}"
@@ -349,7 +370,8 @@ def format_table(rows: list[dict]) -> str:
             f"{r['query']:<7} {r['ours_mrays']:>9.2f} {r['native_mrays']:>8.2f} "
             f"{r['ratio']:>6.2f} {r['ratio_median']:>6.2f} {r['ratio_cpu']:>6.2f} "
             f"{ours:>22} {nat:>24} "
-            f"{100 * r['agree']:>8.4f}% {r['steps']:>6.1f} {100 * r['lanes']:>5.0f}%"
+            f"{100 * r['agree']:>8.4f}% {r['steps']:>6.1f} {r['steps_p90']:>4.0f} "
+            f"{r['steps_max']:>5} {100 * r['lanes']:>5.0f}%"
         )
     return "\n".join(lines)
 
@@ -365,12 +387,15 @@ def main(argv=None) -> int:
     parser.add_argument("--resolution", type=int, default=512,
                         help="camera width and height in pixels (default 512)")
     parser.add_argument("--no-cornell", action="store_true", help="skip Cornell box")
+    parser.add_argument("--no-cloth", action="store_true",
+                        help="skip the main job's cloth scene")
     parser.add_argument("--builder", default="hlbvh", help="hlbvh | lbvh | sah")
     parser.add_argument("--threads", type=int, default=None,
                         help="Dr.Jit worker threads while tracing (default: as they are)")
     args = parser.parse_args(argv)
     rows = run(sizes=args.sizes, repeats=args.repeats, resolution=args.resolution,
-               cornell=not args.no_cornell, builder=args.builder, threads=args.threads)
+               cornell=not args.no_cornell, cloth=not args.no_cloth, builder=args.builder,
+               threads=args.threads)
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
     threads = dr.thread_count() if args.threads is None else args.threads
     print(f"hlbvh trace benchmark ({mi.variant()}, builder={args.builder}, "

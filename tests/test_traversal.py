@@ -766,7 +766,8 @@ def test22_bench_trace_rows_threads_and_agreement():
     from hlbvh.comparison import bench_trace
 
     threads = dr.thread_count()
-    rows = bench_trace.run(sizes=(2000,), repeats=1, resolution=24, cornell=False, threads=1)
+    rows = bench_trace.run(sizes=(2000,), repeats=1, resolution=24, cornell=False, cloth=False,
+                           threads=1)
     assert dr.thread_count() == threads
     assert [(r["kind"], r["query"]) for r in rows] == [
         ("coherent", "closest"), ("coherent", "any"),
@@ -777,9 +778,11 @@ def test22_bench_trace_rows_threads_and_agreement():
         assert r["ratio_cpu"] == pytest.approx(r["native_cpu_ms"] / r["ours_cpu_ms"])
         assert 0.99 <= r["agree"] <= 1
         assert r["steps"] >= 1 and 0 < r["lanes"] <= 1
+        assert r["steps"] <= r["steps_max"] and r["steps_p90"] <= r["steps_max"]
     assert "(cpu)" in bench_trace.format_table(rows)
     with pytest.raises(ValueError, match="threads"):
-        bench_trace.run(sizes=(2000,), repeats=1, resolution=8, cornell=False, threads=0)
+        bench_trace.run(sizes=(2000,), repeats=1, resolution=8, cornell=False, cloth=False,
+                        threads=0)
 
 
 def test23_steps_count_the_nodes_and_triangles_visited():
