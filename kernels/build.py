@@ -18,6 +18,7 @@ the statistics.
 from __future__ import annotations
 
 import contextlib
+import functools
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -117,16 +118,18 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
     stats.stage_ms = dict(clock.ms)
     stats.total_ms = sum(clock.ms.values())
 
-    # ---- Statistics (not part of the build time) ----
+    # ---- Statistics (not part of the build time, but paid every frame) ----
     root = dr.zeros(namespace_of(faces).UInt32, 1)
     warn_if_out_of_range(dr.gather(type(node_min), node_min, root),
                          dr.gather(type(node_max), node_max, root))
+    # Every internal node has two children: a binary tree of N nodes has (N + 1) / 2
+    # leaves, and its deepest nodes are leaves, one level below the deepest internal one.
     stats.node_count = len(topology.node_count)
-    stats.leaf_histogram = leaf_histogram(topology.node_count, config.leaf_size)
-    stats.leaf_count = sum(stats.leaf_histogram)
-    stats.depth = int(dr.max(topology.node_depth)[0]) + 1
+    stats.leaf_count = (stats.node_count + 1) // 2
+    stats.depth = len(levels) + 1
+    stats.leaf_histogram = functools.partial(leaf_histogram, topology.node_count, config.leaf_size)
     stats.sah_cost = sah_cost(node_min, node_max, topology.node_count)
-    return BVH(
+    bvh = BVH(
         node_min=node_min,
         node_max=node_max,
         node_first=topology.node_first,
@@ -140,6 +143,11 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
         config=config,
         stats=stats,
     )
+    # Evaluated (a literal, e.g. a one-primitive tree's order, would be given a new
+    # variable when first read), so the key stays valid while nobody assigns them.
+    dr.make_opaque(bvh.node_first, bvh.node_count, bvh.prim_ids, *bvh.levels)
+    bvh.built_topology = bvh.topology_key()
+    return bvh
 
 
 def _input_triangles(points, faces):

@@ -21,6 +21,11 @@ field               type        meaning
 ``levels`` lists, root first, the internal nodes of each depth (one UInt32 array per
 depth); bottom-up passes (bounds, refit) walk it backwards without any synchronisation
 inside a kernel. Every array is of the backend of the input vertices.
+
+``built_topology`` is :meth:`BVH.topology_key` as the builder returned the tree (None for
+a tree made by hand): while the key still matches, the tree is the builder's own, whose
+invariants the tests check on every builder, and the packer
+(:func:`hlbvh.kernels.layout.packed_records`) skips validating it on every frame.
 """
 
 from __future__ import annotations
@@ -114,6 +119,26 @@ def _integer(name: str, value, allowed, expected: str = "") -> int:
     return int(value)
 
 
+class _OnFirstRead:
+    """A dataclass field that may be given a function instead of a value: the function
+    is called when the field is first read, and its result kept. Statistics that cost a
+    kernel and a host round trip, and that no per-frame caller reads, are set so."""
+
+    def __set_name__(self, owner, name):
+        self._name = "_" + name
+
+    def __get__(self, obj, owner=None):
+        if obj is None:
+            return None  # the dataclass default: not given
+        value = obj.__dict__.get(self._name)
+        if callable(value):
+            value = obj.__dict__[self._name] = value()
+        return [] if value is None else value
+
+    def __set__(self, obj, value):
+        obj.__dict__[self._name] = value
+
+
 @dataclass
 class BuildStats:
     """What a build measured about itself.
@@ -125,6 +150,8 @@ class BuildStats:
     are the CSD sort's run count and how many keys it had to sort (see
     :class:`~hlbvh.kernels.csd.CsdResult`). ``stage_ms`` holds the wall time of
     each stage, synchronised (the device finished before the clock stopped).
+    ``leaf_histogram`` (leaves of 1, 2, ..., ``leaf_size`` primitives) is counted when
+    first read: a kernel and a host round trip that a per-frame rebuild does not pay.
     """
 
     builder: str = ""
@@ -138,7 +165,7 @@ class BuildStats:
     coarse_clusters: int = 0
     morton_bits: int = 30
     quantization: str = ""
-    leaf_histogram: list[int] = field(default_factory=list)
+    leaf_histogram: list[int] = _OnFirstRead()
     stage_ms: dict[str, float] = field(default_factory=dict)
     total_ms: float = 0.0
 
@@ -165,6 +192,14 @@ class BVH:
     levels: list
     config: BuildConfig
     stats: BuildStats
+    built_topology: tuple | None = None
+
+    def topology_key(self) -> tuple:
+        """The Dr.Jit variables of the arrays that give the tree its shape (``node_first``,
+        ``node_count``, ``prim_ids``, ``levels``): assigning any of them changes it. (A
+        refit assigns only boxes and triangles.)"""
+        return (self.node_first.index, self.node_count.index, self.prim_ids.index,
+                tuple(level.index for level in self.levels))
 
     @property
     def size(self) -> int:

@@ -30,10 +30,14 @@ A *reference* names a child: a wide node by its first slot (bit 31 clear); a lea
 ``LEAF_BIT | first_slot << 4 | (count - 1)`` (at most ``MAX_LEAF_SIZE`` triangles, and
 the slots below ``MAX_SLOTS``), so a leaf needs no record of its own.
 
-The tree's depths come from a breadth-first walk from the root, not from the builder's
-bookkeeping, so any tree of ``node_first``/``node_count`` packs the same way; the walk
-checks that every node is reached exactly once and every primitive slot lies in exactly
-one leaf (a cycle, a shared subtree or an out-of-range child is a ValueError).
+A tree made by hand (or one whose topology arrays were reassigned) is validated before it
+is packed: child and leaf ranges inside the arrays, every node the child of exactly one
+node, and the packed slots covering every slot exactly once (a cycle, a shared subtree,
+an out-of-range child, stale levels or a slot in no leaf or in two is a ValueError); its
+depths come from a breadth-first walk when its levels do not hold every internal node.
+A tree as the builder returned it (``bvh.built_topology`` matches its arrays) is packed
+from its own levels without those checks, which cost a third of the packing and a host
+round trip each: the tests run them on every builder's trees (:func:`check_tree`).
 """
 
 from __future__ import annotations
@@ -160,12 +164,23 @@ def packed_records(bvh, slot_base: int = 0, face_base: int = 0):
     cache = getattr(bvh, "_traversal_records", None)
     if cache is not None and cache[0] == key:
         return cache[1]
-    records = _pack(bvh, slot_base, face_base)
+    built = bvh.built_topology is not None and bvh.built_topology == bvh.topology_key()
+    records = _pack(bvh, slot_base, face_base, check=not built)
     bvh._traversal_records = (key, records)
     return records
 
 
-def _pack(bvh, slot_base, face_base):
+def check_tree(bvh):
+    """Validate ``bvh`` as :func:`packed_records` validates a tree made by hand, whoever
+    made it (the tests call it on every builder's trees, whose packing skips it).
+
+    Raises:
+        ValueError: as :func:`packed_records`.
+    """
+    _pack(bvh, 0, 0, check=True)
+
+
+def _pack(bvh, slot_base, face_base, check: bool):
     ns = namespace_of(bvh.node_count)
     UInt32, Float, ArrayXf = ns.UInt32, ns.Float, ns.ArrayXf
     n_nodes, n_prims = bvh.size, bvh.prim_count
@@ -173,25 +188,13 @@ def _pack(bvh, slot_base, face_base):
         raise ValueError("BVH is empty: build it from at least one triangle")
     first, count = UInt32(bvh.node_first), UInt32(bvh.node_count)
     internal = count == 0
-    # Sizes enter kernels as opaque values: a literal would compile new kernels for
-    # every tree of a new size, i.e. every frame of an animation.
-    nodes_o, prims_o = dr.opaque(UInt32, n_nodes), dr.opaque(UInt32, n_prims)
-    bad = dr.select(internal, first + 1 >= nodes_o,
-                    (count > MAX_LEAF_SIZE) | (first + count > prims_o) | (first + count < first))
-    if dr.any(bad, axis=None)[0]:
-        raise ValueError(
-            "corrupt BVH: a child index or leaf range lies outside the node/slot "
-            f"arrays, or a leaf holds more than {MAX_LEAF_SIZE} triangles"
-        )
-    _check_parents(first, internal, n_nodes)
-    # The builder's levels when they hold every internal node (the layout below is
-    # checked slot by slot, so stale levels cannot pass); a walk from the root else.
     levels = list(bvh.levels)
-    if sum(dr.width(level) for level in levels) != int(dr.count(internal)[0]):
-        levels = _levels(first, internal, n_nodes)
+    if check:
+        levels = _checked_levels(first, count, internal, levels, n_nodes, n_prims)
     if len(levels) > MAX_DEPTH:
         raise ValueError(_too_deep())
-    widest = int(dr.max(count, axis=None)[0])
+    # The builder's leaves hold at most leaf_size slots; a hand-made tree's are counted.
+    widest = int(dr.max(count, axis=None)[0]) if check else bvh.config.leaf_size
 
     # ---- Up: slots in each subtree (a wide node's own two, a leaf's triangles) ----
     size = dr.select(internal, 0, count)
@@ -219,8 +222,8 @@ def _pack(bvh, slot_base, face_base):
         dr.scatter(position, after, left)
         dr.scatter(position, right, left + 1)
 
-    # Not zeroed: the wide nodes and triangles write every slot whole, and
-    # _check_layout below refuses a tree for which they would not.
+    # Not zeroed: the wide nodes and triangles write every slot whole (_check_layout
+    # below refuses a hand-made tree for which they would not; check_tree, a builder's).
     records = dr.empty(Float, SLOT * total)
     base = dr.opaque(UInt32, slot_base)
     ref = dr.select(internal, node_ref(position + base), leaf_ref(position + base, count))
@@ -230,6 +233,9 @@ def _pack(bvh, slot_base, face_base):
     if dr.width(wide):
         rows = _wide_rows(bvh, first, internal, ref, wide)
         at = dr.gather(UInt32, position, wide)
+        # Each scatter into one target is a kernel of its own: the rows are gathered
+        # once, not once per slot.
+        dr.eval(rows, at)
         dr.scatter(records, ArrayXf(rows[:SLOT]), at)
         dr.scatter(records, ArrayXf(rows[SLOT:]), at + 1)
 
@@ -250,8 +256,31 @@ def _pack(bvh, slot_base, face_base):
     tri += [dr.zeros(Float, n_prims)] * (SLOT - len(tri))
     dr.scatter(records, ArrayXf(tri), record_of)
     dr.eval(records)
-    _check_layout(dr.gather(UInt32, position, wide), record_of, total)
+    if check:
+        _check_layout(dr.gather(UInt32, position, wide), record_of, total)
     return records, int(ref[0])
+
+
+def _checked_levels(first, count, internal, levels, n_nodes, n_prims):
+    """The internal nodes by depth to pack a tree made by hand by, after checking its
+    child and leaf ranges and parents (ValueError): its own ``levels`` when they hold
+    every internal node (the packed layout is then checked slot by slot, so stale levels
+    cannot pass), a walk from the root otherwise."""
+    UInt32 = type(first)
+    # Sizes enter kernels as opaque values: a literal would compile new kernels for
+    # every tree of a new size, i.e. every frame of an animation.
+    nodes_o, prims_o = dr.opaque(UInt32, n_nodes), dr.opaque(UInt32, n_prims)
+    bad = dr.select(internal, first + 1 >= nodes_o,
+                    (count > MAX_LEAF_SIZE) | (first + count > prims_o) | (first + count < first))
+    if dr.any(bad, axis=None)[0]:
+        raise ValueError(
+            "corrupt BVH: a child index or leaf range lies outside the node/slot "
+            f"arrays, or a leaf holds more than {MAX_LEAF_SIZE} triangles"
+        )
+    _check_parents(first, internal, n_nodes)
+    if sum(dr.width(level) for level in levels) != int(dr.count(internal)[0]):
+        levels = _levels(first, internal, n_nodes)
+    return levels
 
 
 def _wide_rows(bvh, first, internal, ref, wide):

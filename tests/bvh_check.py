@@ -5,6 +5,8 @@ from __future__ import annotations
 import drjit as dr
 import numpy as np
 
+from hlbvh.kernels.layout import check_tree
+
 
 def rows(a) -> np.ndarray:
     """An Array3f as an (n, 3) numpy array."""
@@ -20,7 +22,10 @@ def check_bvh(bvh, V: np.ndarray, F: np.ndarray, leaf_size: int) -> dict:
     - the tree reached from the root covers every slot exactly once, by leaves of
       1..leaf_size primitives; siblings are adjacent and children follow their parent;
     - every leaf box contains its triangles and every child box lies inside its parent's
-      (equality of floats: boxes are unions, so containment is exact).
+      (equality of floats: boxes are unions, so containment is exact);
+    - the packer's own validation passes (:func:`hlbvh.kernels.layout.check_tree`:
+      parents, ranges, levels and the packed slots), which it skips for the builder's
+      trees when packing them per frame.
     """
     first = bvh.node_first.numpy().astype(np.int64)
     count = bvh.node_count.numpy().astype(np.int64)
@@ -57,4 +62,6 @@ def check_bvh(bvh, V: np.ndarray, F: np.ndarray, leaf_size: int) -> dict:
     assert np.all(covered == 1), "a slot is not in exactly one leaf"
     assert bvh.stats.node_count == len(count) and bvh.stats.leaf_count == leaves
     assert bvh.stats.depth == depth_max + 1
+    assert bvh.built_topology == bvh.topology_key()
+    check_tree(bvh)
     return {"leaves": leaves, "depth": depth_max + 1}
