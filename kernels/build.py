@@ -30,7 +30,7 @@ from .bounds import internal_levels, leaf_histogram, node_bounds, sah_cost
 from .bvh import BVH, BuildConfig, BuildStats
 from .csd import csd_sort
 from .emission import NodeRecords, emit_hierarchy
-from .geometry import (box_records, checked_faces, checked_vertices, gather_triangles,
+from .geometry import (checked_faces, checked_vertices, gather_triangles,
                        records_to_triangles, slot_triangles, triangle_boxes,
                        triangle_records, warn_if_out_of_range)
 from .morton import choose_key, morton_codes, point_bounds
@@ -193,8 +193,7 @@ def _morton_topology(config: BuildConfig, stats: BuildStats, clock, points, face
         roots = (UInt32(0), UInt32(prim_count), UInt32(0), UInt32(0))
     else:
         with clock("sah_top"):
-            slots = dr.arange(UInt32, prim_count)
-            top = top_level(csd.cluster_start, *box_records(slot_boxes, slots), config.sah_bins)
+            top = top_level(csd.cluster_start, slot_boxes, config.sah_bins)
             internal = top.tree.node_count == 0
             nodes = dr.arange(UInt32, top.tree.size)
             dr.scatter(records.first, top.tree.node_first, nodes, internal)

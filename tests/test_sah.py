@@ -1,6 +1,8 @@
 """Binned SAH build (kernels/sah.py) against a reference written the obvious way: a
 numpy build that splits one node at a time, breadth-first, with the same bins, the same
-float32 cost arithmetic and the same tie rule (first axis, then lowest plane)."""
+float32 cost arithmetic and the same tie rule (first axis, then lowest plane). Every test
+runs on both ways the kernels split a level: one lane per node (small inputs, the HLBVH
+top level) and one lane per item."""
 
 import hlbvh  # noqa: F401  (sets up libLLVM before drjit is imported)
 
@@ -10,6 +12,7 @@ import drjit as dr
 import numpy as np
 import pytest
 
+from hlbvh.kernels import sah
 from hlbvh.kernels.sah import SahTree, binned_sah
 
 import mitsuba as mi
@@ -21,6 +24,15 @@ jit = namespace_of(mi.Float)
 Array3f, Float, UInt32 = jit.Array3f, jit.Float, jit.UInt32
 
 F32 = np.float32
+
+
+@pytest.fixture(autouse=True, params=["node lanes", "item lanes"])
+def lanes(request, monkeypatch):
+    """Run the test with the inputs split one lane per node (up to the module's
+    threshold, above every input here) or one lane per item (threshold 0)."""
+    if request.param == "item lanes":
+        monkeypatch.setattr(sah, "NODE_LANES_MAX_ITEMS", 0)
+    return request.param
 
 
 # ---------------------------------------------------------------------------------------
@@ -372,3 +384,27 @@ def test14_new_sizes_reuse_the_same_kernels():
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
     assert second <= first, f"{len(second - first)} kernel(s) specialised on a size"
+
+
+@pytest.mark.parametrize("n, leaf_items, bins", [(1, 1, 16), (3, 1, 2), (17, 2, 7), (300, 1, 16),
+                                                 (1000, 4, 64), (4096, 1, 16)])
+def test15_node_lanes_and_item_lanes_build_the_same_tree(lanes, monkeypatch, n, leaf_items, bins):
+    """The two ways of splitting a level are one algorithm: the same arrays bit for bit,
+    on boxes with clumps, flat stretches and items of weight 0 (both ways meet the same
+    inputs in one process, so the node lanes' frozen kernels replay on new sizes)."""
+    if lanes == "item lanes":
+        pytest.skip("compares both ways itself")
+    rng = np.random.default_rng(n)
+    c = rng.random((n, 3)).astype(F32)
+    c[: n // 3, 2] = F32(0.5)
+    c[n // 3: n // 2] = np.round(c[n // 3: n // 2] * 3) / 3
+    e = (rng.random((n, 3)) * 0.05).astype(F32)
+    lo, hi, w = c - e, c + e, rng.integers(0, 4, n).astype(np.uint32)
+    node = as_numpy(build(lo, hi, w, leaf_items=leaf_items, bins=bins))
+    monkeypatch.setattr(sah, "NODE_LANES_MAX_ITEMS", 0)
+    item = as_numpy(build(lo, hi, w, leaf_items=leaf_items, bins=bins))
+    levels = node.pop("levels"), item.pop("levels")
+    assert len(levels[0]) == len(levels[1])
+    assert all(np.array_equal(a, b) for a, b in zip(*levels))
+    for key in node:
+        assert np.array_equal(node[key], item[key]), key
