@@ -106,6 +106,8 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
             tri = gather_triangles(points, faces, tree.item_order)
             dr.eval(tri)
         node_min, node_max, levels = tree.node_min, tree.node_max, tree.levels
+        for level in levels:  # one at a time: levels of one size in one kernel would
+            dr.eval(level)    # make a kernel for every count of such levels
         topology = _Topology(tree.node_first, tree.node_count, tree.leaf_depth, tree.item_order, tri)
         stats.morton_bits = 0
     else:

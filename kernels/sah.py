@@ -90,7 +90,8 @@ class SahTree:
         item_order: UInt32[n_items]; slot -> item index. Every item has exactly one
             slot; a leaf owns a contiguous range of slots, and so does every subtree.
         levels: list of UInt32 arrays, the internal nodes of depth 0, 1, 2, ... (root
-            first; empty when the root is a leaf).
+            first; empty when the root is a leaf; not evaluated yet when the tree was
+            built one lane per node: evaluate each on its own).
         leaf_depth: UInt32[T]; the depth of every node (root 0).
         depth: number of node levels (1 for a single leaf).
     """
@@ -314,79 +315,88 @@ def _build_by_node_lanes(ns, lo, hi, weight, leaf_items: int, bins: int) -> SahT
     Every level is one kernel whose lanes are the children made by the level above (the
     root first): each writes its node record, and an open one (more than
     ``leaf_items`` items) bins its items in local memory, sweeps the planes and
-    partitions its slot range in one go, so a level costs one launch, a prefix sum and
-    one host read (how many nodes are open) instead of about ten launches. A lane works
-    through its items one after the other, so this pays while nodes are small: the root
-    lane alone reads every item twice.
+    partitions its slot range in one go. The kernel is traced once and replayed
+    (``dr.freeze``): every array it takes has a size fixed by the item count ``n`` (a
+    level has at most ``n`` children, a tree at most ``n - 1`` internal nodes), the
+    level's own width enters as an opaque value, so every level of every build of ``n``
+    items matches the same recording. A level then costs one replay, a prefix sum and
+    one host read (how many nodes are open) instead of about twenty launches. A lane
+    works through its items one after the other, so this pays while nodes are small:
+    the root lane alone reads every item twice.
     """
     UInt32, Float = ns.UInt32, ns.Float
     n = dr.width(lo)
     centroid = _centroid(lo, hi)
-    dr.eval(centroid)
     records = dr.empty(Float, _RECORD * (2 * n - 1))
     # Written as items reach their leaves (a root leaf keeps its items in input order).
     item_order = dr.empty(UInt32, n) if n > leaf_items else dr.arange(UInt32, n)
-    # slot -> item in the open nodes' ranges, read by one level and written for the next
-    slots_in, slots_out = dr.arange(UInt32, n), dr.empty(UInt32, n)
+    # Read by one level, written for the next: slot -> item in the open nodes' ranges,
+    # the children's rows and open flags (the first `width` entries in use; room for an
+    # even count, as the two children of a node are written as one packet).
+    slots = [dr.arange(UInt32, n), dr.empty(UInt32, n)]
+    room = n + n % 2
+    rows = [dr.empty(Float, _CHILD * room), dr.empty(Float, _CHILD * room)]
+    flags = [dr.empty(UInt32, room), dr.empty(UInt32, room)]
+    level_ids = dr.empty(UInt32, n)  # the internal nodes, level after level
 
     # ---- The root: the one child of a level above the tree ----
-    rows = dr.empty(Float, _CHILD)
-    dr.scatter(rows, ns.ArrayXf(_child_rows(
+    root = dr.zeros(UInt32, 1)
+    dr.scatter(rows[0], ns.ArrayXf(_child_rows(
         ns, [dr.min(lo, axis=1), dr.max(hi, axis=1), dr.min(centroid, axis=1),
-             dr.max(centroid, axis=1)], dr.opaque(UInt32, 0), dr.opaque(UInt32, n))),
-        dr.zeros(UInt32, 1))
-    is_open = UInt32(dr.opaque(UInt32, n) > leaf_items)
-    dr.eval(rows, is_open)
-    levels, block_start = [], [0]
+             dr.max(centroid, axis=1)], dr.opaque(UInt32, 0), dr.opaque(UInt32, n))), root)
+    dr.scatter(flags[0], UInt32(dr.opaque(UInt32, n) > leaf_items), root)
+    # Every input evaluated, so that all levels meet the frozen kernel in one state.
+    dr.eval(centroid, item_order, slots, rows, flags, level_ids)
+    levels, block_start, width, internal = [], [0], 1, 0
     while True:
-        width = dr.width(is_open)
-        through = dr.cumsum(is_open)  # inclusive: an open child's rank is through - 1
+        through = dr.cumsum(flags[0])  # inclusive: an open child's rank is through - 1
         opened = int(through[width - 1])
         block, next_block = block_start[-1], block_start[-1] + width
         block_start.append(next_block)
-        block_o, next_o = (dr.opaque(UInt32, b) for b in (block, next_block))
+        sizes = [dr.opaque(UInt32, v) for v in (block, next_block, width, internal)]
         if not opened:
-            _write_block(rows, is_open, through, records, block_o, next_o)
+            _write_block(rows[0], flags[0], through, records, *sizes[:3])
             dr.eval(records)
             break
-        out = (dr.empty(Float, _CHILD * 2 * opened), dr.empty(UInt32, 2 * opened),
-               dr.empty(UInt32, opened))
-        _FROZEN_LEVEL(rows, is_open, through, records, block_o, next_o, lo, hi, centroid,
-                      weight, slots_in, slots_out, item_order, *out, leaf_items, bins)
-        rows, is_open, level = out
-        levels.append(level)
-        slots_in, slots_out = slots_out, slots_in
+        _FROZEN_LEVEL(rows[0], flags[0], through, records, *sizes, lo, hi, centroid, weight,
+                      *slots, item_order, rows[1], flags[1], level_ids, leaf_items, bins)
+        levels.append(dr.gather(UInt32, level_ids, dr.arange(UInt32, opened) + sizes[3]))
+        width, internal = 2 * opened, internal + opened
+        slots.reverse(), rows.reverse(), flags.reverse()
     return _tree(ns, records, block_start, item_order, levels)
 
 
-def _write_block(rows, is_open, through, records, block, next_block):
-    """Write the node records of a block of children (``rows``, ``is_open``, the
-    inclusive prefix ``through`` of ``is_open``); return what the lanes read."""
+def _write_block(rows, is_open, through, records, block, next_block, width):
+    """Write the node records of the first ``width`` children of ``rows``, ``is_open``
+    (``through``: the inclusive prefix of ``is_open``) from node ``block`` on; return
+    what the lanes read."""
     ns = namespace_of(rows)
     UInt32 = ns.UInt32
-    width = dr.width(is_open)
-    lane = dr.arange(UInt32, width)
-    row = dr.gather(ns.ArrayXf, rows, lane, shape=(_CHILD, width))
+    lane = dr.arange(UInt32, dr.width(is_open))
+    valid = lane < width
+    row = dr.gather(ns.ArrayXf, rows, lane, valid, shape=(_CHILD, dr.width(lane)))
     box_lo, box_hi = ns.Array3f(row[0], row[1], row[2]), ns.Array3f(row[3], row[4], row[5])
     first, count = (dr.reinterpret_array(UInt32, row[k]) for k in (12, 13))
-    open_lane = is_open == 1
+    open_lane = valid & (is_open == 1)
     rank = through - 1
-    _write_records(ns, records, block + lane, box_lo, box_hi,
+    index = dr.select(valid, block + lane, 0)
+    _write_records(ns, records, index, box_lo, box_hi,
                    dr.select(open_lane, next_block + 2 * rank, first),
-                   dr.select(open_lane, 0, count))
+                   dr.select(open_lane, 0, count), valid)
     node = ns.Array3f(row[6], row[7], row[8]), ns.Array3f(row[9], row[10], row[11])
     return lane, open_lane, rank, first, count, box_lo, box_hi, node
 
 
-def _node_level(rows, is_open, through, records, block, next_block, lo, hi, centroid,
-                weight, slots_in, slots_out, item_order, rows_out, is_open_out, level_out,
-                leaf_items, bins):
+def _node_level(rows, is_open, through, records, block, next_block, width, internal, lo, hi,
+                centroid, weight, slots_in, slots_out, item_order, rows_out, is_open_out,
+                level_ids, leaf_items, bins):
     """One level of :func:`_build_by_node_lanes`, one kernel: the block's records, its
-    open nodes split, the next block's rows and open flags, the open nodes' ids."""
+    open nodes split, the next block's rows and open flags, the open nodes' ids (at
+    ``internal`` on in ``level_ids``)."""
     ns = namespace_of(rows)
     UInt32 = ns.UInt32
     lane, open_lane, rank, first, count, box_lo, box_hi, node = _write_block(
-        rows, is_open, through, records, block, next_block)
+        rows, is_open, through, records, block, next_block, width)
     left, right, n_left = _split_nodes(ns, lo, hi, centroid, weight, slots_in, slots_out,
                                        item_order, open_lane, first, count, box_lo, box_hi,
                                        *node, leaf_items, bins)
@@ -395,11 +405,13 @@ def _node_level(rows, is_open, through, records, block, next_block, lo, hi, cent
                rank, open_lane)
     dr.scatter(is_open_out, ns.ArrayXu([UInt32(n_left > leaf_items),
                                         UInt32(count - n_left > leaf_items)]), rank, open_lane)
-    dr.scatter(level_out, block + lane, rank, open_lane)
-    dr.eval(records, item_order, slots_out, rows_out, is_open_out, level_out)
+    dr.scatter(level_ids, block + lane, internal + rank, open_lane)
+    dr.eval(records, item_order, slots_out, rows_out, is_open_out, level_ids)
 
 
-_FROZEN_LEVEL = dr.freeze(_node_level, limit=256, warn_after=1 << 30)
+#: Recorded once per item-count parity (and leaf_items, bins) and replayed: every input
+#: opaque (with auto_opaque, a new item count recorded the root level anew each build).
+_FROZEN_LEVEL = dr.freeze(_node_level, limit=256, warn_after=1 << 30, auto_opaque=False)
 
 
 def _child_rows(ns, bounds, first, count):
@@ -426,7 +438,6 @@ def _split_nodes(ns, lo, hi, centroid, weight, slots_in, slots_out, item_order, 
     max) and the left child's item count.
     """
     UInt32, Float, Array3f = ns.UInt32, ns.Float, ns.Array3f
-    width = dr.width(first)
     cells = 3 * bins
     extent = box_hi - box_lo
     largest = dr.maximum(extent.x, dr.maximum(extent.y, extent.z))
@@ -485,13 +496,16 @@ def _split_nodes(ns, lo, hi, centroid, weight, slots_in, slots_out, item_order, 
             acc[5 * a: 5 * a + 5] = a_lo, a_hi, w, k, last
         return (p + 1, mem, *acc)
 
-    empty = (dr.full(Array3f, dr.inf, width), dr.full(Array3f, -dr.inf, width))
-    zeros = dr.zeros(UInt32, width)
+    # Full-width start values made from an input, not from a width: a size baked into
+    # the frozen kernel would tie its recording to one item count.
+    zeros = dr.minimum(first, dr.opaque(UInt32, 0))
+    inf = Array3f(Float(zeros) + dr.inf)
+    empty = (inf, -inf)
     p, mem, *_ = dr.while_loop(state=(zeros, mem, *(*empty, zeros, zeros, zeros) * 3),
                                cond=lambda p, *_: active & (p + 1 < bins), body=forward)
 
     # ---- Backward: the plane before bin p, its right side bins p..bins-1 ----
-    never = dr.full(ns.UInt64, 0xFFFFFFFFFFFFFFFF, width)
+    never = ns.UInt64(zeros) | 0xFFFFFFFFFFFFFFFF
 
     def backward(p, best, mem, *acc):
         left_cost, left_weight, _, left_bin = mem[3:]
@@ -771,12 +785,12 @@ def _read_box(ns, target, index):
     return ns.Array3f(r[0], r[1], r[2]), -ns.Array3f(r[3], r[4], r[5])
 
 
-def _write_records(ns, records, index, box_lo, box_hi, first, count):
+def _write_records(ns, records, index, box_lo, box_hi, first, count, active=True):
     """One wide scatter of node records (lo, hi, first, count) at node ``index``."""
     as_float = lambda u: dr.reinterpret_array(ns.Float, ns.UInt32(u))
     value = ns.ArrayXf([box_lo.x, box_lo.y, box_lo.z, box_hi.x, box_hi.y, box_hi.z,
                         as_float(first), as_float(count)])
-    dr.scatter(records, value, index)
+    dr.scatter(records, value, index, active)
 
 
 def _centroid(lo, hi):
