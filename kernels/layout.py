@@ -122,19 +122,30 @@ def joined(bvhs) -> Packed:
     UInt32 = ns.UInt32
     parts, roots = [], []
     slot_base, face_base = NODE_SLOTS, 0
-    for bvh in bvhs:
+    for bvh in bvhs[:-1]:
         records, root = packed_records(bvh, slot_base, face_base)
         parts.append(records)
         roots.append(root)
         slot_base += dr.width(records) // SLOT
         face_base += bvh.prim_count
+    # The last BVH (the one that changes) is packed straight into the joined array, behind
+    # room for the rest: a copy of its slots would cost a pass over all of them.
+    records, root = _pack(bvhs[-1], slot_base, face_base, check=not _built(bvhs[-1]),
+                          front=slot_base)
+    roots.append(root)
     # The top node: its children are the roots, with the roots' own boxes.
     zero = dr.zeros(UInt32, 1)
     boxes = [(dr.gather(ns.Array3f, b.node_min, zero), dr.gather(ns.Array3f, b.node_max, zero))
              for b in bvhs]
     rows = _node_rows([(lo, hi, dr.ones(ns.Bool, 1), UInt32(root))
                        for (lo, hi), root in zip(boxes, roots)])
-    return Packed(concat([dr.ravel(ns.ArrayXf(rows))] + parts), node_ref(0))
+    offset = 0
+    for part in [dr.ravel(ns.ArrayXf(rows))] + parts:
+        width = dr.width(part)
+        dr.scatter(records, part, dr.arange(UInt32, width) + dr.opaque(UInt32, offset))
+        offset += width
+    dr.eval(records)
+    return Packed(records, node_ref(0))
 
 
 def packed_records(bvh, slot_base: int = 0, face_base: int = 0):
@@ -164,10 +175,14 @@ def packed_records(bvh, slot_base: int = 0, face_base: int = 0):
     cache = getattr(bvh, "_traversal_records", None)
     if cache is not None and cache[0] == key:
         return cache[1]
-    built = bvh.built_topology is not None and bvh.built_topology == bvh.topology_key()
-    records = _pack(bvh, slot_base, face_base, check=not built)
+    records = _pack(bvh, slot_base, face_base, check=not _built(bvh))
     bvh._traversal_records = (key, records)
     return records
+
+
+def _built(bvh) -> bool:
+    """Whether ``bvh`` is a tree as the builder returned it (see the module docstring)."""
+    return bvh.built_topology is not None and bvh.built_topology == bvh.topology_key()
 
 
 def check_tree(bvh):
@@ -180,7 +195,9 @@ def check_tree(bvh):
     _pack(bvh, 0, 0, check=True)
 
 
-def _pack(bvh, slot_base, face_base, check: bool):
+def _pack(bvh, slot_base, face_base, check: bool, front: int = 0):
+    """``(records, root)`` of ``bvh`` (see :func:`packed_records`), validated first when
+    ``check``; the records start with ``front`` slots left for the caller to fill."""
     ns = namespace_of(bvh.node_count)
     UInt32, Float, ArrayXf = ns.UInt32, ns.Float, ns.ArrayXf
     n_nodes, n_prims = bvh.size, bvh.prim_count
@@ -224,8 +241,8 @@ def _pack(bvh, slot_base, face_base, check: bool):
 
     # Not zeroed: the wide nodes and triangles write every slot whole (_check_layout
     # below refuses a hand-made tree for which they would not; check_tree, a builder's).
-    records = dr.empty(Float, SLOT * total)
-    base = dr.opaque(UInt32, slot_base)
+    records = dr.empty(Float, SLOT * (front + total))
+    base, front = dr.opaque(UInt32, slot_base), dr.opaque(UInt32, front)
     ref = dr.select(internal, node_ref(position + base), leaf_ref(position + base, count))
 
     # ---- Wide nodes (internal nodes at even depth): children's boxes and references ----
@@ -236,8 +253,8 @@ def _pack(bvh, slot_base, face_base, check: bool):
         # Each scatter into one target is a kernel of its own: the rows are gathered
         # once, not once per slot.
         dr.eval(rows, at)
-        dr.scatter(records, ArrayXf(rows[:SLOT]), at)
-        dr.scatter(records, ArrayXf(rows[SLOT:]), at + 1)
+        dr.scatter(records, ArrayXf(rows[:SLOT]), at + front)
+        dr.scatter(records, ArrayXf(rows[SLOT:]), at + front + 1)
 
     # ---- Triangles: each slot's record where its leaf stands ----
     leaf = ~internal
@@ -254,7 +271,7 @@ def _pack(bvh, slot_base, face_base, check: bool):
     tri = [dr.select(flat, dr.nan, c) for q in p for c in q]
     tri.append(dr.reinterpret_array(Float, UInt32(bvh.prim_ids) + dr.opaque(UInt32, face_base)))
     tri += [dr.zeros(Float, n_prims)] * (SLOT - len(tri))
-    dr.scatter(records, ArrayXf(tri), record_of)
+    dr.scatter(records, ArrayXf(tri), record_of + front)
     dr.eval(records)
     if check:
         _check_layout(dr.gather(UInt32, position, wide), record_of, total)
