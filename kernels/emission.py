@@ -220,15 +220,16 @@ def _emit_treelets(keys, key_bits, level, pe, seg, records: NodeRecords, leaf_si
     dr.eval(tables, counts)
 
     # ---- First new node and first next-pass segment of every segment ----
+    # (the totals read once to the host: the node count then goes back as an opaque
+    # value, with no size-1 kernels in between)
     through = dr.cumsum(counts)
-    total = dr.gather(ns.UInt64, through, dr.opaque(UInt32, S - 1))
-    dr.eval(through, total)
-    count = int((total & 0xFFFFFFFF)[0])
+    total = int(through[S - 1])
+    count, nodes = total & 0xFFFFFFFF, int(records.total[0])
     before = through - counts
-    node_base = UInt32(before >> 32) * 2 + records.total
+    node_base = UInt32(before >> 32) * 2 + dr.opaque(UInt32, nodes)
     seg_base = UInt32(before & 0xFFFFFFFF)
-    records.total = records.total + UInt32(total >> 32) * 2
-    dr.eval(node_base, seg_base, records.total)
+    records.total = dr.opaque(UInt32, nodes + 2 * (total >> 32))
+    dr.eval(node_base, seg_base)
 
     # ---- One lane per position: node records, next-pass segments ----
     lane = dr.arange(UInt32, S * width)

@@ -93,14 +93,16 @@ def collect_geometry(shapes, indices=None) -> SceneGeometry:
         mesh = shapes[index]
         face_count = mesh.face_count()
         vertices.append(mesh.vertex_positions_buffer())
-        faces.append(mesh.faces_buffer() + dr.opaque(mi.UInt32, vertex_base))
+        # (the first mesh's indices as they are: no pass over them)
+        faces.append(mesh.faces_buffer() + dr.opaque(mi.UInt32, vertex_base) if vertex_base
+                     else mesh.faces_buffer())
         prim_shape.append(dr.full(mi.UInt32, index, face_count))
         prim_local.append(dr.arange(mi.UInt32, face_count))
         vertex_base += mesh.vertex_count()
     if not indices:
         return SceneGeometry(mi.Float(), mi.UInt32(), mi.UInt32(), mi.UInt32())
-    geometry = SceneGeometry(_concat(vertices), dr.concat(faces), dr.concat(prim_shape),
-                             dr.concat(prim_local))
+    geometry = SceneGeometry(_concat(vertices), _concat(faces), _concat(prim_shape),
+                             _concat(prim_local))
     dr.eval(geometry.vertices, geometry.faces, geometry.prim_shape, geometry.prim_local)
     return geometry
 
