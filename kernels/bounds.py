@@ -96,10 +96,18 @@ def sah_cost(node_min, node_max, node_count) -> float:
     ~1e19, underflows below ~1e-19, and dividing by an extent beyond 2**126 goes through
     a subnormal reciprocal, which Dr.Jit's CPU kernels flush to zero (every node then
     weighed 1: an 1800-triangle grid at 1e38 reported 2295 instead of 34)."""
-    Array3d = namespace_of(node_count).Array3f64
-    e = dr.maximum(Array3d(node_max) - Array3d(node_min), 0)
-    area = e.x * e.y + e.y * e.z + e.z * e.x
-    root = dr.gather(type(area), area, 0)
+    ns = namespace_of(node_count)
+    Array3d = ns.Array3f64
+
+    def half_area(lo, hi):
+        e = dr.maximum(Array3d(hi) - Array3d(lo), 0)
+        return e.x * e.y + e.y * e.z + e.z * e.x
+
+    area = half_area(node_min, node_max)
+    # The root's from its own box: a gather from `area` would evaluate it in a pass of
+    # its own before the sum's.
+    zero = dr.zeros(ns.UInt32, 1)
+    root = half_area(dr.gather(ns.Array3f, node_min, zero), dr.gather(ns.Array3f, node_max, zero))
     rel = dr.select(root > 0, area / dr.select(root > 0, root, 1), 1)
     weight = dr.select(node_count == 0, 1, type(area)(node_count))
     return float(dr.sum(rel * weight)[0])
