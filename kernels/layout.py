@@ -151,7 +151,8 @@ def joined(bvhs) -> Packed:
 def packed_records(bvh, slot_base: int = 0, face_base: int = 0):
     """The packed slots of ``bvh`` (layout in the module docstring), built on first use
     and cached on the BVH object (keyed by the Dr.Jit variables of its arrays, so a
-    refit, which assigns new arrays, repacks on the next call).
+    refit, which assigns new arrays, repacks on the next call, from the placement kept
+    for the tree's shape).
 
     Args:
         bvh: the BVH.
@@ -197,12 +198,29 @@ def check_tree(bvh):
 
 def _pack(bvh, slot_base, face_base, check: bool, front: int = 0):
     """``(records, root)`` of ``bvh`` (see :func:`packed_records`), validated first when
-    ``check``; the records start with ``front`` slots left for the caller to fill."""
-    ns = namespace_of(bvh.node_count)
-    UInt32, Float, ArrayXf = ns.UInt32, ns.Float, ns.ArrayXf
-    n_nodes, n_prims = bvh.size, bvh.prim_count
-    if n_nodes == 0 or n_prims == 0:
+    ``check``; the records start with ``front`` slots left for the caller to fill.
+
+    Where each node and triangle goes depends on the tree's shape only, so it is kept on
+    the BVH (``_pack_plan``, keyed by :meth:`BVH.topology_key` and the bases): a refit,
+    which changes boxes and triangles only, is packed again without the per-level
+    passes that place the nodes. A pack that validates (``check``) places anew."""
+    if bvh.size == 0 or bvh.prim_count == 0:
         raise ValueError("BVH is empty: build it from at least one triangle")
+    plan_key = (bvh.topology_key(), slot_base, face_base, front)
+    plan = getattr(bvh, "_pack_plan", None)
+    if check or plan is None or plan[0] != plan_key:
+        plan = bvh._pack_plan = (plan_key, _placement(bvh, slot_base, check))
+    ref, wide, at, record_of, total = plan[1]
+    return _write_records(bvh, ref, wide, at, record_of, total, face_base, front), int(ref[0])
+
+
+def _placement(bvh, slot_base, check: bool):
+    """Where ``bvh``'s nodes and triangles go (validated first when ``check``):
+    ``(ref, wide, at, record_of, total)``, each node's reference, the wide nodes and
+    their slots, each triangle's slot, and the slot count."""
+    ns = namespace_of(bvh.node_count)
+    UInt32 = ns.UInt32
+    n_nodes, n_prims = bvh.size, bvh.prim_count
     first, count = UInt32(bvh.node_first), UInt32(bvh.node_count)
     internal = count == 0
     levels = list(bvh.levels)
@@ -239,28 +257,42 @@ def _pack(bvh, slot_base, face_base, check: bool, front: int = 0):
         dr.scatter(position, after, left)
         dr.scatter(position, right, left + 1)
 
-    # Not zeroed: the wide nodes and triangles write every slot whole (_check_layout
-    # below refuses a hand-made tree for which they would not; check_tree, a builder's).
-    records = dr.empty(Float, SLOT * (front + total))
-    base, front = dr.opaque(UInt32, slot_base), dr.opaque(UInt32, front)
+    base = dr.opaque(UInt32, slot_base)
     ref = dr.select(internal, node_ref(position + base), leaf_ref(position + base, count))
-
-    # ---- Wide nodes (internal nodes at even depth): children's boxes and references ----
+    # Internal nodes at even depth are the wide nodes.
     wide = concat(levels[0::2]) if levels else UInt32()
-    if dr.width(wide):
-        rows = _wide_rows(bvh, first, ref, wide)
-        at = dr.gather(UInt32, position, wide)
-        # Each scatter into one target is a kernel of its own: the rows are gathered
-        # once, not once per slot.
-        dr.eval(rows, at)
-        dr.scatter(records, ArrayXf(rows[:SLOT]), at + front)
-        dr.scatter(records, ArrayXf(rows[SLOT:]), at + front + 1)
-
-    # ---- Triangles: each slot's record where its leaf stands ----
+    at = dr.gather(UInt32, position, wide)
     leaf = ~internal
     record_of = dr.zeros(UInt32, n_prims)
     for k in map(lambda k: dr.opaque(UInt32, k), range(widest)):
         dr.scatter(record_of, position + k, first + k, leaf & (count > k))
+    dr.eval(ref, at, record_of)
+    if check:
+        _check_layout(at, record_of, total)
+    return ref, wide, at, record_of, total
+
+
+def _write_records(bvh, ref, wide, at, record_of, total, face_base, front):
+    """The slots of ``bvh`` placed as :func:`_placement` says, after ``front`` slots
+    left for the caller."""
+    ns = namespace_of(bvh.node_count)
+    UInt32, Float, ArrayXf = ns.UInt32, ns.Float, ns.ArrayXf
+    n_prims = bvh.prim_count
+    # Not zeroed: the wide nodes and triangles write every slot whole (_check_layout
+    # refuses a hand-made tree for which they would not; check_tree, a builder's).
+    records = dr.empty(Float, SLOT * (front + total))
+    front = dr.opaque(UInt32, front)
+
+    # ---- Wide nodes: children's boxes and references ----
+    if dr.width(wide):
+        rows = _wide_rows(bvh, UInt32(bvh.node_first), ref, wide)
+        # Each scatter into one target is a kernel of its own: the rows are gathered
+        # once, not once per slot.
+        dr.eval(rows)
+        dr.scatter(records, ArrayXf(rows[:SLOT]), at + front)
+        dr.scatter(records, ArrayXf(rows[SLOT:]), at + front + 1)
+
+    # ---- Triangles: each slot's record where its leaf stands ----
     slot = dr.arange(UInt32, n_prims)
     p = [dr.gather(ns.Array3f, q, slot) for q in (bvh.tri_p0, bvh.tri_p1, bvh.tri_p2)]
     # Zero-area (collinear vertices, in double: float32 products underflow at 1e-30 and
@@ -273,9 +305,7 @@ def _pack(bvh, slot_base, face_base, check: bool, front: int = 0):
     tri += [dr.zeros(Float, n_prims)] * (SLOT - len(tri))
     dr.scatter(records, ArrayXf(tri), record_of + front)
     dr.eval(records)
-    if check:
-        _check_layout(dr.gather(UInt32, position, wide), record_of, total)
-    return records, int(ref[0])
+    return records
 
 
 def _checked_levels(first, count, internal, levels, n_nodes, n_prims):

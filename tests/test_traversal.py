@@ -735,6 +735,41 @@ def test20b_zero_area_triangles_pack_as_nan():
     assert np.all(np.isnan(rec[flat, :9])) and np.all(np.isfinite(rec[~flat, :9]))
 
 
+@pytest.mark.parametrize("builder", ["hlbvh", "lbvh", "sah", "median"])
+def test20c_refit_repacks_as_a_fresh_pack(builder):
+    """A refit tree is packed again from the placement kept with the tree (no per-level
+    passes): its slots equal, bit for bit, those of packing the refit tree from scratch,
+    alone and joined behind another tree, and trace as the brute force does; and
+    check_tree still refuses the tree once its shape is made corrupt."""
+    vertices, faces = random_soup(300, seed=40)
+    moved = (vertices * 1.07 + 0.01).astype(np.float32)
+    other = build(*random_soup(50, seed=41), "lbvh")
+    bvh = build(vertices, faces, builder)
+    traversal.packed_records(bvh)
+    layout.joined([other, bvh])
+    bvh.refit(mi.Float(np.ravel(moved)))
+    kept, kept_root = traversal.packed_records(bvh)
+    kept_joined = layout.joined([other, bvh])
+    bvh._pack_plan = None  # place anew
+    fresh, fresh_root = layout._pack(bvh, 0, 0, check=True)
+    assert kept_root == fresh_root
+    np.testing.assert_array_equal(kept.numpy().view(np.uint32), fresh.numpy().view(np.uint32))
+    bvh._pack_plan = None
+    bvh._traversal_records = None
+    fresh_joined = layout.joined([other, bvh])
+    np.testing.assert_array_equal(kept_joined.records.numpy().view(np.uint32),
+                                  fresh_joined.records.numpy().view(np.uint32))
+    o, d = random_rays(np.random.default_rng(42), 500)
+    assert_matches_reference(trace(bvh, o, d), brute_force(moved, faces, o, d), moved, faces,
+                             o, d)
+    if builder != "median":
+        count = bvh.node_count.numpy()
+        count[0] = 1  # the root made a leaf: the other nodes are reached from nowhere
+        bvh.node_count = type(bvh.node_count)(count)
+        with pytest.raises(ValueError, match="corrupt|never|reached"):
+            layout.check_tree(bvh)
+
+
 def test21_symbolic_even_when_loops_are_evaluated():
     """With Dr.Jit's loops switched to evaluated mode (``JitFlag.SymbolicLoops`` off,
     e.g. for an integrator that wants wavefront kernels), the traversal's own loop and
