@@ -70,14 +70,15 @@ def _in_jit_memory(x):
     return type(x)(copy)
 
 
-def concat(parts):
-    """The flat JIT arrays ``parts`` (one type) end to end, evaluated. Unlike
+def concat(parts, into=None):
+    """The flat JIT arrays ``parts`` (one type) end to end, evaluated; written over the
+    start of the array ``into`` when one is given (and ``into`` returned). Unlike
     ``dr.concat``, whose kernel holds each part's size as a literal (a compile for
     every new size), the offsets enter as opaque values."""
-    if len(parts) == 1:
+    if len(parts) == 1 and into is None:
         return parts[0]
     ns = namespace_of(parts[0])
-    out = dr.empty(type(parts[0]), sum(dr.width(p) for p in parts))
+    out = dr.empty(type(parts[0]), sum(dr.width(p) for p in parts)) if into is None else into
     offset = 0
     for part in parts:
         width = dr.width(part)

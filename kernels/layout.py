@@ -139,13 +139,7 @@ def joined(bvhs) -> Packed:
              for b in bvhs]
     rows = _node_rows([(lo, hi, dr.ones(ns.Bool, 1), UInt32(root))
                        for (lo, hi), root in zip(boxes, roots)])
-    offset = 0
-    for part in [dr.ravel(ns.ArrayXf(rows))] + parts:
-        width = dr.width(part)
-        dr.scatter(records, part, dr.arange(UInt32, width) + dr.opaque(UInt32, offset))
-        offset += width
-    dr.eval(records)
-    return Packed(records, node_ref(0))
+    return Packed(concat([dr.ravel(ns.ArrayXf(rows))] + parts, into=records), node_ref(0))
 
 
 def packed_records(bvh, slot_base: int = 0, face_base: int = 0):
@@ -201,12 +195,12 @@ def _pack(bvh, slot_base, face_base, check: bool, front: int = 0):
     ``check``; the records start with ``front`` slots left for the caller to fill.
 
     Where each node and triangle goes depends on the tree's shape only, so it is kept on
-    the BVH (``_pack_plan``, keyed by :meth:`BVH.topology_key` and the bases): a refit,
+    the BVH (``_pack_plan``, keyed by :meth:`BVH.topology_key` and ``slot_base``): a refit,
     which changes boxes and triangles only, is packed again without the per-level
     passes that place the nodes. A pack that validates (``check``) places anew."""
     if bvh.size == 0 or bvh.prim_count == 0:
         raise ValueError("BVH is empty: build it from at least one triangle")
-    plan_key = (bvh.topology_key(), slot_base, face_base, front)
+    plan_key = (bvh.topology_key(), slot_base)
     plan = getattr(bvh, "_pack_plan", None)
     if check or plan is None or plan[0] != plan_key:
         plan = bvh._pack_plan = (plan_key, _placement(bvh, slot_base, check))
