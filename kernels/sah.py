@@ -249,6 +249,7 @@ def top_level(cluster_start, slot_boxes, bins: int = 16) -> TopLevel:
         return q + 1, dr.minimum(lo, s_lo), dr.maximum(hi, s_hi)
 
     _, lo, hi = dr.while_loop(
+        mode="symbolic",
         state=(UInt32(cluster_start), dr.full(ns.Array3f, dr.inf, clusters),
                dr.full(ns.Array3f, -dr.inf, clusters)),
         cond=lambda q, lo, hi: q < end, body=grow, labels=("q", "lo", "hi"))
@@ -471,7 +472,7 @@ def _split_nodes(ns, lo, hi, centroid, weight, slots_in, slots_out, item_order, 
             cell_items.write(cell_items.read(cell) + 1, cell)
         return q + 1, mem
 
-    _, mem = dr.while_loop(state=(UInt32(first), mem), cond=lambda q, mem: q < end,
+    _, mem = dr.while_loop(mode="symbolic", state=(UInt32(first), mem), cond=lambda q, mem: q < end,
                            body=bin_item, labels=("q", "mem"))
 
     def read_cell(mem, cell):
@@ -501,7 +502,7 @@ def _split_nodes(ns, lo, hi, centroid, weight, slots_in, slots_out, item_order, 
     zeros = dr.minimum(first, dr.opaque(UInt32, 0))
     inf = Array3f(Float(zeros) + dr.inf)
     empty = (inf, -inf)
-    p, mem, *_ = dr.while_loop(state=(zeros, mem, *(*empty, zeros, zeros, zeros) * 3),
+    p, mem, *_ = dr.while_loop(mode="symbolic", state=(zeros, mem, *(*empty, zeros, zeros, zeros) * 3),
                                cond=lambda p, *_: active & (p + 1 < bins), body=forward)
 
     # ---- Backward: the plane before bin p, its right side bins p..bins-1 ----
@@ -525,7 +526,7 @@ def _split_nodes(ns, lo, hi, centroid, weight, slots_in, slots_out, item_order, 
         return (p - 1, best, mem, *acc)
 
     # (p is bins - 1 in the active lanes: where the forward pass stopped)
-    _, best, mem, *_ = dr.while_loop(state=(p, never, mem, *(*empty, zeros) * 3),
+    _, best, mem, *_ = dr.while_loop(mode="symbolic", state=(p, never, mem, *(*empty, zeros) * 3),
                                      cond=lambda p, *_: active & (p > 0), body=backward)
     middle = best == never
     code = UInt32(best & 0xFFFFFFFF)
@@ -554,6 +555,7 @@ def _split_nodes(ns, lo, hi, centroid, weight, slots_in, slots_out, item_order, 
         return (q + 1, n_l + UInt32(goes_left), n_r + UInt32(~goes_left), *bounds)
 
     _, _, _, *bounds = dr.while_loop(
+        mode="symbolic",
         state=(UInt32(first), zeros, zeros, *(*empty, *empty) * 2),
         cond=lambda q, *_: q < end, body=partition)
     return bounds[:4], bounds[4:], n_left
@@ -735,6 +737,7 @@ def _sweep(ns, cells: _Cells, level: _Level, bins: int):
         return q + 1, lo, hi, w
 
     dr.while_loop(
+        mode="symbolic",
         state=(dr.zeros(ns.UInt32, 3 * K), *empty_box, dr.zeros(ns.UInt32, 3 * K)),
         cond=lambda q, lo, hi, w: q + 1 < cells.count,
         body=forward,
@@ -753,6 +756,7 @@ def _sweep(ns, cells: _Cells, level: _Level, bins: int):
         return q - 1, last_left_bin, lo, hi, w, best_cost, best_bin
 
     *_, best_cost, best_bin = dr.while_loop(
+        mode="symbolic",
         state=(cells.count - 1, _highest_bit(ns, cells.occupied), *empty_box,
                dr.zeros(ns.UInt32, 3 * K), dr.full(ns.Float, dr.inf, 3 * K),
                dr.zeros(ns.UInt32, 3 * K)),

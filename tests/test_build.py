@@ -168,3 +168,19 @@ def test11_a_new_mesh_size_compiles_no_new_kernel(builder):
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
     assert compiled == []
+
+
+@pytest.mark.parametrize("builder", BUILDERS)
+def test12_loops_evaluated_and_compressed_by_the_user_build_the_same_tree(builder):
+    """A user who switches Dr.Jit's loops to evaluated, compressed mode (a wavefront
+    integrator: ``JitFlag.SymbolicLoops`` off, ``CompressLoops`` on) gets the same tree:
+    the builders' own loops stay symbolic (a compressed loop may not change the width
+    of its state, which the SAH top level's loops over clusters do)."""
+    V, F = soup(2000, seed=11)
+    default = build(V, F, builder=builder)
+    with dr.scoped_set_flag(dr.JitFlag.SymbolicLoops, False), \
+            dr.scoped_set_flag(dr.JitFlag.CompressLoops, True):
+        bvh = build(V, F, builder=builder)
+    check_bvh(bvh, V, F, 4)
+    for name in ("node_min", "node_max", "node_first", "node_count", "prim_ids"):
+        assert np.array_equal(rows(getattr(bvh, name)), rows(getattr(default, name))), name
