@@ -19,7 +19,9 @@ wide node (2 slots)    ``NODE_LO[a] + k``, ``NODE_HI[a] + k``: child ``k``'s box
                        reference (the bits of a UInt32), ``EMPTY`` for none
 triangle (1 slot)      ``TRI_P[0..2]``: p0, p1, p2 in the face's order, all NaN for a
                        zero-area triangle (never hit: its normal would be NaN);
-                       ``TRI_FACE``: the input face index (the bits of a UInt32)
+                       ``TRI_FACE``: the input face index (the bits of a UInt32);
+                       ``TRI_LO``, ``TRI_HI``: the triangle's box (what a refit's
+                       leaves read, so it reads no vertex twice)
 =====================  ========================================================
 
 Child boxes are kept in full float32: quantising them to bytes relative to the node's
@@ -38,6 +40,10 @@ depths come from a breadth-first walk when its levels do not hold every internal
 A tree as the builder returned it (``bvh.built_topology`` matches its arrays) is packed
 from its own levels without those checks, which cost a third of the packing and a host
 round trip each: the tests run them on every builder's trees (:func:`check_tree`).
+
+A refit of a tree packed before writes its slots in the same passes as its boxes
+(:func:`refit_packed`, called by ``hlbvh.kernels.refit``), where it was last packed; the
+next :func:`packed_records` or :func:`joined` for that place takes them as they are.
 """
 
 from __future__ import annotations
@@ -48,6 +54,7 @@ from typing import Any
 import drjit as dr
 
 from .arrays import concat, namespace_of
+from .geometry import BOX_RECORD
 
 #: Floats per slot: a triangle takes one, a wide node two.
 SLOT = 16
@@ -75,6 +82,9 @@ NODE_REF = 24
 #: Offsets of a triangle's fields in its slot.
 TRI_P = (0, 3, 6)
 TRI_FACE = 9
+#: The triangle's box (lower and upper corner), which a refit's leaves read.
+TRI_LO = 10
+TRI_HI = 13
 
 
 def leaf_ref(first_slot, count):
@@ -163,16 +173,20 @@ def packed_records(bvh, slot_base: int = 0, face_base: int = 0):
             corrupt tree (a child or leaf range outside its arrays, a node reached twice
             or never, a slot in no leaf or in two).
     """
-    arrays = (bvh.node_min, bvh.node_max, bvh.node_first, bvh.node_count, bvh.prim_ids,
-              bvh.tri_p0, bvh.tri_p1, bvh.tri_p2)
-    key = tuple(c.index for a in arrays for c in (a if dr.depth_v(a) > 1 else (a,)))
-    key += (slot_base, face_base)
+    key = _arrays_key(bvh) + (slot_base, face_base)
     cache = getattr(bvh, "_traversal_records", None)
     if cache is not None and cache[0] == key:
         return cache[1]
     records = _pack(bvh, slot_base, face_base, check=not _built(bvh))
     bvh._traversal_records = (key, records)
     return records
+
+
+def _arrays_key(bvh) -> tuple:
+    """The Dr.Jit variables of every array the slots are packed from."""
+    arrays = (bvh.node_min, bvh.node_max, bvh.node_first, bvh.node_count, bvh.prim_ids,
+              bvh.tri_p0, bvh.tri_p1, bvh.tri_p2)
+    return tuple(c.index for a in arrays for c in (a if dr.depth_v(a) > 1 else (a,)))
 
 
 def _built(bvh) -> bool:
@@ -205,6 +219,11 @@ def _pack(bvh, slot_base, face_base, check: bool, front: int = 0):
     if check or plan is None or plan[0] != plan_key:
         plan = bvh._pack_plan = (plan_key, _placement(bvh, slot_base, check))
     ref, wide, at, record_of, total = plan[1]
+    bvh._last_pack = (slot_base, face_base, front)
+    refit = getattr(bvh, "_refit_records", None)
+    if not check and refit is not None and refit[0] == (_arrays_key(bvh), slot_base, face_base, front):
+        bvh._refit_records = None  # handed over: the caller may write into its front
+        return refit[1], int(ref[0])
     return _write_records(bvh, ref, wide, at, record_of, total, face_base, front), int(ref[0])
 
 
@@ -289,17 +308,207 @@ def _write_records(bvh, ref, wide, at, record_of, total, face_base, front):
     # ---- Triangles: each slot's record where its leaf stands ----
     slot = dr.arange(UInt32, n_prims)
     p = [dr.gather(ns.Array3f, q, slot) for q in (bvh.tri_p0, bvh.tri_p1, bvh.tri_p2)]
+    dr.scatter(records, ArrayXf(_triangle_rows(p, bvh.prim_ids, face_base)), record_of + front)
+    dr.eval(records)
+    return records
+
+
+def _triangle_rows(p, prim_ids, face_base):
+    """The 16 floats of the triangles with vertices ``p`` (three Array3f) and face
+    indices ``prim_ids + face_base``."""
+    ns = namespace_of(prim_ids)
+    Float, UInt32 = ns.Float, ns.UInt32
     # Zero-area (collinear vertices, in double: float32 products underflow at 1e-30 and
     # overflow at 1e20) are never hit, as in Embree; NaN vertices fail every test.
     p64 = [ns.Array3f64(q) for q in p]
     normal = dr.cross(p64[1] - p64[0], p64[2] - p64[0])
     flat = (normal.x == 0) & (normal.y == 0) & (normal.z == 0)
     tri = [dr.select(flat, dr.nan, c) for q in p for c in q]
-    tri.append(dr.reinterpret_array(Float, UInt32(bvh.prim_ids) + dr.opaque(UInt32, face_base)))
-    tri += [dr.zeros(Float, n_prims)] * (SLOT - len(tri))
-    dr.scatter(records, ArrayXf(tri), record_of + front)
+    tri.append(dr.reinterpret_array(Float, UInt32(prim_ids) + dr.opaque(UInt32, face_base)))
+    lo = dr.minimum(dr.minimum(p[0], p[1]), p[2])
+    hi = dr.maximum(dr.maximum(p[0], p[1]), p[2])
+    return tri + [lo.x, lo.y, lo.z, hi.x, hi.y, hi.z]
+
+
+def refit_packed(bvh, points, slot_faces) -> bool:
+    """Refit ``bvh`` for new vertex ``points`` and write its slots in the same passes,
+    where it was last packed: one pass over the triangles writes their records, one over
+    the leaves and one per wide level (deepest first) write the boxes, and the binary
+    tree's node boxes come out of the same passes. The BVH's triangle arrays are left as
+    lazy reads of ``points`` (computed only if read). The slots are handed to the next
+    :func:`packed_records` or :func:`joined` that asks for that place.
+
+    A refit through the binary tree and a pack after it write the triangles in slot order
+    and read them again, and walk the binary levels twice (boxes, then wide nodes); this
+    walks the wide levels once and never stores the slot-order triangles. Boxes move as
+    8-float records (one packet gather each), not as six scalar gathers.
+
+    Args:
+        bvh: a tree as the builder returned it, packed before (else nothing is done).
+        points: flat Float[3·V] vertex positions, checked.
+        slot_faces: Array3u[F], the vertex indices of each slot's face.
+    Returns:
+        Whether it refit ``bvh`` (False: the caller refits through the binary tree).
+    """
+    last = getattr(bvh, "_last_pack", None)
+    plan = getattr(bvh, "_pack_plan", None)
+    if last is None or plan is None or not _built(bvh) or \
+            plan[0] != (bvh.topology_key(), last[0]):
+        return False
+    slot_base, face_base, front = last
+    ref, wide, at, record_of, total = plan[1]
+    ns = namespace_of(bvh.node_count)
+    UInt32, Float, Array3f, ArrayXf = ns.UInt32, ns.Float, ns.Array3f, ns.ArrayXf
+    refit = _refit_plan(bvh, plan)
+    records = dr.empty(Float, SLOT * (front + total))
+    front = dr.opaque(UInt32, front)
+
+    # ---- Triangles: each slot's record (its box included), read through its face ----
+    p = [dr.gather(Array3f, points, slot_faces[k]) for k in range(3)]
+    dr.scatter(records, ArrayXf(_triangle_rows(p, bvh.prim_ids, face_base)), record_of + front)
     dr.eval(records)
-    return records
+
+    # ---- Leaves: the union of their triangles' boxes, from the records just written ----
+    boxes = dr.empty(Float, BOX_RECORD * bvh.size)  # every node's box, a record each
+    leaf_node = refit.leaves[0]
+    dr.scatter(boxes, ArrayXf(_leaf_box_rows(records, front, *refit.leaves, refit.widest)),
+               leaf_node)
+    dr.eval(boxes)
+
+    # ---- Wide nodes, deepest level first: rows from their children's boxes ----
+    for nodes, slots, children in reversed(refit.wide_levels):
+        rows, own = _wide_level_rows(boxes, nodes, children)
+        # Read (and every gather of `boxes` released) before writing into it: a pending
+        # read would make the scatter copy the array. One scatter a target: each is a
+        # kernel of its own.
+        dr.eval(rows, own)
+        dr.scatter(records, ArrayXf(rows[:SLOT]), slots + front)
+        dr.scatter(records, ArrayXf(rows[SLOT:]), slots + front + 1)
+        dr.scatter(boxes, ArrayXf(own), nodes)
+        dr.eval(records, boxes)
+
+    # ---- The binary nodes at odd depths: the union of their two children ----
+    if dr.width(refit.odd):
+        rows = _odd_box_rows(boxes, bvh.node_first, refit.odd)
+        dr.eval(rows)  # read before writing into `boxes` (see the wide levels)
+        dr.scatter(boxes, ArrayXf(rows), refit.odd)
+        dr.eval(boxes)
+
+    r = dr.gather(ArrayXf, boxes, dr.arange(UInt32, bvh.size), shape=(BOX_RECORD, bvh.size))
+    bvh.node_min, bvh.node_max = Array3f(*r[0:3]), Array3f(*r[3:6])
+    dr.eval(bvh.node_min, bvh.node_max)
+    bvh.tri_p0, bvh.tri_p1, bvh.tri_p2 = (dr.gather(Array3f, points, slot_faces[k])
+                                          for k in range(3))  # lazy: read if asked for
+    bvh._refit_records = ((_arrays_key(bvh), slot_base, face_base, front), records)
+    return True
+
+
+def _leaf_box_rows(records, front, leaf_node, leaf_record, leaf_count, widest):
+    """The box rows of the leaves, the union of their triangles' boxes read from their
+    records (the leaves in record order, so the reads walk the records forward)."""
+    ns = namespace_of(leaf_node)
+    Array3f, n = ns.Array3f, dr.width(leaf_node)
+    lo, hi = dr.full(Array3f, dr.inf, n), dr.full(Array3f, -dr.inf, n)
+    for k in range(widest):
+        # A leaf of fewer triangles reads its last one again (the union is the same): an
+        # unmasked packet gather costs far less than a masked one.
+        last = dr.minimum(leaf_count - 1, k)
+        r = dr.gather(ns.ArrayXf, records, leaf_record + front + last, shape=(SLOT, n))
+        lo = dr.minimum(lo, Array3f(*r[TRI_LO:TRI_LO + 3]))
+        hi = dr.maximum(hi, Array3f(*r[TRI_HI:TRI_HI + 3]))
+    return _box_rows(lo, hi)
+
+
+def _odd_box_rows(boxes, node_first, odd):
+    """The box rows of the internal nodes ``odd``, the union of their two children's
+    box records in ``boxes``."""
+    ns = namespace_of(odd)
+    Array3f = ns.Array3f
+    left = dr.gather(ns.UInt32, node_first, odd)
+    a, b = (dr.gather(ns.ArrayXf, boxes, c, shape=(BOX_RECORD, dr.width(odd)))
+            for c in (left, left + 1))
+    return _box_rows(dr.minimum(Array3f(*a[0:3]), Array3f(*b[0:3])),
+                     dr.maximum(Array3f(*a[3:6]), Array3f(*b[3:6])))
+
+
+def _wide_level_rows(boxes, nodes, children):
+    """The 32 floats of the wide ``nodes`` and their own box rows, from their
+    ``children`` ``(node, present, reference)`` whose box records are in ``boxes``."""
+    ns = namespace_of(nodes)
+    Array3f = ns.Array3f
+    rows_of = []
+    for child, present, child_ref in children:
+        # An absent child reads child 0's box (unmasked, see refit_packed), then dropped.
+        r = dr.gather(ns.ArrayXf, boxes, child, shape=(BOX_RECORD, dr.width(nodes)))
+        rows_of.append((Array3f(*r[0:3]), Array3f(*r[3:6]), present, child_ref))
+    # Child 0 is always there; the others only widen the box where present.
+    lo, hi = rows_of[0][0], rows_of[0][1]
+    for c_lo, c_hi, present, _ in rows_of[1:]:
+        lo = dr.select(present, dr.minimum(lo, c_lo), lo)
+        hi = dr.select(present, dr.maximum(hi, c_hi), hi)
+    return _node_rows(rows_of), _box_rows(lo, hi)
+
+
+def _box_rows(lo, hi):
+    """The 8 floats of box records (lo.xyz, hi.xyz, two zeros)."""
+    zero = dr.zeros(type(lo.x), dr.width(lo.x))
+    return [lo.x, lo.y, lo.z, hi.x, hi.y, hi.z, zero, zero]
+
+
+@dataclass
+class _RefitPlan:
+    """Where the fused refit (:func:`refit_packed`) reads each box from, kept per tree:
+    ``leaves`` (node, first record and count of every leaf), ``widest`` (most triangles
+    in a leaf), ``wide_levels`` (per wide level, root first: its nodes, their first
+    slots, and per child ``(node, present, reference)``), ``odd`` (the internal nodes at
+    odd depths)."""
+
+    leaves: tuple
+    widest: int
+    wide_levels: list
+    odd: Any
+
+
+def _refit_plan(bvh, plan) -> _RefitPlan:
+    """The :class:`_RefitPlan` of ``bvh`` for its placement ``plan``, made on the first
+    fused refit and kept with the placement."""
+    kept = getattr(bvh, "_refit_plan", None)
+    if kept is not None and kept[0] == plan[0]:
+        return kept[1]
+    ns = namespace_of(bvh.node_count)
+    UInt32 = ns.UInt32
+    ref, _, _, record_of, total = plan[1]
+    slot_base = dr.opaque(UInt32, plan[0][1])
+    first, count = UInt32(bvh.node_first), UInt32(bvh.node_count)
+    levels = []
+    for nodes in bvh.levels[0::2]:
+        left = dr.gather(UInt32, first, nodes)
+        children = []
+        for side in (0, 1):
+            # As _wide_rows orders them: an internal binary child hands over its two.
+            b = left + side
+            internal = dr.gather(UInt32, count, b) == 0
+            g = dr.gather(UInt32, first, b, internal)
+            c0 = dr.select(internal, g, b)
+            for node, present in ((c0, dr.full(ns.Bool, True, dr.width(b))), (g + 1, internal)):
+                children.append((dr.select(present, node, c0), present,
+                                 dr.gather(UInt32, ref, node, present)))
+        slots = dr.gather(UInt32, ref, nodes) - slot_base  # a wide node's ref is its slot
+        dr.eval(slots, children)
+        levels.append((nodes, slots, children))
+    # The leaves in the order of their records (a leaf's record is its first slot's).
+    leaf = count > 0
+    by_record = dr.zeros(UInt32, total)
+    leaf_record = dr.gather(UInt32, record_of, first, leaf)
+    dr.scatter(by_record, dr.arange(UInt32, bvh.size) + 1, leaf_record, leaf)
+    leaf_record = dr.compress(by_record != 0)  # record positions, ascending
+    leaf_node = dr.gather(UInt32, by_record, leaf_record) - 1
+    leaves = (leaf_node, leaf_record, dr.gather(UInt32, count, leaf_node))
+    odd = concat(bvh.levels[1::2]) if len(bvh.levels) > 1 else UInt32()
+    dr.eval(leaves, odd)
+    result = _RefitPlan(leaves=leaves, widest=bvh.config.leaf_size, wide_levels=levels, odd=odd)
+    bvh._refit_plan = (plan[0], result)
+    return result
 
 
 def _checked_levels(first, count, internal, levels, n_nodes, n_prims):

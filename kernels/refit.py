@@ -1,5 +1,6 @@
 """Refit: new vertex positions, same faces, same tree: recompute the triangles in slot
-order and the boxes only."""
+order and the boxes only. A tree packed for traversal before is refit and repacked in one
+go (:func:`hlbvh.kernels.layout.refit_packed`); any other through its binary levels."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import drjit as dr
 from .bounds import node_bounds, sah_cost
 from .arrays import namespace_of
 from .geometry import checked_vertices, slot_triangles, triangles_of
+from .layout import refit_packed
 
 
 def refit(bvh, vertices):
@@ -25,11 +27,13 @@ def refit(bvh, vertices):
     """
     t0 = time.perf_counter()
     points = checked_vertices(vertices, bvh.faces)
-    tri, boxes = slot_triangles(triangles_of(points, _slot_faces(bvh)))
-    bvh.tri_p0, bvh.tri_p1, bvh.tri_p2 = tri[0], tri[1], tri[2]
-    bvh.node_min, bvh.node_max = node_bounds(
-        bvh.node_first, bvh.node_count, boxes, bvh.levels, bvh.config.leaf_size
-    )
+    faces = _slot_faces(bvh)
+    if not refit_packed(bvh, points, faces):
+        tri, boxes = slot_triangles(triangles_of(points, faces))
+        bvh.tri_p0, bvh.tri_p1, bvh.tri_p2 = tri[0], tri[1], tri[2]
+        bvh.node_min, bvh.node_max = node_bounds(
+            bvh.node_first, bvh.node_count, boxes, bvh.levels, bvh.config.leaf_size
+        )
     dr.sync_thread()
     bvh.stats.stage_ms["refit"] = (time.perf_counter() - t0) * 1e3
     bvh.stats.sah_cost = sah_cost(bvh.node_min, bvh.node_max, bvh.node_count)

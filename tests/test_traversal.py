@@ -770,6 +770,35 @@ def test20c_refit_repacks_as_a_fresh_pack(builder):
             layout.check_tree(bvh)
 
 
+@pytest.mark.parametrize("builder", ["hlbvh", "lbvh", "sah"])
+@pytest.mark.parametrize("leaf_size", [1, 4, 7])
+def test20d_fused_refit_equals_the_refit_of_the_binary_tree(builder, leaf_size):
+    """A packed tree is refit and repacked in one go (``layout.refit_packed``: triangle
+    records, leaves, one pass per wide level); an unpacked twin is refit through the
+    binary tree and packed after. Node boxes, triangles, SAH cost and slots are the same
+    bit for bit, alone and joined behind another tree, over two refits."""
+    vertices, faces = random_soup(400, seed=44)
+    other = build(*random_soup(60, seed=45), "lbvh")
+    for joined in (False, True):
+        fused = build(vertices, faces, builder, leaf_size)
+        layout.joined([other, fused]) if joined else traversal.packed_records(fused)
+        for step in (1, 2):
+            moved = mi.Float(np.ravel(vertices * (1 + 0.05 * step) + 0.02 * step).astype(np.float32))
+            fused.refit(moved)
+            assert fused._refit_records is not None  # the fused path ran
+            twin = build(vertices, faces, builder, leaf_size).refit(moved)
+            assert getattr(twin, "_refit_records", None) is None  # and the twin did not
+            for name in ("node_min", "node_max", "tri_p0", "tri_p1", "tri_p2"):
+                np.testing.assert_array_equal(np.array(getattr(fused, name)),
+                                              np.array(getattr(twin, name)), err_msg=name)
+            assert fused.stats.sah_cost == twin.stats.sah_cost
+            if joined:
+                ours, theirs = layout.joined([other, fused]).records, layout.joined([other, twin]).records
+            else:
+                ours, theirs = traversal.packed_records(fused)[0], traversal.packed_records(twin)[0]
+            np.testing.assert_array_equal(ours.numpy().view(np.uint32), theirs.numpy().view(np.uint32))
+
+
 def test21_symbolic_even_when_loops_are_evaluated():
     """With Dr.Jit's loops switched to evaluated mode (``JitFlag.SymbolicLoops`` off,
     e.g. for an integrator that wants wavefront kernels), the traversal's own loop and
