@@ -220,10 +220,10 @@ def _pack(bvh, slot_base, face_base, check: bool, front: int = 0):
         plan = bvh._pack_plan = (plan_key, _placement(bvh, slot_base, check))
     ref, wide, at, record_of, total = plan[1]
     bvh._last_pack = (slot_base, face_base, front)
-    refit = getattr(bvh, "_refit_records", None)
-    if not check and refit is not None and refit[0] == (_arrays_key(bvh), slot_base, face_base, front):
-        bvh._refit_records = None  # handed over: the caller may write into its front
-        return refit[1], int(ref[0])
+    ready = getattr(bvh, "_ready_records", None)
+    if not check and ready is not None and ready[0] == (_arrays_key(bvh), slot_base, face_base, front):
+        bvh._ready_records = None  # handed over: the caller may write into its front
+        return ready[1], int(ref[0])
     return _write_records(bvh, ref, wide, at, record_of, total, face_base, front), int(ref[0])
 
 
@@ -332,16 +332,12 @@ def _triangle_rows(p, prim_ids, face_base):
 
 def refit_packed(bvh, points, slot_faces) -> bool:
     """Refit ``bvh`` for new vertex ``points`` and write its slots in the same passes,
-    where it was last packed: one pass over the triangles writes their records, one over
-    the leaves and one per wide level (deepest first) write the boxes, and the binary
-    tree's node boxes come out of the same passes. The BVH's triangle arrays are left as
-    lazy reads of ``points`` (computed only if read). The slots are handed to the next
-    :func:`packed_records` or :func:`joined` that asks for that place.
+    where it was last packed (:func:`write_packed`). The BVH's triangle arrays are left
+    as lazy reads of ``points`` (computed only if read).
 
     A refit through the binary tree and a pack after it write the triangles in slot order
     and read them again, and walk the binary levels twice (boxes, then wide nodes); this
-    walks the wide levels once and never stores the slot-order triangles. Boxes move as
-    8-float records (one packet gather each), not as six scalar gathers.
+    walks the wide levels once and never stores the slot-order triangles.
 
     Args:
         bvh: a tree as the builder returned it, packed before (else nothing is done).
@@ -355,24 +351,52 @@ def refit_packed(bvh, points, slot_faces) -> bool:
     if last is None or plan is None or not _built(bvh) or \
             plan[0] != (bvh.topology_key(), last[0]):
         return False
-    slot_base, face_base, front = last
+    ns = namespace_of(bvh.node_count)
+    p = [dr.gather(ns.Array3f, points, slot_faces[k]) for k in range(3)]
+    bvh.tri_p0, bvh.tri_p1, bvh.tri_p2 = p  # lazy: computed only if read
+    write_packed(bvh, last, p)
+    return True
+
+
+def write_packed(bvh, place, p):
+    """The slots of ``bvh`` at ``place`` and its node boxes, in one pass over the
+    triangles, one over the leaves (reading the boxes the triangle records carry) and
+    one per wide level (deepest first), from the triangles ``p`` (three lazy Array3f in
+    slot order, read once). Boxes move as 8-float records, one packet gather each, not
+    as six scalar gathers.
+
+    Sets ``bvh.node_min``/``node_max`` and keeps the slots for the next
+    :func:`packed_records` or :func:`joined` that asks for ``place``. (Used by a refit:
+    for a new build, whose placement and plan are made anew, this measured no faster
+    than the binary bounds and a pack; see docs/decisions.md.)
+
+    Args:
+        bvh: a tree as the builder returned it (its shape only is read).
+        place: ``(slot_base, face_base, front)`` as :func:`_pack` takes them.
+        p: the triangles' vertices in slot order.
+    """
+    slot_base, face_base, front = place
+    plan_key = (bvh.topology_key(), slot_base)
+    plan = getattr(bvh, "_pack_plan", None)
+    if plan is None or plan[0] != plan_key:
+        plan = bvh._pack_plan = (plan_key, _placement(bvh, slot_base, False))
     ref, wide, at, record_of, total = plan[1]
     ns = namespace_of(bvh.node_count)
     UInt32, Float, Array3f, ArrayXf = ns.UInt32, ns.Float, ns.Array3f, ns.ArrayXf
     refit = _refit_plan(bvh, plan)
     records = dr.empty(Float, SLOT * (front + total))
-    front = dr.opaque(UInt32, front)
+    front_o = dr.opaque(UInt32, front)
 
-    # ---- Triangles: each slot's record (its box included), read through its face ----
-    p = [dr.gather(Array3f, points, slot_faces[k]) for k in range(3)]
-    dr.scatter(records, ArrayXf(_triangle_rows(p, bvh.prim_ids, face_base)), record_of + front)
+    # ---- Triangles: each slot's record (its box included) ----
+    dr.scatter(records, ArrayXf(_triangle_rows(p, bvh.prim_ids, face_base)), record_of + front_o)
     dr.eval(records)
 
-    # ---- Leaves: the union of their triangles' boxes, from the records just written ----
+    # ---- Leaves: the union of their triangles' boxes ----
     boxes = dr.empty(Float, BOX_RECORD * bvh.size)  # every node's box, a record each
-    leaf_node = refit.leaves[0]
-    dr.scatter(boxes, ArrayXf(_leaf_box_rows(records, front, *refit.leaves, refit.widest)),
-               leaf_node)
+    leaf_node, leaf_record, leaf_count = refit.leaves
+    rows = _leaf_box_rows(records, leaf_record + front_o, leaf_count, refit.widest)
+    dr.scatter(boxes, ArrayXf(rows), leaf_node)
+    del rows  # a pending read of `records` would make the scatters below copy it
     dr.eval(boxes)
 
     # ---- Wide nodes, deepest level first: rows from their children's boxes ----
@@ -382,8 +406,8 @@ def refit_packed(bvh, points, slot_faces) -> bool:
         # read would make the scatter copy the array. One scatter a target: each is a
         # kernel of its own.
         dr.eval(rows, own)
-        dr.scatter(records, ArrayXf(rows[:SLOT]), slots + front)
-        dr.scatter(records, ArrayXf(rows[SLOT:]), slots + front + 1)
+        dr.scatter(records, ArrayXf(rows[:SLOT]), slots + front_o)
+        dr.scatter(records, ArrayXf(rows[SLOT:]), slots + front_o + 1)
         dr.scatter(boxes, ArrayXf(own), nodes)
         dr.eval(records, boxes)
 
@@ -397,23 +421,20 @@ def refit_packed(bvh, points, slot_faces) -> bool:
     r = dr.gather(ArrayXf, boxes, dr.arange(UInt32, bvh.size), shape=(BOX_RECORD, bvh.size))
     bvh.node_min, bvh.node_max = Array3f(*r[0:3]), Array3f(*r[3:6])
     dr.eval(bvh.node_min, bvh.node_max)
-    bvh.tri_p0, bvh.tri_p1, bvh.tri_p2 = (dr.gather(Array3f, points, slot_faces[k])
-                                          for k in range(3))  # lazy: read if asked for
-    bvh._refit_records = ((_arrays_key(bvh), slot_base, face_base, front), records)
-    return True
+    bvh._ready_records = ((_arrays_key(bvh), slot_base, face_base, front), records)
 
 
-def _leaf_box_rows(records, front, leaf_node, leaf_record, leaf_count, widest):
-    """The box rows of the leaves, the union of their triangles' boxes read from their
-    records (the leaves in record order, so the reads walk the records forward)."""
-    ns = namespace_of(leaf_node)
-    Array3f, n = ns.Array3f, dr.width(leaf_node)
+def _leaf_box_rows(records, first, count, widest):
+    """The box rows of the leaves: the union of their triangles' boxes, read from the
+    triangle records from slot ``first`` on, ``count`` of them (the leaves in record
+    order, so the reads walk the records forward)."""
+    ns = namespace_of(first)
+    Array3f, n = ns.Array3f, dr.width(first)
     lo, hi = dr.full(Array3f, dr.inf, n), dr.full(Array3f, -dr.inf, n)
     for k in range(widest):
         # A leaf of fewer triangles reads its last one again (the union is the same): an
         # unmasked packet gather costs far less than a masked one.
-        last = dr.minimum(leaf_count - 1, k)
-        r = dr.gather(ns.ArrayXf, records, leaf_record + front + last, shape=(SLOT, n))
+        r = dr.gather(ns.ArrayXf, records, first + dr.minimum(count - 1, k), shape=(SLOT, n))
         lo = dr.minimum(lo, Array3f(*r[TRI_LO:TRI_LO + 3]))
         hi = dr.maximum(hi, Array3f(*r[TRI_HI:TRI_HI + 3]))
     return _box_rows(lo, hi)
