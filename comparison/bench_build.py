@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import ctypes
 import os
-import platform
 import statistics
 
 import drjit as dr
@@ -37,6 +36,7 @@ import numpy as np
 
 import hlbvh
 from hlbvh.comparison.bench_trace import displaced_grid, mesh_scene
+from hlbvh.comparison.machine import cpu_model
 from hlbvh.kernels.traversal import packed_records
 from hlbvh.timing import timed, timed_cpu
 from hlbvh.scenes import meshes as scene_meshes
@@ -83,18 +83,6 @@ def subdivided_box(triangles: int, exponent: float = 4.0):
 MESHES = {"grid": displaced_grid, "soup": random_soup, "box": subdivided_box}
 #: (mesh, triangles) measured when no sizes are given.
 DEFAULT_CASES = (("grid", 1_000_000), ("soup", 1_000_000), ("box", 1_000_000), ("grid", 100_000))
-
-
-def cpu_model() -> str:
-    """The CPU's model name (``/proc/cpuinfo``; ``platform.processor()`` elsewhere)."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def _summary(times: list[float]) -> dict:

@@ -40,6 +40,7 @@ import time
 import drjit as dr
 import mitsuba as mi
 
+from hlbvh.comparison.machine import simd_isa
 from hlbvh.kernels import traversal
 from hlbvh.kernels.traversal import any_hit, closest_hit
 
@@ -145,11 +146,7 @@ def _packet_width() -> int:
     """SIMD lanes per packet of the variant's backend (a CUDA warp: 32)."""
     if dr.backend_v(mi.Float) == dr.JitBackend.CUDA:
         return 32
-    try:
-        with open("/proc/cpuinfo") as f:
-            return 16 if " avx512f" in f.read() else 8
-    except OSError:
-        return 8
+    return 16 if simd_isa() == "AVX-512" else 8
 
 
 def _step_profile(bvh, ray, any_hit: bool) -> dict:

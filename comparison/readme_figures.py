@@ -36,6 +36,7 @@ import drjit as dr
 import mitsuba as mi
 
 from hlbvh.comparison import bench_build, bench_frame, bench_trace, sweep
+from hlbvh.comparison.machine import cpu_model
 from hlbvh.comparison.tables import flatten, markdown_table, read_results, to_json
 from hlbvh.images import atomic_output
 from hlbvh.options import open_animation
@@ -69,7 +70,7 @@ def machine() -> dict:
     """What the numbers were measured on: CPU model, cores, Dr.Jit's threads, versions,
     variant, load average now."""
     return {
-        "cpu": bench_build.cpu_model(),
+        "cpu": cpu_model(),
         "cores": os.cpu_count(),
         "drjit_threads": dr.thread_count(),
         "drjit": dr.__version__,

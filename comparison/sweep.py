@@ -67,7 +67,7 @@ import drjit as dr
 import mitsuba as mi
 
 from hlbvh.comparison import plots, report
-from hlbvh.comparison.bench_build import cpu_model
+from hlbvh.comparison.machine import cpu_model
 from hlbvh.comparison.bench_trace import primary_rays, secondary_rays
 from hlbvh.policy import BUILD_OPTIONS, UPDATES
 from hlbvh.comparison.compare import TOLERANCE

@@ -9,6 +9,7 @@ import html
 import html.parser
 import json
 import math
+import os
 import re
 import shutil
 import subprocess
@@ -506,3 +507,16 @@ def test15_the_directory_can_be_moved(run, tmp_path):
     for roles in results["images"].values():
         for link in roles.values():
             assert (moved / link).is_file(), link
+
+
+def test16_tables_name_the_cpu_with_its_vector_width():
+    """Benchmark tables name the CPU with its family, model and vector instruction set:
+    one model name covers CPUs of 8 and of 16 lanes per packet, whose ratios differ."""
+    from hlbvh.comparison.machine import cpu_model, simd_isa
+
+    name = cpu_model()
+    assert name and name != "unknown CPU"
+    if os.path.exists("/proc/cpuinfo"):
+        assert "(family " in name and simd_isa() in ("AVX-512", "AVX2", "")
+        if simd_isa():
+            assert name.endswith(f", {simd_isa()})")
