@@ -18,7 +18,9 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+import hlbvh
 from cli_helpers import read_stats, run_cli, write_twist_scene
+from meshes import soup
 from hlbvh import images, output, scenes
 from hlbvh.frame import FrameRenderer
 from hlbvh.output import LOCK_NAME
@@ -445,3 +447,36 @@ def test17_the_changing_topology_hint_is_a_flag_the_cli_takes(tmp_path, capsys):
         assert stats(out)[0] == [0, 1, 2]
     status, _, err = run_cli(capsys, *argv, "--topology", "bar:changing", "--out", tmp_path / "x")
     assert status == 2 and len(err) == 1 and err[0].startswith("hlbvh render: --topology"), err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("flag, value", [
+    ("SymbolicConditionals", False), ("KernelFreezing", False), ("OptimizeLoops", False),
+    ("PacketOps", False), ("Debug", True),
+])
+def test_dr_jit_flags_change_no_tree_and_no_hit(flag, value):
+    """Whatever a user sets among Dr.Jit's flags (conditionals evaluated, no kernel
+    freezing, no loop optimisation, no packet gathers, debug checks), the build, the
+    refit and both traversals give the same arrays and hits as with the defaults."""
+    from hlbvh.kernels import traversal
+
+    V, F = soup(1500, seed=5)
+    Vf, Ff = mi.Float(np.ravel(V).astype(np.float32)), mi.UInt32(np.ravel(F))
+    rng = np.random.default_rng(1)
+    o = mi.Point3f(*rng.uniform(-0.2, 1.2, (3, 1000)).astype(np.float32))
+    d = mi.Vector3f(*rng.normal(size=(3, 1000)).astype(np.float32))
+
+    def run():
+        bvh = hlbvh.build(Vf, Ff)
+        hits = traversal.closest_hit(bvh, o, d, mi.Float(np.inf))
+        occluded = traversal.any_hit(bvh, o, d, mi.Float(np.inf))
+        tree = (bvh.node_min, bvh.node_first, bvh.prim_ids)
+        bvh.refit(Vf * 1.01)
+        refit = traversal.closest_hit(bvh, o, d, mi.Float(np.inf))[0]
+        return [np.array(x) for x in (*hits, occluded, *tree, refit, bvh.node_max)]
+
+    expected = run()
+    with dr.scoped_set_flag(getattr(dr.JitFlag, flag), value):
+        got = run()
+    for a, b in zip(got, expected):
+        np.testing.assert_array_equal(a, b)
