@@ -79,16 +79,16 @@ class BuildConfig:
         and are stored as Python ints."""
         if self.builder not in BUILDERS:
             raise ValueError(f"builder={self.builder!r}: expected one of {BUILDERS}")
-        self.leaf_size = _integer("leaf_size", self.leaf_size, range(1, 17))
+        self.leaf_size = integer_option("leaf_size", self.leaf_size, range(1, 17))
         if self.morton_bits != "auto":
-            self.morton_bits = _integer("morton_bits", self.morton_bits, (30, 60), "30, 60 or 'auto'")
+            self.morton_bits = integer_option("morton_bits", self.morton_bits, (30, 60), "30, 60 or 'auto'")
         if self.quantization not in QUANTIZATIONS:
             raise ValueError(
                 f"quantization={self.quantization!r}: expected one of {QUANTIZATIONS}"
             )
-        self.p = _integer("p", self.p, range(1, 6))
-        self.sah_bins = _integer("sah_bins", self.sah_bins, range(2, 65))
-        self.coarse_bits = _integer(
+        self.p = integer_option("p", self.p, range(1, 6))
+        self.sah_bins = integer_option("sah_bins", self.sah_bins, range(2, 65))
+        self.coarse_bits = integer_option(
             "coarse_bits", self.coarse_bits, range(0, 25, 3), "a multiple of 3 in 0..24"
         )
         return self
@@ -105,7 +105,7 @@ class BuildConfig:
         return cls(**options).validated()
 
 
-def _integer(name: str, value, allowed, expected: str = "") -> int:
+def integer_option(name: str, value, allowed, expected: str = "") -> int:
     """``value`` as a Python int if it is an integer (bools and floats are not) in
     ``allowed``; otherwise a ValueError naming the option and what it accepts."""
     if (

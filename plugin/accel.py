@@ -163,10 +163,8 @@ class SceneAccel(_Accel):
             # ---- Each group follows its meshes (a stale group: after a failed build) ----
             if self.static.stale:
                 # Built once for every frame to come: with the static builder.
-                static_options = dict(options)
-                if policy.static_builder != "same":
-                    static_options["builder"] = policy.static_builder
-                self.static.update(self.shapes, static_options, policy, reshaped=True)
+                self.static.update(self.shapes, policy.static_options(options), policy,
+                                   reshaped=True)
             else:
                 self.static.keep()
             if changed or self.dynamic.stale:

@@ -248,6 +248,9 @@ def test06_new_faces_force_a_rebuild():
     (dict(refit_tolerance=True), "refit_tolerance=True"),
     (dict(updates="auto"), "updates"),
     (dict(static_builder="best"), "static_builder='best'"),
+    (dict(static_leaf_size=0), "static_leaf_size=0"),
+    (dict(static_leaf_size="small"), "static_leaf_size='small'"),
+    (dict(static_leaf_size=True), "static_leaf_size=True"),
 ])
 @pytest.mark.parametrize("accel", ["hlbvh", "native"])
 def test07_bad_update_options_name_the_option(accel, options, message):
@@ -321,17 +324,26 @@ def test09_renders_with_refit_and_auto_match_native():
     assert auto.dynamic.refits == len(FRAMES) - 1
 
 
-@pytest.mark.parametrize("static_builder, expected", [("sah", "sah"), ("same", "lbvh")])
-def test10_the_static_group_is_rebuilt_once_with_the_static_builder(static_builder, expected):
+@pytest.mark.parametrize("static_builder, static_leaf_size, expected, leaf", [
+    ("sah", "auto", "sah", 2), ("same", "auto", "lbvh", 4), ("sah", "same", "sah", 4),
+    ("same", 3, "lbvh", 3),
+])
+def test10_the_static_group_is_rebuilt_once_with_the_static_builder(
+        static_builder, static_leaf_size, expected, leaf):
     """After the first motion the static group (built once, traced every frame) gets
-    the static builder; the dynamic group keeps the scene's; hits stay native's."""
+    the static builder and leaf size ("auto": leaves of 2 for "sah"); the dynamic group
+    keeps the scene's; hits stay native's."""
     animation, scene, params = load("cloth")
-    accel = hlbvh.SceneAccel(scene, builder="lbvh", static_builder=static_builder)
+    accel = hlbvh.SceneAccel(scene, builder="lbvh", static_builder=static_builder,
+                             static_leaf_size=static_leaf_size)
     assert accel.static.bvh.stats.builder == "lbvh"  # first build: nothing known to move
     scenes.apply_frame(scene, params, animation.frame(8))
     accel.update()
     assert accel.static.bvh.stats.builder == expected
+    assert accel.static.bvh.config.leaf_size == leaf
+    assert 1 < int(np.max(np.array(accel.static.bvh.node_count))) <= leaf
     assert accel.dynamic.bvh.stats.builder == "lbvh"
+    assert accel.dynamic.bvh.config.leaf_size == 4
     static_bvh = accel.static.bvh
     scenes.apply_frame(scene, params, animation.frame(16))
     accel.update()

@@ -24,9 +24,10 @@ class AccelIntegrator(mi.SamplingIntegrator):
         accel: ``"hlbvh"`` (default) or ``"native"``.
         builder, leaf_size, morton_bits, quantization, coarse_bits, p, sah_bins:
             options of :func:`hlbvh.build` (see :class:`hlbvh.BuildConfig`).
-        update, refit_tolerance, static_builder: the per-frame policy of the accelerator
-            (``"rebuild"``, ``"fresh"``, ``"refit"`` or ``"auto"``, the SAH drift ``"auto"``
-            accepts, the builder of the static group; see :class:`hlbvh.policy.UpdatePolicy`).
+        update, refit_tolerance, static_builder, static_leaf_size: the per-frame policy
+            of the accelerator (``"rebuild"``, ``"fresh"``, ``"refit"`` or ``"auto"``, the
+            SAH drift ``"auto"`` accepts, the builder and leaf size of the static group;
+            see :class:`hlbvh.policy.UpdatePolicy`).
 
     The accelerator is built on the first render of a scene and kept for the next
     renders of that scene; it is built anew when another scene is rendered, and
