@@ -772,12 +772,15 @@ def test20c_refit_repacks_as_a_fresh_pack(builder):
 
 @pytest.mark.parametrize("builder", ["hlbvh", "lbvh", "sah"])
 @pytest.mark.parametrize("leaf_size", [1, 4, 7])
-def test20d_fused_refit_equals_the_refit_of_the_binary_tree(builder, leaf_size):
+@pytest.mark.parametrize("triangles", [3, 400])
+def test20d_fused_refit_equals_the_refit_of_the_binary_tree(builder, leaf_size, triangles):
     """A packed tree is refit and repacked in one go (``layout.refit_packed``: triangle
     records, leaves, one pass per wide level); an unpacked twin is refit through the
     binary tree and packed after. Node boxes, triangles, SAH cost and slots are the same
-    bit for bit, alone and joined behind another tree, over two refits."""
-    vertices, faces = random_soup(400, seed=44)
+    bit for bit, alone and joined behind another tree, over two refits; also for a tree
+    that is one leaf, and with a zero-area triangle."""
+    vertices, faces = random_soup(triangles, seed=44)
+    vertices[faces[1][2]] = vertices[faces[1][0]]  # a zero-area triangle (NaN record)
     other = build(*random_soup(60, seed=45), "lbvh")
     for joined in (False, True):
         fused = build(vertices, faces, builder, leaf_size)
