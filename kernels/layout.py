@@ -219,9 +219,10 @@ def _pack(bvh, slot_base, face_base, check: bool, front: int = 0):
     if check or plan is None or plan[0] != plan_key:
         plan = bvh._pack_plan = (plan_key, _placement(bvh, slot_base, check))
     ref, wide, at, record_of, total = plan[1]
-    bvh._last_pack = (slot_base, face_base, front)
+    bvh._last_pack = (slot_base, face_base, front)  # where a refit writes its slots
     ready = getattr(bvh, "_ready_records", None)
-    if not check and ready is not None and ready[0] == (_arrays_key(bvh), slot_base, face_base, front):
+    place = (slot_base, face_base, front)
+    if not check and ready is not None and ready[0] == (_arrays_key(bvh),) + place:
         bvh._ready_records = None  # handed over: the caller may write into its front
         return ready[1], int(ref[0])
     return _write_records(bvh, ref, wide, at, record_of, total, face_base, front), int(ref[0])
@@ -380,7 +381,7 @@ def write_packed(bvh, place, p):
     plan = getattr(bvh, "_pack_plan", None)
     if plan is None or plan[0] != plan_key:
         plan = bvh._pack_plan = (plan_key, _placement(bvh, slot_base, False))
-    ref, wide, at, record_of, total = plan[1]
+    record_of, total = plan[1][3:]
     ns = namespace_of(bvh.node_count)
     UInt32, Float, Array3f, ArrayXf = ns.UInt32, ns.Float, ns.Array3f, ns.ArrayXf
     refit = _refit_plan(bvh, plan)
@@ -459,7 +460,8 @@ def _wide_level_rows(boxes, nodes, children):
     Array3f = ns.Array3f
     rows_of = []
     for child, present, child_ref in children:
-        # An absent child reads child 0's box (unmasked, see refit_packed), then dropped.
+        # An absent child reads child 0's box, then dropped: an unmasked packet gather
+        # costs far less than a masked one.
         r = dr.gather(ns.ArrayXf, boxes, child, shape=(BOX_RECORD, dr.width(nodes)))
         rows_of.append((Array3f(*r[0:3]), Array3f(*r[3:6]), present, child_ref))
     # Child 0 is always there; the others only widen the box where present.
