@@ -2,7 +2,8 @@
 on the LLVM backend, OptiX on CUDA) on the same rays, in the same process.
 
 For each scene (a displaced grid of about ``size`` triangles per entry of ``sizes``,
-Cornell box, and the main job's cloth scene), three ray sets, the three kinds a path tracer traces:
+Cornell box, and the main job's cloth scene), three ray sets, the three kinds a path
+tracer traces:
 
 - ``coherent``: primary camera rays, one per pixel centre of the scene's sensor;
 - ``incoherent``: secondary rays, one cosine-distributed bounce from each primary hit
@@ -25,8 +26,8 @@ to measure one core). ``agree`` is the fraction of rays whose hit/miss and primi
 
 Where our time goes: ``steps`` is the mean number of traversal steps (wide nodes and
 triangles visited) per ray, ``p90`` and ``max`` its tail, and ``lanes`` the fraction of
-the lane-steps paid for that did work: rays run in packets of the SIMD width (consecutive rays), and a packet steps
-until its slowest ray is done.
+the lane-steps paid for that did work: rays run in packets of the SIMD width
+(consecutive rays), and a packet steps until its slowest ray is done.
 
 Run: ``python -m hlbvh.comparison.bench_trace`` (the CLI's ``hlbvh bench trace``).
 """
@@ -305,9 +306,10 @@ def run(sizes=(1_000_000,), repeats: int = 5, resolution: int = 512,
     Returns:
         One dict per (scene, ray kind, query): ``scene``, ``triangles``, ``rays``,
         ``kind`` (``coherent``, ``incoherent``, ``shadow``), ``query``, ``steps``,
-        ``steps_p90``, ``steps_max``, ``lanes`` (:func:`_step_profile`), ``ours_/native_`` ``cold_ms``/``min_ms``/``median_ms``/
-        ``cpu_ms`` (the least process CPU time of the warm runs), ``ours_mrays``,
-        ``native_mrays`` (from the minimum), ``ratio`` (ours/native throughput, from the
+        ``steps_p90``, ``steps_max``, ``lanes`` (:func:`_step_profile`),
+        ``ours_/native_`` ``cold_ms``/``min_ms``/``median_ms``/``cpu_ms`` (the least
+        process CPU time of the warm runs), ``ours_mrays``, ``native_mrays`` (from the
+        minimum), ``ratio`` (ours/native throughput, from the
         minima), ``ratio_median`` (from the medians), ``ratio_cpu`` (from the CPU
         times), ``agree``, ``build_ms``.
     Raises:

@@ -128,8 +128,8 @@ def _first_with_bit(keys, key_bits: int, plane: int, lo, hi, active):
         one = ((dr.gather(Key, keys, m) >> shift) & 1) == 1
         return dr.select(one, a, m + 1), dr.select(one, m, b)
 
-    a, _ = dr.while_loop(mode="symbolic", state=(lo, dr.select(active, hi, lo)), cond=lambda a, b: a < b,
-                         body=body, labels=("a", "b"))
+    a, _ = dr.while_loop(mode="symbolic", state=(lo, dr.select(active, hi, lo)),
+                         cond=lambda a, b: a < b, body=body, labels=("a", "b"))
     return a
 
 

@@ -219,7 +219,8 @@ def _pack(bvh, slot_base, face_base, check: bool, front: int = 0):
     if check or plan is None or plan[0] != plan_key:
         plan = bvh._pack_plan = (plan_key, _placement(bvh, slot_base, check))
     ref, wide, at, record_of, total = plan[1]
-    bvh._last_pack = (slot_base, face_base, front)  # where a refit writes its slots
+    if not check:  # (a validation, e.g. check_tree, is not where the tree is traced)
+        bvh._last_pack = (slot_base, face_base, front)  # where a refit writes its slots
     ready = getattr(bvh, "_ready_records", None)
     place = (slot_base, face_base, front)
     if not check and ready is not None and ready[0] == (_arrays_key(bvh),) + place:
@@ -333,7 +334,7 @@ def _triangle_rows(p, prim_ids, face_base):
 
 def refit_packed(bvh, points, slot_faces) -> bool:
     """Refit ``bvh`` for new vertex ``points`` and write its slots in the same passes,
-    where it was last packed (:func:`write_packed`). The BVH's triangle arrays are left
+    where it was last packed (:func:`_write_packed`). The BVH's triangle arrays are left
     as lazy reads of ``points`` (computed only if read).
 
     A refit through the binary tree and a pack after it write the triangles in slot order
@@ -355,11 +356,11 @@ def refit_packed(bvh, points, slot_faces) -> bool:
     ns = namespace_of(bvh.node_count)
     p = [dr.gather(ns.Array3f, points, slot_faces[k]) for k in range(3)]
     bvh.tri_p0, bvh.tri_p1, bvh.tri_p2 = p  # lazy: computed only if read
-    write_packed(bvh, last, p)
+    _write_packed(bvh, last, plan, p)
     return True
 
 
-def write_packed(bvh, place, p):
+def _write_packed(bvh, place, plan, p):
     """The slots of ``bvh`` at ``place`` and its node boxes, in one pass over the
     triangles, one over the leaves (reading the boxes the triangle records carry) and
     one per wide level (deepest first), from the triangles ``p`` (three lazy Array3f in
@@ -374,13 +375,10 @@ def write_packed(bvh, place, p):
     Args:
         bvh: a tree as the builder returned it (its shape only is read).
         place: ``(slot_base, face_base, front)`` as :func:`_pack` takes them.
+        plan: the tree's placement at ``slot_base`` (``bvh._pack_plan``).
         p: the triangles' vertices in slot order.
     """
     slot_base, face_base, front = place
-    plan_key = (bvh.topology_key(), slot_base)
-    plan = getattr(bvh, "_pack_plan", None)
-    if plan is None or plan[0] != plan_key:
-        plan = bvh._pack_plan = (plan_key, _placement(bvh, slot_base, False))
     record_of, total = plan[1][3:]
     ns = namespace_of(bvh.node_count)
     UInt32, Float, Array3f, ArrayXf = ns.UInt32, ns.Float, ns.Array3f, ns.ArrayXf

@@ -472,8 +472,8 @@ def _split_nodes(ns, lo, hi, centroid, weight, slots_in, slots_out, item_order, 
             cell_items.write(cell_items.read(cell) + 1, cell)
         return q + 1, mem
 
-    _, mem = dr.while_loop(mode="symbolic", state=(UInt32(first), mem), cond=lambda q, mem: q < end,
-                           body=bin_item, labels=("q", "mem"))
+    _, mem = dr.while_loop(mode="symbolic", state=(UInt32(first), mem),
+                           cond=lambda q, mem: q < end, body=bin_item, labels=("q", "mem"))
 
     def read_cell(mem, cell):
         r = [mem[0].read(6 * cell + j) for j in range(6)]
@@ -502,7 +502,8 @@ def _split_nodes(ns, lo, hi, centroid, weight, slots_in, slots_out, item_order, 
     zeros = dr.minimum(first, dr.opaque(UInt32, 0))
     inf = Array3f(Float(zeros) + dr.inf)
     empty = (inf, -inf)
-    p, mem, *_ = dr.while_loop(mode="symbolic", state=(zeros, mem, *(*empty, zeros, zeros, zeros) * 3),
+    p, mem, *_ = dr.while_loop(mode="symbolic",
+                               state=(zeros, mem, *(*empty, zeros, zeros, zeros) * 3),
                                cond=lambda p, *_: active & (p + 1 < bins), body=forward)
 
     # ---- Backward: the plane before bin p, its right side bins p..bins-1 ----
@@ -526,7 +527,8 @@ def _split_nodes(ns, lo, hi, centroid, weight, slots_in, slots_out, item_order, 
         return (p - 1, best, mem, *acc)
 
     # (p is bins - 1 in the active lanes: where the forward pass stopped)
-    _, best, mem, *_ = dr.while_loop(mode="symbolic", state=(p, never, mem, *(*empty, zeros) * 3),
+    _, best, mem, *_ = dr.while_loop(mode="symbolic",
+                                     state=(p, never, mem, *(*empty, zeros) * 3),
                                      cond=lambda p, *_: active & (p > 0), body=backward)
     middle = best == never
     code = UInt32(best & 0xFFFFFFFF)

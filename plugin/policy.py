@@ -87,7 +87,7 @@ class UpdatePolicy:
         if self.static_builder != "same":
             static["builder"] = self.static_builder
         if self.static_leaf_size == "auto":
-            if static.get("builder", "hlbvh") == "sah":
+            if static.get("builder", BuildConfig.builder) == "sah":
                 static["leaf_size"] = STATIC_SAH_LEAF_SIZE
         elif self.static_leaf_size != "same":
             static["leaf_size"] = self.static_leaf_size
