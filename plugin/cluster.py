@@ -25,10 +25,10 @@ How the work is cut and written
 - Each worker process runs one chunk at a time with as many Dr.Jit threads as the
   worker has threads (a local cluster: the machine's cores shared among its workers),
   so nothing is oversubscribed.
-- Ctrl-C sets a Dask ``Event`` that every chunk checks before each frame, cancels the
-  tasks and closes a local cluster (its workers stop at once; the workers of a
-  ``--scheduler`` finish the frame they are on, written whole): only complete frames
-  are left.
+- Ctrl-C sets a Dask ``Event`` that every chunk checks before each frame, waits for the
+  chunks to finish the frame they are on (written whole; a second Ctrl-C stops waiting),
+  cancels the tasks and closes a local cluster: only complete frames are left, and no
+  worker writes into the folder once the command has returned.
 """
 
 from __future__ import annotations
@@ -43,7 +43,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import drjit as dr
-from distributed import Client, Event, KilledWorker, LocalCluster, as_completed, get_worker
+from distributed import (Client, Event, KilledWorker, LocalCluster, as_completed, get_worker,
+                         wait)
 
 from hlbvh.errors import UserError
 from hlbvh.frame import FrameRenderer
@@ -61,6 +62,10 @@ IN_FLIGHT = 2
 
 #: Seconds to wait for a scheduler to answer, and for its first worker.
 CONNECT_TIMEOUT = 10
+
+#: Seconds Ctrl-C waits for the chunks to stop after the frame they are on (a second
+#: Ctrl-C stops waiting).
+CANCEL_TIMEOUT = 300
 
 # One chunk at a time per worker process: Dr.Jit's thread pool is the process's.
 _ONE_CHUNK = threading.Lock()
@@ -273,8 +278,15 @@ def _frames_of(future) -> str:
 
 
 def _cancel(client, job: ChunkJob, submitted: list) -> None:
-    """Tell every chunk to stop before its next frame, and cancel the queued ones."""
+    """Tell every chunk to stop before its next frame and wait until they have (a
+    queued chunk stops before its first): a worker is never still writing into the
+    folder once the command has returned and released its lock. Then cancel what is
+    left."""
     Event(job.cancel, client=client).set()
+    try:
+        wait(submitted, timeout=CANCEL_TIMEOUT)
+    except (TimeoutError, KeyboardInterrupt):
+        pass
     client.cancel(submitted, force=True)
 
 
