@@ -356,16 +356,15 @@ def refit_packed(bvh, points, slot_faces) -> bool:
     ns = namespace_of(bvh.node_count)
     p = [dr.gather(ns.Array3f, points, slot_faces[k]) for k in range(3)]
     bvh.tri_p0, bvh.tri_p1, bvh.tri_p2 = p  # lazy: computed only if read
-    _write_packed(bvh, last, plan, p)
+    _write_packed(bvh, last, plan, points, slot_faces)
     return True
 
 
-def _write_packed(bvh, place, plan, p):
-    """The slots of ``bvh`` at ``place`` and its node boxes, in one pass over the
-    triangles, one over the leaves (reading the boxes the triangle records carry) and
-    one per wide level (deepest first), from the triangles ``p`` (three lazy Array3f in
-    slot order, read once). Boxes move as 8-float records, one packet gather each, not
-    as six scalar gathers.
+def _write_packed(bvh, place, plan, points, slot_faces):
+    """The slots of ``bvh`` at ``place`` and its node boxes: one pass over the leaves
+    (each leaf's lane writes its triangles' records and takes the union of their boxes)
+    and one per wide level (deepest first). Boxes move as 8-float records, one packet
+    gather each, not as six scalar gathers.
 
     Sets ``bvh.node_min``/``node_max`` and keeps the slots for the next
     :func:`packed_records` or :func:`joined` that asks for ``place``. (Used by a refit:
@@ -376,27 +375,24 @@ def _write_packed(bvh, place, plan, p):
         bvh: a tree as the builder returned it (its shape only is read).
         place: ``(slot_base, face_base, front)`` as :func:`_pack` takes them.
         plan: the tree's placement at ``slot_base`` (``bvh._pack_plan``).
-        p: the triangles' vertices in slot order.
+        points: flat Float[3·V] vertex positions.
+        slot_faces: Array3u[F], the vertex indices of each slot's face.
     """
     slot_base, face_base, front = place
-    record_of, total = plan[1][3:]
+    total = plan[1][4]
     ns = namespace_of(bvh.node_count)
     UInt32, Float, Array3f, ArrayXf = ns.UInt32, ns.Float, ns.Array3f, ns.ArrayXf
     refit = _refit_plan(bvh, plan)
     records = dr.empty(Float, SLOT * (front + total))
     front_o = dr.opaque(UInt32, front)
 
-    # ---- Triangles: each slot's record (its box included) ----
-    dr.scatter(records, ArrayXf(_triangle_rows(p, bvh.prim_ids, face_base)), record_of + front_o)
-    dr.eval(records)
-
-    # ---- Leaves: the union of their triangles' boxes ----
+    # ---- Leaves: their triangles' records, and the union of their boxes ----
     boxes = dr.empty(Float, BOX_RECORD * bvh.size)  # every node's box, a record each
-    leaf_node, leaf_record, leaf_count = refit.leaves
-    rows = _leaf_box_rows(records, leaf_record + front_o, leaf_count, refit.widest)
-    dr.scatter(boxes, ArrayXf(rows), leaf_node)
-    del rows  # a pending read of `records` would make the scatters below copy it
-    dr.eval(boxes)
+    leaf_node, leaf_record, leaf_count, leaf_slot = refit.leaves
+    lo, hi = _leaf_triangles(records, points, slot_faces, bvh.prim_ids, face_base,
+                             leaf_slot, leaf_record + front_o, leaf_count)
+    dr.scatter(boxes, ArrayXf(_box_rows(lo, hi)), leaf_node)
+    dr.eval(records, boxes)
 
     # ---- Wide nodes, deepest level first: rows from their children's boxes ----
     for nodes, slots, children in reversed(refit.wide_levels):
@@ -410,45 +406,46 @@ def _write_packed(bvh, place, plan, p):
         dr.scatter(boxes, ArrayXf(own), nodes)
         dr.eval(records, boxes)
 
-    # ---- The binary nodes at odd depths: the union of their two children ----
-    if dr.width(refit.odd):
-        rows = _odd_box_rows(boxes, bvh.node_first, refit.odd)
-        dr.eval(rows)  # read before writing into `boxes` (see the wide levels)
-        dr.scatter(boxes, ArrayXf(rows), refit.odd)
-        dr.eval(boxes)
-
-    r = dr.gather(ArrayXf, boxes, dr.arange(UInt32, bvh.size), shape=(BOX_RECORD, bvh.size))
-    bvh.node_min, bvh.node_max = Array3f(*r[0:3]), Array3f(*r[3:6])
+    # ---- Every node's box in one pass: a binary node at odd depth (no record of its
+    # own) is the union of its two children, the others their own record ----
+    node = dr.arange(UInt32, bvh.size)
+    left = dr.select(refit.odd, bvh.node_first, node)
+    a, b = (dr.gather(ArrayXf, boxes, c, shape=(BOX_RECORD, bvh.size))
+            for c in (left, left + UInt32(refit.odd)))
+    bvh.node_min = dr.minimum(Array3f(*a[0:3]), Array3f(*b[0:3]))
+    bvh.node_max = dr.maximum(Array3f(*a[3:6]), Array3f(*b[3:6]))
     dr.eval(bvh.node_min, bvh.node_max)
     bvh._ready_records = ((_arrays_key(bvh), slot_base, face_base, front), records)
 
 
-def _leaf_box_rows(records, first, count, widest):
-    """The box rows of the leaves: the union of their triangles' boxes, read from the
-    triangle records from slot ``first`` on, ``count`` of them (the leaves in record
-    order, so the reads walk the records forward)."""
-    ns = namespace_of(first)
-    Array3f, n = ns.Array3f, dr.width(first)
-    lo, hi = dr.full(Array3f, dr.inf, n), dr.full(Array3f, -dr.inf, n)
-    for k in range(widest):
-        # A leaf of fewer triangles reads its last one again (the union is the same): an
-        # unmasked packet gather costs far less than a masked one.
-        r = dr.gather(ns.ArrayXf, records, first + dr.minimum(count - 1, k), shape=(SLOT, n))
-        lo = dr.minimum(lo, Array3f(*r[TRI_LO:TRI_LO + 3]))
-        hi = dr.maximum(hi, Array3f(*r[TRI_HI:TRI_HI + 3]))
-    return _box_rows(lo, hi)
+def _leaf_triangles(records, points, slot_faces, prim_ids, face_base, first_slot,
+                    first_record, count):
+    """Write the triangle records of leaves (slots ``first_slot ..``, ``count`` of
+    them, records from ``first_record`` on) and return the union of their boxes,
+    ``(lo, hi)`` Array3f per leaf: one lane a leaf walks its triangles (a symbolic loop,
+    so the record scatter is one kernel with the boxes, and no record is read back)."""
+    ns = namespace_of(first_slot)
+    Array3f, n = ns.Array3f, dr.width(first_slot)
 
+    last = count - 1
+    widest = dr.max(count)  # every lane takes as many steps (a short leaf repeats its
+    # last triangle, writing the same record again): masked gathers cost more
 
-def _odd_box_rows(boxes, node_first, odd):
-    """The box rows of the internal nodes ``odd``, the union of their two children's
-    box records in ``boxes``."""
-    ns = namespace_of(odd)
-    Array3f = ns.Array3f
-    left = dr.gather(ns.UInt32, node_first, odd)
-    a, b = (dr.gather(ns.ArrayXf, boxes, c, shape=(BOX_RECORD, dr.width(odd)))
-            for c in (left, left + 1))
-    return _box_rows(dr.minimum(Array3f(*a[0:3]), Array3f(*b[0:3])),
-                     dr.maximum(Array3f(*a[3:6]), Array3f(*b[3:6])))
+    def body(k, lo, hi):
+        j = dr.minimum(k, last)
+        slot = first_slot + j
+        face = dr.gather(ns.Array3u, slot_faces, slot)
+        p = [dr.gather(Array3f, points, face[c]) for c in range(3)]
+        rows = _triangle_rows(p, dr.gather(ns.UInt32, prim_ids, slot), face_base)
+        dr.scatter(records, ns.ArrayXf(rows), first_record + j)
+        return (k + 1, dr.minimum(lo, Array3f(*rows[TRI_LO:TRI_LO + 3])),
+                dr.maximum(hi, Array3f(*rows[TRI_HI:TRI_HI + 3])))
+
+    _, lo, hi = dr.while_loop(
+        mode="symbolic",
+        state=(dr.zeros(ns.UInt32, n), dr.full(Array3f, dr.inf, n), dr.full(Array3f, -dr.inf, n)),
+        cond=lambda k, lo, hi: k < widest, body=body, labels=("k", "lo", "hi"))
+    return lo, hi
 
 
 def _wide_level_rows(boxes, nodes, children):
@@ -479,13 +476,12 @@ def _box_rows(lo, hi):
 @dataclass
 class _RefitPlan:
     """Where the fused refit (:func:`refit_packed`) reads each box from, kept per tree:
-    ``leaves`` (node, first record and count of every leaf), ``widest`` (most triangles
-    in a leaf), ``wide_levels`` (per wide level, root first: its nodes, their first
-    slots, and per child ``(node, present, reference)``), ``odd`` (the internal nodes at
-    odd depths)."""
+    ``leaves`` (node, first record, count and first slot of every leaf), ``wide_levels``
+    (per wide level, root first: its nodes, their first
+    slots, and per child ``(node, present, reference)``), ``odd`` (per node: whether it
+    is internal at an odd depth)."""
 
     leaves: tuple
-    widest: int
     wide_levels: list
     odd: Any
 
@@ -524,10 +520,13 @@ def _refit_plan(bvh, plan) -> _RefitPlan:
     dr.scatter(by_record, dr.arange(UInt32, bvh.size) + 1, leaf_record, leaf)
     leaf_record = dr.compress(by_record != 0)  # record positions, ascending
     leaf_node = dr.gather(UInt32, by_record, leaf_record) - 1
-    leaves = (leaf_node, leaf_record, dr.gather(UInt32, count, leaf_node))
-    odd = concat(bvh.levels[1::2]) if len(bvh.levels) > 1 else UInt32()
+    leaves = (leaf_node, leaf_record, dr.gather(UInt32, count, leaf_node),
+              dr.gather(UInt32, first, leaf_node))
+    odd = dr.zeros(ns.Bool, bvh.size)
+    for level in bvh.levels[1::2]:
+        dr.scatter(odd, True, level)
     dr.eval(leaves, odd)
-    result = _RefitPlan(leaves=leaves, widest=bvh.config.leaf_size, wide_levels=levels, odd=odd)
+    result = _RefitPlan(leaves=leaves, wide_levels=levels, odd=odd)
     bvh._refit_plan = (plan[0], result)
     return result
 
