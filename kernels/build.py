@@ -130,7 +130,7 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
     stats.leaf_count = (stats.node_count + 1) // 2
     stats.depth = len(levels) + 1
     stats.leaf_histogram = functools.partial(leaf_histogram, topology.node_count, config.leaf_size)
-    stats.sah_cost = sah_cost(node_min, node_max, topology.node_count)
+    stats.sah_cost = functools.partial(sah_cost, node_min, node_max, topology.node_count)
     bvh = BVH(
         node_min=node_min,
         node_max=node_max,
@@ -188,7 +188,8 @@ def _morton_topology(config: BuildConfig, stats: BuildStats, clock, points, face
         tri, slot_boxes = slot_triangles(records_to_triangles(tri_records, csd.order))
 
     del tri_records  # 64 bytes a triangle, no longer needed
-    records = NodeRecords(*(dr.zeros(UInt32, 2 * prim_count - 1) for _ in range(3)),
+    # Not cleared: the top level and the emission write each node's record once.
+    records = NodeRecords(*(dr.empty(UInt32, 2 * prim_count - 1) for _ in range(3)),
                           total=dr.opaque(UInt32, 1))
     if config.builder == "lbvh" or coarse_bits == 0 or csd.coarse_clusters == 1:
         level = 0 if config.builder == "lbvh" else coarse_bits
@@ -199,6 +200,7 @@ def _morton_topology(config: BuildConfig, stats: BuildStats, clock, points, face
             internal = top.tree.node_count == 0
             nodes = dr.arange(UInt32, top.tree.size)
             dr.scatter(records.first, top.tree.node_first, nodes, internal)
+            dr.scatter(records.count, 0, nodes, internal)
             dr.scatter(records.depth, top.tree.leaf_depth, nodes, internal)
             records.total = dr.opaque(UInt32, top.tree.size)
         level = coarse_bits

@@ -122,7 +122,14 @@ def integer_option(name: str, value, allowed, expected: str = "") -> int:
 class _OnFirstRead:
     """A dataclass field that may be given a function instead of a value: the function
     is called when the field is first read, and its result kept. Statistics that cost a
-    kernel and a host round trip, and that no per-frame caller reads, are set so."""
+    kernel and a host round trip, which tracing does not need, are set so.
+
+    Args:
+        empty: the value of a field that was never given one.
+    """
+
+    def __init__(self, empty):
+        self._empty = empty
 
     def __set_name__(self, owner, name):
         self._name = "_" + name
@@ -133,7 +140,7 @@ class _OnFirstRead:
         value = obj.__dict__.get(self._name)
         if callable(value):
             value = obj.__dict__[self._name] = value()
-        return [] if value is None else value
+        return self._empty() if value is None else value
 
     def __set__(self, obj, value):
         obj.__dict__[self._name] = value
@@ -150,8 +157,9 @@ class BuildStats:
     are the CSD sort's run count and how many keys it had to sort (see
     :class:`~hlbvh.kernels.csd.CsdResult`). ``stage_ms`` holds the wall time of
     each stage, synchronised (the device finished before the clock stopped).
-    ``leaf_histogram`` (leaves of 1, 2, ..., ``leaf_size`` primitives) is counted when
-    first read: a kernel and a host round trip that a per-frame rebuild does not pay.
+    ``sah_cost`` and ``leaf_histogram`` (leaves of 1, 2, ..., ``leaf_size`` primitives)
+    are computed when first read: each a kernel and a host round trip that a tree needs
+    not pay before it is traced.
     """
 
     builder: str = ""
@@ -159,13 +167,13 @@ class BuildStats:
     node_count: int = 0
     leaf_count: int = 0
     depth: int = 0
-    sah_cost: float = 0.0
+    sah_cost: float = _OnFirstRead(float)
     csd_runs: int = 0
     csd_resorted: int = 0
     coarse_clusters: int = 0
     morton_bits: int = 30
     quantization: str = ""
-    leaf_histogram: list[int] = _OnFirstRead()
+    leaf_histogram: list[int] = _OnFirstRead(list)
     stage_ms: dict[str, float] = field(default_factory=dict)
     total_ms: float = 0.0
 

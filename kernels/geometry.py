@@ -57,25 +57,30 @@ def as_faces(faces):
     return plain(faces, "UInt32")
 
 
-def checked_vertices(vertices, faces):
+def checked_vertices(vertices, faces, top=None):
     """Flat Float[3·V] of ``vertices`` after checking that every value is finite and
-    that ``faces`` (flat UInt32) only index existing vertices; ValueError otherwise."""
+    that ``faces`` (flat UInt32) only index existing vertices; ValueError otherwise.
+
+    ``top``: the largest index in ``faces`` when the caller knows it (a refit: the build
+    read it), which spares a pass over the faces."""
     points = as_points(vertices)
     v = len(points) // 3
     if v == 0:
         raise ValueError("vertices: the array is empty; pass the positions the faces index")
     bad = dr.count(~dr.isfinite(points))
-    top = dr.max(faces) if len(faces) else 0
-    dr.eval(bad, top)
+    if top is None:
+        largest = dr.max(faces) if len(faces) else dr.zeros(type(faces), 1)
+        dr.eval(bad, largest)  # both reductions, then one wait
+        top = int(largest[0])
     if int(bad[0]):
         raise ValueError(
             f"vertices: {int(bad[0])} of {3 * v} coordinates are non-finite (NaN or infinite); "
             "fix or drop those vertices before building"
         )
-    if len(faces) and int(top[0]) >= v:
-        hint = " (a negative index?)" if int(top[0]) >= 2**31 else ""
+    if len(faces) and top >= v:
+        hint = " (a negative index?)" if top >= 2**31 else ""
         raise ValueError(
-            f"faces: index {int(top[0])} is out of range for {v} vertices{hint}"
+            f"faces: index {top} is out of range for {v} vertices{hint}"
         )
     return points
 

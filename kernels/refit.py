@@ -4,6 +4,7 @@ go (:func:`hlbvh.kernels.layout.refit_packed`); any other through its binary lev
 
 from __future__ import annotations
 
+import functools
 import time
 
 import drjit as dr
@@ -26,8 +27,8 @@ def refit(bvh, vertices):
         ``stats.stage_ms['refit']`` updated.
     """
     t0 = time.perf_counter()
-    points = checked_vertices(vertices, bvh.faces)
     faces = _slot_faces(bvh)
+    points = checked_vertices(vertices, bvh.faces, bvh._refit_faces[2])
     if not refit_packed(bvh, points, faces):
         tri, boxes = slot_triangles(triangles_of(points, faces))
         bvh.tri_p0, bvh.tri_p1, bvh.tri_p2 = tri[0], tri[1], tri[2]
@@ -36,18 +37,20 @@ def refit(bvh, vertices):
         )
     dr.sync_thread()
     bvh.stats.stage_ms["refit"] = (time.perf_counter() - t0) * 1e3
-    bvh.stats.sah_cost = sah_cost(bvh.node_min, bvh.node_max, bvh.node_count)
+    bvh.stats.sah_cost = functools.partial(sah_cost, bvh.node_min, bvh.node_max, bvh.node_count)
     return bvh
 
 
 def _slot_faces(bvh):
     """Array3u[F]: the vertex indices of each slot's face, gathered on the first refit
-    and cached on ``bvh`` (keyed by its ``faces`` and ``prim_ids`` arrays), so that a
-    refit reads three vertices a slot rather than its face first."""
+    and cached on ``bvh`` (keyed by its ``faces`` and ``prim_ids`` arrays) with the
+    largest of them, so that a refit reads three vertices a slot rather than its face
+    first, and checks the vertex count without a pass over the faces."""
     key = (bvh.faces.index, bvh.prim_ids.index)
     cache = getattr(bvh, "_refit_faces", None)
     if cache is None or cache[0] != key:
         faces = dr.gather(namespace_of(bvh.faces).Array3u, bvh.faces, bvh.prim_ids)
-        dr.eval(faces)
-        cache = bvh._refit_faces = (key, faces)
+        largest = dr.max(bvh.faces)
+        dr.eval(faces, largest)
+        cache = bvh._refit_faces = (key, faces, int(largest[0]))
     return cache[1]
