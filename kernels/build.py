@@ -28,7 +28,7 @@ import drjit as dr
 from .arrays import namespace_of
 from .bounds import internal_levels, leaf_histogram, node_bounds, sah_cost
 from .bvh import BVH, BuildConfig, BuildStats
-from .csd import csd_sort
+from .csd import csd_sort, seed_pays
 from .emission import NodeRecords, emit_hierarchy
 from .geometry import (checked_faces, checked_vertices, gather_triangles,
                        records_to_triangles, slot_triangles, triangle_boxes,
@@ -72,8 +72,11 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
         faces: flat UInt32 (3·F) vertex indices, or Array3u (F); F >= 1.
         previous: a BVH of an earlier frame of the same mesh: its primitive order
             seeds the CSD sort (temporal coherence). Ignored when the triangle count
-            changed. The tree has the same shape as without it; only primitives with equal
-            Morton keys may keep last frame's relative order (and so change leaf boxes).
+            changed, and when a sample of that order under the new keys says the sort
+            would sort every key anyway (:func:`~hlbvh.kernels.csd.seed_pays`;
+            ``stats.csd_seeded`` says whether it was used). The tree has the same
+            shape as without it; only primitives with equal Morton keys may keep last
+            frame's relative order (and so change leaf boxes).
         **options: fields of :class:`BuildConfig` (builder, leaf_size, morton_bits,
             quantization, coarse_bits, p, sah_bins).
     Returns:
@@ -181,7 +184,10 @@ def _morton_topology(config: BuildConfig, stats: BuildStats, clock, points, face
 
     with clock("csd"):
         seed = previous.prim_ids if previous is not None and previous.prim_count == prim_count else None
+        if seed is not None and not seed_pays(keys, bits, coarse_bits, seed):
+            seed = None  # it would sort every key anyway: the gathers through it cost
         csd = csd_sort(keys, bits, coarse_bits, seed)
+    stats.csd_seeded = seed is not None
     stats.csd_runs, stats.csd_resorted, stats.coarse_clusters = csd.runs, csd.resorted, csd.coarse_clusters
 
     with clock("triangles"):

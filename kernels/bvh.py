@@ -155,7 +155,8 @@ class BuildStats:
     ``quantization`` are the key the build used (what ``"auto"`` chose; 0 and ``""``
     for the ``"sah"`` builder, which uses no keys). ``csd_runs`` and ``csd_resorted``
     are the CSD sort's run count and how many keys it had to sort (see
-    :class:`~hlbvh.kernels.csd.CsdResult`). ``stage_ms`` holds the wall time of
+    :class:`~hlbvh.kernels.csd.CsdResult`), ``csd_seeded`` whether it started from the
+    previous frame's order. ``stage_ms`` holds the wall time of
     each stage, synchronised (the device finished before the clock stopped).
     ``sah_cost`` and ``leaf_histogram`` (leaves of 1, 2, ..., ``leaf_size`` primitives)
     are computed when first read: each a kernel and a host round trip that a tree needs
@@ -170,6 +171,7 @@ class BuildStats:
     sah_cost: float = _OnFirstRead(float)
     csd_runs: int = 0
     csd_resorted: int = 0
+    csd_seeded: bool = False
     coarse_clusters: int = 0
     morton_bits: int = 30
     quantization: str = ""

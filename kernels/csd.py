@@ -32,6 +32,12 @@ mesh of which 10% moved in 17 ms (30-bit) or 24 ms (60-bit); a first frame or a 
 that perturbs every voxel costs the whole sort plus the bookkeeping (1.1–1.4 times
 ``dr.argsort``).
 
+Whether last frame's order is worth starting from at all is estimated first
+(:func:`seed_pays`) from a sample of neighbouring pairs in that order: where the sample
+says the sort would fall back to sorting every key anyway (as many descents inside runs
+as runs: the mesh moved by more than a fine cell everywhere), the caller starts from
+scratch and saves the two gathers through the start order.
+
 The result equals a full stable sort of the keys taken in start order:
 ``start[argsort(keys[start], stable)]`` (ties keep their start order).
 """
@@ -208,6 +214,44 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
     order = dr.gather(UInt32, start, source)
     dr.eval(order, sorted_keys, voxel_start)
     return CsdResult(order, sorted_keys, runs, coarse_clusters, resorted, voxel_start)
+
+
+#: Neighbouring pairs of the start order sampled by :func:`seed_pays`: one every so many.
+_SEED_SAMPLE_STRIDE = 64
+
+
+def seed_pays(keys, key_bits: int, coarse_bits: int, start_order) -> bool:
+    """Whether :func:`csd_sort` can gain from starting at ``start_order`` (last frame's
+    order) rather than at the identity.
+
+    The sort falls back to sorting every key when the start order has more runs of
+    equal coarse keys than half the keys (it does not group the voxels), or as many
+    descents inside runs as there are runs (the mesh moved by more than a fine cell
+    nearly everywhere, so nearly every coarse voxel would need its fine sort); then the
+    start order only costs two gathers through it. Both counts are estimated from every
+    ``_SEED_SAMPLE_STRIDE``-th neighbouring pair of the start order (one small kernel
+    and a host read): False when run heads are more than half the sampled pairs, or
+    when the sampled descents exceed twice the sampled run heads plus a margin of 8
+    (sampling noise).
+
+    Args:
+        keys: UInt32[N] or UInt64[N], the keys to sort; ``key_bits``, ``coarse_bits`` as
+            :func:`csd_sort` takes them.
+        start_order: UInt32[N], a permutation of ``0..N-1`` (not checked here).
+    """
+    ns = namespace_of(keys)
+    UInt32, Key = ns.UInt32, type(keys)
+    pairs = dr.width(keys) // _SEED_SAMPLE_STRIDE
+    if pairs == 0:
+        return True  # a few keys: trying costs nothing
+    second = dr.arange(UInt32, pairs) * _SEED_SAMPLE_STRIDE + 1
+    a, b = (dr.gather(Key, keys, dr.gather(UInt32, UInt32(start_order), i))
+            for i in (second - 1, second))
+    head = _coarse_keys(a, key_bits, coarse_bits) != _coarse_keys(b, key_bits, coarse_bits)
+    heads, descents = dr.count(head), dr.count((b < a) & ~head)
+    dr.eval(heads, descents)
+    heads, descents = int(heads[0]), int(descents[0])
+    return 2 * heads <= pairs and descents <= 2 * heads + 8
 
 
 def _sorted_whole(key, key_bits: int, start):

@@ -99,9 +99,9 @@ class MeshGroup:
 
     def _build(self, shapes, build_options, seed: bool = True) -> bool:
         """A new BVH over the meshes' current triangles, its CSD sort seeded with the
-        previous tree's order when ``seed`` and the triangle count is unchanged; whether
-        it was. On failure the group is left as it was (and rebuilds on its next
-        update)."""
+        previous tree's order when ``seed``, the triangle count is unchanged and the
+        order pays (:func:`hlbvh.kernels.csd.seed_pays`); whether it was. On failure
+        the group is left as it was (and rebuilds on its next update)."""
         previous = self.bvh if seed else None
         geometry = collect_geometry(shapes, self.indices)
         bvh = None
@@ -113,7 +113,7 @@ class MeshGroup:
         self.geometry, self.bvh, self._built_indices = geometry, bvh, self.indices
         self.built_sah = None if bvh is None else bvh.stats.sah_cost
         self.builds += 1
-        return bvh is not None and previous is not None and previous.prim_count == bvh.prim_count
+        return bvh is not None and bvh.stats.csd_seeded
 
     def _refit(self, shapes) -> float:
         """The same tree with boxes for the meshes' new positions; its SAH drift."""

@@ -11,7 +11,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from hlbvh.kernels.csd import CsdResult, csd_sort
+from hlbvh.kernels.csd import CsdResult, csd_sort, seed_pays
 from hlbvh.kernels.morton import morton_codes, point_bounds
 
 from hlbvh.kernels.arrays import namespace_of
@@ -205,3 +205,28 @@ def test10_a_new_size_or_run_count_compiles_no_new_kernel():
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
     assert compiled == []
+
+
+@pytest.mark.parametrize("coarse_bits", [6, 12])
+def test11_a_start_order_is_dropped_only_where_the_sort_would_sort_every_key(coarse_bits):
+    """seed_pays keeps last frame's order when the keys did not change or changed in one
+    corner of the mesh, and drops it (a random order, a mesh that moved everywhere)
+    only where csd_sort, started from it, sorts every key anyway."""
+    rng = np.random.default_rng(coarse_bits)
+    q = 224  # 100,352 triangles
+    keys = morton(grid_centroids(q))
+    previous = reference(keys, np.arange(len(keys))).astype(np.uint32)
+    corner = grid_centroids(q)
+    corner[:200] += np.float32(0.002)  # a few triangles of the first row moved
+    cases = {
+        "unchanged": (keys, True),
+        "a corner moved": (morton(corner), True),
+        "moved everywhere": (morton(grid_centroids(q, 0.5)), None),
+        "random order": (rng.permutation(keys), False),
+    }
+    for name, (new_keys, expected) in cases.items():
+        pays = seed_pays(UInt32(new_keys), 30, coarse_bits, UInt32(previous))
+        if expected is not None:
+            assert pays == expected, name
+        if not pays:
+            assert check(new_keys, 30, coarse_bits, previous).resorted == len(keys), name
