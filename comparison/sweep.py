@@ -16,9 +16,11 @@ accelerator's per-frame ``update`` policy, each varying one knob from the defaul
 ``axis``, ``rank`` (quantisation per axis, or by rank, instead of in a cube);
 ``coarse6``, ``coarse18`` (``coarse_bits``); ``p1``, ``p5`` (bit planes per emission
 pass); ``leaf1``, ``leaf8`` (``leaf_size``); ``rebuild`` (a build every frame, seeded
-with last frame's order: the accelerator's default), ``refit`` (refit every frame),
-``auto`` (refit while the SAH cost stays near the last build's). A setting may also be
-spelled out: ``builder=lbvh+leaf_size=8+update=refit`` (its label is that text).
+with last frame's order where that pays), ``fresh`` (the same, unseeded), ``refit``
+(refit every frame), ``auto`` (refit while the SAH cost stays near the last build's:
+the accelerator's default). A setting without an ``update`` rebuilds every frame, so
+that the builder settings measure their builder. A setting may also be spelled out:
+``builder=lbvh+leaf_size=8+update=refit`` (its label is that text).
 ``native`` (Mitsuba's own accelerator) is always measured, as the reference.
 
 What is measured
@@ -122,7 +124,7 @@ class Setting:
     Attributes:
         label: its name in tables and plots.
         build_options: options of :func:`hlbvh.build`.
-        update: our accelerator's per-frame policy, or ``None`` for its default.
+        update: our accelerator's per-frame policy, or ``None`` for a rebuild every frame.
         accel: ``"hlbvh"``, or ``"native"`` for Mitsuba's accelerator.
     """
 
@@ -132,9 +134,11 @@ class Setting:
     accel: str = "hlbvh"
 
     def render_settings(self, base: RenderSettings) -> RenderSettings:
-        """``base`` with this setting's accelerator, builder options and policy."""
+        """``base`` with this setting's accelerator, builder options and policy (a
+        rebuild every frame when it names none)."""
+        update = None if self.accel == NATIVE else (self.update or "rebuild")
         return replace(base, accel=self.accel, build_options=dict(self.build_options),
-                       update=self.update)
+                       update=update)
 
     def description(self) -> str:
         """The options as ``key=value`` joined by ``+`` (``defaults`` when none)."""

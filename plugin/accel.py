@@ -41,10 +41,11 @@ buffer is compared. The meshes live in two groups, each with its own BVH:
   once; a mesh whose buffers change for the first time leaves it, and the static BVH
   is rebuilt once without it;
 * **dynamic**: the meshes that changed at least once, brought up to date on every
-  update in which one of them changed, as the :class:`UpdatePolicy` says: rebuilt
-  (``update="rebuild"``, the default; the CSD sort starts from last frame's primitive
-  order when the triangle count is unchanged), refit (``"refit"``), or refit while the
-  tree's SAH cost stays within ``refit_tolerance`` of its last build's (``"auto"``).
+  update in which one of them changed, as the :class:`UpdatePolicy` says: refit while
+  the tree's SAH cost stays within ``refit_tolerance`` of its last build's, rebuilt
+  otherwise (``update="auto"``, the default), rebuilt every time (``"rebuild"``; the
+  CSD sort starts from last frame's primitive order when the triangle count is
+  unchanged and that order pays), or refit every time (``"refit"``).
   New faces, a changed vertex count or a change of its meshes always rebuild.
 
 Queries trace one tree: a wide node over the groups' BVHs

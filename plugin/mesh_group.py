@@ -10,6 +10,10 @@ from hlbvh.scene_geometry import _concat, _named_error, collect_geometry
 from hlbvh.timing import clock_ms
 
 
+#: Most updates in a row that ``"auto"`` rebuilds without trying a refit first.
+MAX_REFITS_SKIPPED = 15
+
+
 class MeshGroup:
     """Meshes of a scene that share one BVH, and what the last update did to it.
 
@@ -42,6 +46,8 @@ class MeshGroup:
         self.refits = 0
         self.last = None
         self._built_indices = ()  # the meshes the tree was built over
+        # "auto": refits rejected in a row, and how many refits to skip after them
+        self._rejected = self._refits_to_skip = self._refits_skipped = 0
         self.keep()
 
     @property
@@ -72,10 +78,16 @@ class MeshGroup:
         reshaped = reshaped or self.bvh is None or self.stale
         if reshaped or policy.update in ("rebuild", "fresh"):
             seeded = self._build(shapes, build_options, seed=policy.update != "fresh")
+        elif policy.update == "auto" and self._refits_skipped < self._refits_to_skip:
+            # Recent refits drifted past the tolerance: rebuild without trying one.
+            self._refits_skipped += 1
+            seeded = self._build(shapes, build_options)
         else:
             drift = self._refit(shapes)
             decision = "refit"
-            if policy.update == "auto" and drift > policy.refit_tolerance:
+            rejected = policy.update == "auto" and drift > policy.refit_tolerance
+            self._back_off(rejected)
+            if rejected:
                 seeded = self._build(shapes, build_options)
                 decision = "rebuild"
         self.last = dict(
@@ -83,6 +95,16 @@ class MeshGroup:
             sah_cost=None if self.bvh is None else float(self.bvh.stats.sah_cost),
             seeded=seeded, drift=drift,
         )
+
+    def _back_off(self, rejected: bool):
+        """After ``k >= 2`` refits in a row drifted past the tolerance, skip the next
+        ``2**(k-1) - 1`` refits (at most :data:`MAX_REFITS_SKIPPED`): a scene whose every
+        refit is rejected (bodies tumbling apart) pays a wasted refit only now and then,
+        one whose refits are rejected now and then (a slow drift) is not held back, and
+        one that settles is refit again soon. An accepted refit resets the count."""
+        self._rejected = self._rejected + 1 if rejected else 0
+        self._refits_to_skip = min(2 ** max(self._rejected - 1, 0) - 1, MAX_REFITS_SKIPPED)
+        self._refits_skipped = 0
 
     def keep(self):
         """Record that the last update left the group as it was."""

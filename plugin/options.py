@@ -43,8 +43,8 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
         for name in BUILD_OPTIONS:
             add(f"--{name.replace('_', '-')}", dest=name,
                 help=f"builder option {name} (hlbvh.build; default {getattr(BuildConfig, name)!r})")
-        add("--update", help="our accelerator's per-frame policy: rebuild, fresh, refit or auto "
-                             "(default: the accelerator's own)")
+        add("--update", help="our accelerator's per-frame policy: auto, rebuild, fresh or refit "
+                             "(default: the accelerator's own, auto)")
     add("--seed", default="0", help="frame i is rendered with seed SEED + i (default 0)")
     add("--out", help=f"output directory (default {out})")
     add("--quiet", action="store_true", help="no progress bars")

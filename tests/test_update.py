@@ -187,25 +187,32 @@ def test04_refit_hits_equal_rebuild_hits(name):
 
 def test05_auto_rebuilds_when_the_refit_tree_drifts():
     """A soup re-scattered every frame: the refit tree's SAH cost explodes, so "auto"
-    rebuilds (reporting the drift it saw); a cloth's gentle deformation stays refit.
-    With an unbounded tolerance "auto" refits the soup like "refit" does."""
+    rebuilds (reporting the drift it saw), and after two, three, four refits rejected in
+    a row it rebuilds without trying one for 1, 3, 7 updates; a cloth's gentle
+    deformation stays refit. With an unbounded tolerance "auto" refits the soup like
+    "refit" does."""
     animation, scene, params = load("soup")
     auto = hlbvh.SceneAccel(scene, update="auto", refit_tolerance=1.3)
     lax = hlbvh.SceneAccel(scene, update="auto", refit_tolerance=1e30)
-    for k, i in enumerate(FRAMES):
+    tried = []
+    for k, i in enumerate(range(1, 11)):
         scenes.apply_frame(scene, params, animation.frame(i))
         auto.update()
         lax.update()
         if k == 0:
             continue  # the animated meshes left the static group: a rebuild
         dynamic = auto.last_update["groups"]["dynamic"]
-        assert dynamic["decision"] == "rebuild" and dynamic["drift"] > 1.3
+        assert dynamic["decision"] == "rebuild"
+        if dynamic["drift"] is not None:
+            tried.append(k)
+            assert dynamic["drift"] > 1.3
         assert dynamic["sah_cost"] == pytest.approx(auto.dynamic.built_sah)
         assert lax.last_update["groups"]["dynamic"]["decision"] == "refit"
         assert lax.last_update["groups"]["dynamic"]["drift"] > 1.3
-        assert_hits_equal_native(auto, scene)
-        assert_hits_equal_native(lax, scene)
-    assert auto.dynamic.refits == len(FRAMES) - 1  # each rebuild followed a refit
+        if k in (1, 3, 9):
+            assert_hits_equal_native(auto, scene)
+            assert_hits_equal_native(lax, scene)
+    assert tried == [1, 2, 4, 8] and auto.dynamic.refits == len(tried)
 
     animation, scene, params = load("cloth")
     auto = hlbvh.SceneAccel(scene, update="auto")

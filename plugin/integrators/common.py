@@ -25,8 +25,9 @@ class AccelIntegrator(mi.SamplingIntegrator):
         builder, leaf_size, morton_bits, quantization, coarse_bits, p, sah_bins:
             options of :func:`hlbvh.build` (see :class:`hlbvh.BuildConfig`).
         update, refit_tolerance, static_builder, static_leaf_size: the per-frame policy
-            of the accelerator (``"rebuild"``, ``"fresh"``, ``"refit"`` or ``"auto"``, the
-            SAH drift ``"auto"`` accepts, the builder and leaf size of the static group;
+            of the accelerator (``"auto"``, the default, ``"rebuild"``, ``"fresh"`` or
+            ``"refit"``; the SAH drift ``"auto"`` accepts, default 1.05; the builder
+            and leaf size of the static group;
             see :class:`hlbvh.policy.UpdatePolicy`).
 
     The accelerator is built on the first render of a scene and kept for the next
