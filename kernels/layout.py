@@ -423,7 +423,8 @@ def _leaf_triangles(records, points, slot_faces, prim_ids, face_base, first_slot
     """Write the triangle records of leaves (slots ``first_slot ..``, ``count`` of
     them, records from ``first_record`` on) and return the union of their boxes,
     ``(lo, hi)`` Array3f per leaf: one lane a leaf walks its triangles (a symbolic loop,
-    so the record scatter is one kernel with the boxes, and no record is read back)."""
+    so the record scatter is one kernel with the boxes, and no record is read back),
+    every lane as many steps as the largest leaf has triangles."""
     ns = namespace_of(first_slot)
     Array3f, n = ns.Array3f, dr.width(first_slot)
 
@@ -477,9 +478,9 @@ def _box_rows(lo, hi):
 class _RefitPlan:
     """Where the fused refit (:func:`refit_packed`) reads each box from, kept per tree:
     ``leaves`` (node, first record, count and first slot of every leaf), ``wide_levels``
-    (per wide level, root first: its nodes, their first
-    slots, and per child ``(node, present, reference)``), ``odd`` (per node: whether it
-    is internal at an odd depth)."""
+    (per wide level, root first: its nodes, their first slots, and per child ``(node,
+    present, reference)``), ``odd`` (per node: whether it is internal at an odd
+    depth)."""
 
     leaves: tuple
     wide_levels: list

@@ -27,8 +27,8 @@ def refit(bvh, vertices):
         ``stats.stage_ms['refit']`` updated.
     """
     t0 = time.perf_counter()
-    faces = _slot_faces(bvh)
-    points = checked_vertices(vertices, bvh.faces, bvh._refit_faces[2])
+    faces, top = _slot_faces(bvh)
+    points = checked_vertices(vertices, bvh.faces, top)
     if not refit_packed(bvh, points, faces):
         tri, boxes = slot_triangles(triangles_of(points, faces))
         bvh.tri_p0, bvh.tri_p1, bvh.tri_p2 = tri[0], tri[1], tri[2]
@@ -42,10 +42,10 @@ def refit(bvh, vertices):
 
 
 def _slot_faces(bvh):
-    """Array3u[F]: the vertex indices of each slot's face, gathered on the first refit
-    and cached on ``bvh`` (keyed by its ``faces`` and ``prim_ids`` arrays) with the
-    largest of them, so that a refit reads three vertices a slot rather than its face
-    first, and checks the vertex count without a pass over the faces."""
+    """``(Array3u[F], int)``: the vertex indices of each slot's face and the largest of
+    them, computed on the first refit and cached on ``bvh`` (keyed by its ``faces`` and
+    ``prim_ids`` arrays), so that a refit reads three vertices a slot rather than its
+    face first, and checks the vertex count without a pass over the faces."""
     key = (bvh.faces.index, bvh.prim_ids.index)
     cache = getattr(bvh, "_refit_faces", None)
     if cache is None or cache[0] != key:
@@ -53,4 +53,4 @@ def _slot_faces(bvh):
         largest = dr.max(bvh.faces)
         dr.eval(faces, largest)
         cache = bvh._refit_faces = (key, faces, int(largest[0]))
-    return cache[1]
+    return cache[1], cache[2]
