@@ -23,7 +23,7 @@ consecutive frames per spp, every frame a new pose, the two accelerators taking 
 frame by frame (both see the same machine load):
 
 - ``hlbvh``: ``hlbvh_path`` with ``accel="hlbvh"``; frame = build (our accelerator's
-  update for the new pose) + render;
+  update for the new pose, as its default policy decides: refit or rebuild) + render;
 - ``native``: ``hlbvh_path`` with ``accel="native"`` (bit-identical to Mitsuba's C++
   ``path`` and as fast: every query goes to the scene's Embree BVH); frame =
   ``params.update()`` (Mitsuba's rebuild of its accelerator) + render.
@@ -56,8 +56,12 @@ import hlbvh
 from hlbvh.comparison.crossover import crossover_spp, describe
 from hlbvh.scenes import get as get_scene
 from hlbvh.frame import FrameRenderer
+from hlbvh.policy import UpdatePolicy
 from hlbvh.settings import RenderSettings
 from hlbvh.timing import timed
+
+#: The accelerator's default per-frame policy, which the hlbvh frames run under.
+_POLICY = UpdatePolicy()
 
 SCENES = ("cloth", "twist", "fracture")
 SPPS = (1, 4, 16)
@@ -269,7 +273,8 @@ def format_table(rows: list[dict]) -> str:
             f"of the sum). nat/ours = native frame / hlbvh frame (min; > 1: hlbvh faster). "
             f"crossover = spp from which native is faster per frame. hlbvh frames rendered "
             f"through Mitsuba also pay its own params.update() rebuild (median "
-            f"{update:.1f} ms here), not counted. builder={rows[0]['builder']}, variant "
+            f"{update:.1f} ms here), not counted. builder={rows[0]['builder']}, update="
+            f"{_POLICY.update} (refit_tolerance {_POLICY.refit_tolerance}), variant "
             f"{mi.variant()}, {os.cpu_count()} cores, load average "
             f"{os.getloadavg()[0]:.1f} at the end"
         )
