@@ -20,8 +20,8 @@ wide node (2 slots)    ``NODE_LO[a] + k``, ``NODE_HI[a] + k``: child ``k``'s box
 triangle (1 slot)      ``TRI_P[0..2]``: p0, p1, p2 in the face's order, all NaN for a
                        zero-area triangle (never hit: its normal would be NaN);
                        ``TRI_FACE``: the input face index (the bits of a UInt32);
-                       ``TRI_LO``, ``TRI_HI``: the triangle's box (what a refit's
-                       leaves read, so it reads no vertex twice)
+                       ``TRI_LO``, ``TRI_HI``: the triangle's box (traversal does
+                       not read it; a refit's leaf box is the union of these rows)
 =====================  ========================================================
 
 Child boxes are kept in full float32: quantising them to bytes relative to the node's
@@ -82,7 +82,7 @@ NODE_REF = 24
 #: Offsets of a triangle's fields in its slot.
 TRI_P = (0, 3, 6)
 TRI_FACE = 9
-#: The triangle's box (lower and upper corner), which a refit's leaves read.
+#: The triangle's box (lower and upper corner), written with the triangle.
 TRI_LO = 10
 TRI_HI = 13
 
@@ -388,9 +388,9 @@ def _write_packed(bvh, place, plan, points, slot_faces):
 
     # ---- Leaves: their triangles' records, and the union of their boxes ----
     boxes = dr.empty(Float, BOX_RECORD * bvh.size)  # every node's box, a record each
-    leaf_node, leaf_record, leaf_count, leaf_slot = refit.leaves
+    leaf_node, leaf_record, leaf_count, leaf_slot, widest = refit.leaves
     lo, hi = _leaf_triangles(records, points, slot_faces, bvh.prim_ids, face_base,
-                             leaf_slot, leaf_record + front_o, leaf_count)
+                             leaf_slot, leaf_record + front_o, leaf_count, widest)
     dr.scatter(boxes, ArrayXf(_box_rows(lo, hi)), leaf_node)
     dr.eval(records, boxes)
 
@@ -419,18 +419,17 @@ def _write_packed(bvh, place, plan, points, slot_faces):
 
 
 def _leaf_triangles(records, points, slot_faces, prim_ids, face_base, first_slot,
-                    first_record, count):
+                    first_record, count, widest):
     """Write the triangle records of leaves (slots ``first_slot ..``, ``count`` of
     them, records from ``first_record`` on) and return the union of their boxes,
     ``(lo, hi)`` Array3f per leaf: one lane a leaf walks its triangles (a symbolic loop,
-    so the record scatter is one kernel with the boxes, and no record is read back),
-    every lane as many steps as the largest leaf has triangles."""
+    so the record scatter is one kernel with the boxes, and no record is read back).
+    Every lane takes ``widest`` steps (the most triangles in a leaf, a UInt32[1]): a
+    short leaf repeats its last triangle, writing the same record again, because the
+    masked gathers of lanes that stopped early cost more."""
     ns = namespace_of(first_slot)
     Array3f, n = ns.Array3f, dr.width(first_slot)
-
     last = count - 1
-    widest = dr.max(count)  # every lane takes as many steps (a short leaf repeats its
-    # last triangle, writing the same record again): masked gathers cost more
 
     def body(k, lo, hi):
         j = dr.minimum(k, last)
@@ -477,10 +476,10 @@ def _box_rows(lo, hi):
 @dataclass
 class _RefitPlan:
     """Where the fused refit (:func:`refit_packed`) reads each box from, kept per tree:
-    ``leaves`` (node, first record, count and first slot of every leaf), ``wide_levels``
-    (per wide level, root first: its nodes, their first slots, and per child ``(node,
-    present, reference)``), ``odd`` (per node: whether it is internal at an odd
-    depth)."""
+    ``leaves`` (node, first record, count and first slot of every leaf, and the most
+    triangles in one, a UInt32[1]), ``wide_levels`` (per wide level, root first: its
+    nodes, their first slots, and per child ``(node, present, reference)``), ``odd``
+    (per node: whether it is internal at an odd depth)."""
 
     leaves: tuple
     wide_levels: list
@@ -521,8 +520,9 @@ def _refit_plan(bvh, plan) -> _RefitPlan:
     dr.scatter(by_record, dr.arange(UInt32, bvh.size) + 1, leaf_record, leaf)
     leaf_record = dr.compress(by_record != 0)  # record positions, ascending
     leaf_node = dr.gather(UInt32, by_record, leaf_record) - 1
-    leaves = (leaf_node, leaf_record, dr.gather(UInt32, count, leaf_node),
-              dr.gather(UInt32, first, leaf_node))
+    leaf_count = dr.gather(UInt32, count, leaf_node)
+    leaves = (leaf_node, leaf_record, leaf_count, dr.gather(UInt32, first, leaf_node),
+              dr.max(leaf_count))
     odd = dr.zeros(ns.Bool, bvh.size)
     for level in bvh.levels[1::2]:
         dr.scatter(odd, True, level)
