@@ -121,7 +121,8 @@ def _first_with_bit(keys, key_bits: int, plane: int, lo, hi, active):
     (``hi`` if none), for sorted keys that agree on the planes above it: a binary
     search, one symbolic loop (inactive lanes return ``lo``)."""
     Key = type(keys)
-    shift = key_bits - 1 - plane
+    # Opaque: a literal shift would compile a kernel of its own for every bit plane.
+    shift = dr.opaque(Key, key_bits - 1 - plane)
 
     def body(a, b):
         m = (a + b) >> 1

@@ -345,6 +345,9 @@ def _build_by_node_lanes(ns, lo, hi, weight, leaf_items: int, bins: int) -> SahT
     dr.scatter(rows[0], ns.ArrayXf(_child_rows(
         ns, [dr.min(lo, axis=1), dr.max(hi, axis=1), dr.min(centroid, axis=1),
              dr.max(centroid, axis=1)], dr.opaque(UInt32, 0), dr.opaque(UInt32, n))), root)
+    # Opaque, so the top level (leaves of one cluster) and a static tree (leaves of
+    # two triangles) replay one compiled kernel rather than one each.
+    leaf_items = dr.opaque(UInt32, leaf_items)
     dr.scatter(flags[0], UInt32(dr.opaque(UInt32, n) > leaf_items), root)
     # Every input evaluated, so that all levels meet the frozen kernel in one state.
     dr.eval(centroid, item_order, slots, rows, flags, level_ids)
@@ -410,7 +413,7 @@ def _node_level(rows, is_open, through, records, block, next_block, width, inter
     dr.eval(records, item_order, slots_out, rows_out, is_open_out, level_ids)
 
 
-#: Recorded once per item-count parity (and leaf_items, bins) and replayed: every input
+#: Recorded once per item-count parity (and bins) and replayed: every input
 #: opaque (with auto_opaque, a new item count recorded the root level anew each build).
 _FROZEN_LEVEL = dr.freeze(_node_level, limit=256, warn_after=1 << 30, auto_opaque=False)
 
