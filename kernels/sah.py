@@ -427,11 +427,12 @@ def _child_rows(ns, bounds, first, count):
 
 
 def _split_nodes(ns, lo, hi, centroid, weight, slots_in, slots_out, item_order, active,
-                 first, count, box_lo, box_hi, cmin, cmax, leaf_items: int, bins: int):
+                 first, count, box_lo, box_hi, cmin, cmax, leaf_items, bins: int):
     """One lane per node (the lanes ``active``): bin the items of slots ``first ..
     first + count - 1`` (``slots_in``) on the three axes, price every plane, partition
-    the range stably into the two children (an item whose child is a leaf gets its final
-    slot in ``item_order``, the others go to ``slots_out``).
+    the range stably into the two children (an item whose child is a leaf, of at most
+    ``leaf_items`` items, an opaque UInt32, gets its final slot in ``item_order``, the
+    others go to ``slots_out``).
 
     The cost of a plane and the choice among planes are those of :func:`_sweep` (the
     cheapest plane leaving weight on both sides, the first in (axis, plane) order on
