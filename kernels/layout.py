@@ -247,15 +247,18 @@ def _placement(bvh, slot_base, check: bool):
     widest = int(dr.max(count, axis=None)[0]) if check else bvh.config.leaf_size
 
     # ---- Up: slots in each subtree (a wide node's own two, a leaf's triangles) ----
-    size = dr.select(internal, 0, count)
+    # Two arrays, one per depth parity, each starting with the leaves' triangle counts: a
+    # level reads its children's sizes from one and writes its own into the other, so it
+    # is one kernel (a read and a write of one array would need the two apart).
+    by_parity = [dr.select(internal, 0, count) for _ in range(2)]
     for depth in reversed(range(len(levels))):
-        nodes = levels[depth]
+        nodes, own, below = levels[depth], by_parity[depth % 2], by_parity[1 - depth % 2]
         left = dr.gather(UInt32, first, nodes)
-        own = dr.opaque(UInt32, NODE_SLOTS if depth % 2 == 0 else 0)
-        grown = own + dr.gather(UInt32, size, left) + dr.gather(UInt32, size, left + 1)
-        dr.eval(grown)  # read before writing into the array the gathers read
-        dr.scatter(size, grown, nodes)
-    total = int(size[0])
+        extra = dr.opaque(UInt32, NODE_SLOTS if depth % 2 == 0 else 0)
+        dr.scatter(own, extra + dr.gather(UInt32, below, left) + dr.gather(UInt32, below, left + 1),
+                   nodes)
+        dr.eval(own)
+    total = int(by_parity[0][0])
     if slot_base + total > MAX_SLOTS:
         raise ValueError(
             f"BVH of {n_prims} triangles in {n_nodes} nodes needs {total} slots; "
@@ -263,14 +266,21 @@ def _placement(bvh, slot_base, check: bool):
         )
 
     # ---- Down: a wide node at p, its first child's subtree at p + 2, the next after ----
-    position = dr.zeros(UInt32, n_nodes)
+    # Positions by depth parity too, both arrays zero but where a node of their parity
+    # was placed (the root stays at 0): a node's position is their sum. One lane per
+    # child, so each level is one scatter, one kernel.
+    placed = [dr.zeros(UInt32, n_nodes) for _ in range(2)]
     for depth, nodes in enumerate(levels):
-        left = dr.gather(UInt32, first, nodes)
-        after = dr.gather(UInt32, position, nodes) + dr.opaque(UInt32, NODE_SLOTS if depth % 2 == 0 else 0)
-        right = after + dr.gather(UInt32, size, left)
-        dr.eval(after, right)
-        dr.scatter(position, after, left)
-        dr.scatter(position, right, left + 1)
+        lane = dr.arange(UInt32, 2 * dr.width(nodes))
+        node, side = dr.gather(UInt32, nodes, lane >> 1), lane & 1
+        left = dr.gather(UInt32, first, node)
+        after = dr.gather(UInt32, placed[depth % 2], node) + dr.opaque(
+            UInt32, NODE_SLOTS if depth % 2 == 0 else 0)
+        sizes = by_parity[1 - depth % 2]
+        dr.scatter(placed[1 - depth % 2],
+                   after + dr.select(side == 1, dr.gather(UInt32, sizes, left), 0), left + side)
+        dr.eval(placed[1 - depth % 2])
+    position = placed[0] + placed[1]
 
     base = dr.opaque(UInt32, slot_base)
     ref = dr.select(internal, node_ref(position + base), leaf_ref(position + base, count))
