@@ -65,7 +65,7 @@ class UpdatePolicy:
     static_leaf_size: int | str = "auto"
 
     def validated(self) -> "UpdatePolicy":
-        """Self, after checking both fields; raises ValueError naming the bad one."""
+        """Self, after checking every field; raises ValueError naming the bad one."""
         if self.update not in UPDATES:
             raise ValueError(f"update={self.update!r}: expected one of {UPDATES}")
         tolerance = self.refit_tolerance
