@@ -1,61 +1,62 @@
-"""The intersectors our integrators trace through: HLBVHs over a Mitsuba scene
-(:class:`SceneAccel`) and the scene's own accelerator (:class:`NativeAccel`, Embree on
-the LLVM backend, OptiX on CUDA), behind the same three methods as ``mi.Scene``.
+"""The intersectors our integrators trace through: :class:`SceneAccel` (only what moves
+through our HLBVHs, the rest through the scene's own accelerator, or everything
+through ours) and :class:`NativeAccel` (the scene's own accelerator, Embree on the
+LLVM backend, OptiX on CUDA), behind the same three methods as ``mi.Scene``.
 
 Mitsuba 3 does not let Python supply the intersection routine of its native
 accelerator, so the integration point is the integrator: every ray query of our
 integrators goes to one of these objects, and a hit comes back as a
-``mi.PreliminaryIntersection3f`` whose ``shape``/``shape_index``/``prim_index``/
-``prim_uv`` are exactly what Mitsuba's own query would have produced, so that
-``compute_surface_interaction`` (Mitsuba's code) fills in the surface interaction.
+``mi.PreliminaryIntersection3f`` whose ``t``/``prim_uv``/``prim_index``/``shape``/
+``shape_index``/``instance`` are exactly what Mitsuba's own query would have produced,
+so that ``compute_surface_interaction`` (Mitsuba's code) fills in the surface
+interaction.
 
-What :class:`SceneAccel` intersects, and what it does not:
+Groups by motion
+----------------
+Every shape starts *static*; a shape is *moving* once it was declared so (option
+``moving``, ids; the animations of :mod:`hlbvh.scenes` declare their animated shapes)
+or once it changed (see :mod:`hlbvh.motion`). Then it stays moving.
 
-* meshes (``obj``, ``ply``, ``serialized``, ``rectangle``, ``cube``, ... anything with
-  ``is_mesh()``): their world-space triangles, in the BVHs of two :class:`MeshGroup`
-  (see "Per-frame update" below);
-* ``sphere``, ``disk``, ``cylinder``: the few analytic shapes, intersected by
-  Mitsuba's own per-shape routine (``shape.ray_intersect_preliminary``, called once per
-  analytic shape: a call through a shape pointer inside a symbolic loop would trace
-  every registered shape, and meshes have no such routine) and merged with the
-  BVHs' hit by nearest ``t``;
-* instances, curves, SDF grids and ellipsoids: rejected with a ``ValueError`` naming
-  the shape (never rendered wrong);
-* meshes without triangles: rejected with a ``ValueError`` naming the shape. Mitsuba's
-  own ``obj`` and ``ply`` loaders refuse a file without faces, and so does a
-  ``params.update()`` that empties a mesh's faces, so such a mesh only comes from
-  Python code (``mi.Mesh(name, 0, 0)``), where it is more likely a mistake than an
-  intent: an object that silently disappears renders a wrong image without any error;
-* a scene without any geometry (only an environment, say) is valid, as it is for
-  Mitsuba: every ray misses.
+* ``static="native"`` (default): the static shapes, of any type Mitsuba intersects
+  (meshes, analytic shapes, instances, curves, SDF grids, ellipsoids), are traced by
+  Mitsuba's own accelerator over a sub-scene of those shapes
+  (:class:`hlbvh.native_group.NativeGroup`), built on the first update and rebuilt
+  only when a shape leaves it (``last_update["groups"]["static"]["left"]`` names it).
+  Moving meshes are in the dynamic :class:`MeshGroup`'s HLBVH; moving ``sphere``,
+  ``disk`` and ``cylinder`` shapes are intersected by their own routine
+  (``shape.ray_intersect_preliminary``, once per shape: a call through a shape
+  pointer inside a symbolic loop would trace every registered shape); any other shape
+  that moves is refused with a ``ValueError`` naming it.
+* ``static="hlbvh"``: every mesh in our BVHs (the static :class:`MeshGroup`, built
+  once with the static builder, and the dynamic one), traced by our watertight
+  traversal; the analytic shapes by their own routine; instances, curves, SDF grids
+  and ellipsoids are refused, naming the shape.
+
+A query asks each structure and keeps the nearest hit. Ties (the same ``t`` from two
+structures) go to the structure asked first: the static one, then the dynamic meshes,
+then the analytic shapes in scene order; ``ray_test`` stops asking once a ray is
+occluded.
+
+Meshes without triangles are refused, naming the shape: Mitsuba's own ``obj`` and
+``ply`` loaders refuse a file without faces, so such a mesh comes from Python code
+(``mi.Mesh(name, 0, 0)``) or a ``params.update()`` that emptied it, where it is more
+likely a mistake than an intent. A scene without geometry is valid: every ray misses.
 
 Per-frame update
 ----------------
-:meth:`SceneAccel.update` (after ``params.update()``) rebuilds only what the scene
-requires. A mesh's change is seen from the Dr.Jit variable indices of its vertex and
-face buffers (a ``params[...]`` assignment gives the mesh new variables; the
-accelerator holds the old ones, so their indices cannot be reused meanwhile): no
-buffer is compared. The meshes live in two groups, each with its own BVH:
+:meth:`SceneAccel.update` (after the scene changed: ``params.update()``, or
+:func:`hlbvh.traverse`'s cheaper update) brings the groups up to date, doing only what
+the scene requires: the dynamic group is refit or rebuilt as the
+:class:`UpdatePolicy` says (``update="auto"``, the default: refit while the tree's SAH
+cost stays within ``refit_tolerance`` of its last build's, rebuilt otherwise;
+``"rebuild"``, with the CSD sort seeded by last frame's order where that pays;
+``"fresh"``; ``"refit"``); new faces, a changed vertex count or a change of its meshes
+always rebuild. A query on an accelerator whose meshes changed since its last update
+is refused (naming the mesh): it would answer from old geometry.
+:attr:`SceneAccel.last_update` says what the last update did per group.
 
-* **static**: the meshes that never changed since the accelerator was built, built
-  once; a mesh whose buffers change for the first time leaves it, and the static BVH
-  is rebuilt once without it;
-* **dynamic**: the meshes that changed at least once, brought up to date on every
-  update in which one of them changed, as the :class:`UpdatePolicy` says: refit while
-  the tree's SAH cost stays within ``refit_tolerance`` of its last build's, rebuilt
-  otherwise (``update="auto"``, the default), rebuilt every time (``"rebuild"``; the
-  CSD sort starts from last frame's primitive order when the triangle count is
-  unchanged and that order pays), or refit every time (``"refit"``).
-  New faces, a changed vertex count or a change of its meshes always rebuild.
-
-Queries trace one tree: a wide node over the groups' BVHs
-(:func:`hlbvh.kernels.layout.joined`, static group first, so its slots stay cached
-while the dynamic group changes), so a ray pays one traversal whatever the number of
-groups. :attr:`SceneAccel.last_update` says what the last update did per group (for
-per-frame statistics).
-
-``coherent`` is accepted everywhere for signature compatibility; it is a performance
-hint of Embree's and :class:`SceneAccel` traces coherent and incoherent rays alike.
+``coherent`` is passed on to Mitsuba's accelerator (a hint of Embree's); our traversal
+traces coherent and incoherent rays alike.
 """
 
 from __future__ import annotations
@@ -68,25 +69,28 @@ from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.kernels.layout import joined
 from hlbvh.kernels.traversal import any_hit, closest_hit
 from hlbvh.mesh_group import MeshGroup
+from hlbvh.motion import MeshState, shape_states
+from hlbvh.native_group import NativeGroup, shape_groups
 from hlbvh.policy import ACCELS, DECISIONS, split_options
 from hlbvh.queries import NativeAccel, _Accel, _checked_scene
-from hlbvh.scene_geometry import mesh_buffers, scene_shapes
+from hlbvh.scene_geometry import _describe, scene_shapes, unmovable_error
 from hlbvh.timing import clock_ms
 
 
 class SceneAccel(_Accel):
-    """HLBVHs over the triangles of every mesh of a Mitsuba scene, plus the scene's
-    analytic shapes, queried with ``mi.Scene``'s own signatures and updated per frame
-    as the module docstring says.
+    """The ray queries of a Mitsuba scene, with ``mi.Scene``'s own signatures, over
+    the groups the module docstring describes, updated per frame.
 
     Args:
         scene: the ``mi.Scene`` (JIT variant: LLVM or CUDA).
         **options: options of :func:`hlbvh.build` (``builder``, ``leaf_size``,
             ``morton_bits``, ``quantization``, ``coarse_bits``, ``p``, ``sah_bins``) and
-            of the :class:`UpdatePolicy` (``update``, ``refit_tolerance``).
+            of the :class:`UpdatePolicy` (``static``, ``moving``, ``update``,
+            ``refit_tolerance``, ``static_builder``, ``static_leaf_size``).
     Raises:
-        ValueError: for an unknown or invalid option (naming it), or for a shape this
-            accelerator cannot intersect (see the module docstring), naming the shape.
+        ValueError: for an unknown or invalid option (naming it), an id in ``moving``
+            that names no shape of the scene, or a shape this accelerator cannot
+            intersect (see the module docstring), naming the shape.
 
     Attributes:
         shapes: ``scene.shapes()`` when built. The accelerator keeps the shapes, not
@@ -97,15 +101,18 @@ class SceneAccel(_Accel):
         policy: the validated :class:`UpdatePolicy`.
         meshes: indices of the meshes in ``shapes``.
         analytic: ``(index into shapes, shape)`` of every analytic shape.
-        static, dynamic: the two :class:`MeshGroup`.
+        moving: indices into ``shapes`` of the shapes that move, ascending.
+        static: the static group: a :class:`NativeGroup` (``static="native"``) or a
+            :class:`MeshGroup` (``static="hlbvh"``).
+        dynamic: the moving meshes' :class:`MeshGroup`.
         last_update: what the last :meth:`update` (or the construction) did:
             ``decision`` (the most work any group did, one of :data:`DECISIONS`),
-            ``ms`` (wall time of the whole update), ``triangles``, ``sah_cost`` (of
-            both groups together: each group's SAH cost weighted by its root box's
-            area over the area of the box around both, the cost of a ray through that
-            box when each group is entered through its root box; None without
-            triangles), and ``groups``: ``{"static": ..., "dynamic": ...}``, each
-            group's :attr:`MeshGroup.last`.
+            ``ms`` (wall time of the whole update), ``triangles``, ``sah_cost`` (of the
+            groups our BVHs trace together: each group's SAH cost weighted by its root
+            box's area over the area of the box around them, the cost of a ray through
+            that box when each group is entered through its root box; None without
+            triangles in our BVHs), ``moving`` (ids of the moving shapes), and
+            ``groups``: ``{"static": ..., "dynamic": ...}``, each group's ``last``.
     """
 
     name = "hlbvh"
@@ -116,12 +123,18 @@ class SceneAccel(_Accel):
         self.config = BuildConfig.from_options(**self._build_options)
         self.shapes = list(scene.shapes())
         self.shapes_dr = scene.shapes_dr()
-        self.meshes, self.analytic = scene_shapes(self.shapes)
-        self.static = MeshGroup("static")
+        native = self.policy.static == "native"
+        self.meshes, self.analytic, self._others = scene_shapes(self.shapes, self.policy.static)
+        self.moving = _declared(self.shapes, self.policy.moving)
+        for i in self.moving:
+            if i in self._others:
+                raise unmovable_error(self.shapes[i])
+        self.static = NativeGroup(shape_groups(scene)) if native else MeshGroup("static")
         self.dynamic = MeshGroup("dynamic")
         self.last_update = None
-        self._buffers = None  # each mesh's buffers at the last update
-        self._traced = []  # the groups with triangles, static first
+        self._states = None  # each shape's state at the last update
+        self._current = False  # whether the last update succeeded
+        self._traced = []  # the mesh groups with triangles our BVHs trace, static first
         self._tree = None  # their joined traversal slots (None: no triangles)
         self._prim_shape = self._prim_local = None  # mesh, in-mesh index per face index
         self.update()
@@ -132,63 +145,112 @@ class SceneAccel(_Accel):
         return len(shapes) == len(self.shapes) and all(a is b for a, b in zip(shapes, self.shapes))
 
     def changed(self) -> bool:
-        """Whether a mesh got new vertex or face buffers (a ``params.update()`` with
-        new values) since the last update, or a group's last build failed."""
-        buffers = mesh_buffers(self.shapes, self.meshes)
-        return (self.static.stale or self.dynamic.stale
-                or any(_new_buffers(buffers[i], self._buffers[i]) for i in self.meshes))
+        """Whether a shape changed (a ``params.update()`` with new values) since the
+        last update, or a group's last build failed."""
+        states = shape_states(self.shapes, range(len(self.shapes)))
+        return self._stale_groups() or any(
+            states[i].moved(self._states[i]) for i in range(len(self.shapes)))
 
     def update(self):
-        """Bring the BVHs up to date with the meshes' buffers; call it after
-        ``params.update()`` changed the scene (a call when nothing changed costs a look
-        at each mesh's buffers and records ``"kept"``).
+        """Bring the groups up to date with the scene's shapes; call it after the scene
+        changed (a call when nothing changed costs a look at each shape, see
+        :mod:`hlbvh.motion`, and records ``"kept"``).
 
         Returns:
             self.
         Raises:
-            ValueError: naming a mesh whose positions became non-finite.
+            ValueError: naming a mesh whose positions became non-finite or whose faces
+                were emptied, or a shape that moved but cannot be traced moving. The
+                accelerator is then left as it was, and refuses queries until an
+                update succeeds.
         """
         start = clock_ms()
-        buffers = mesh_buffers(self.shapes, self.meshes)
-        options, policy = self._build_options, self.policy
-        if self._buffers is None:
-            # ---- First build: every mesh is static until it changes ----
-            self.static.indices = self.meshes
-            self.static.update(self.shapes, options, policy, reshaped=True, decision="build")
+        self._current = False  # until every group is up to date
+        states = shape_states(self.shapes, range(len(self.shapes)))
+        first = self._states is None
+        changed = [] if first else [i for i in states if states[i].moved(self._states[i])]
+        # ---- Shapes that changed for the first time start moving ----
+        started = [i for i in changed if i not in self.moving]
+        for i in changed:
+            self._check_movable(i)
+        moving = tuple(sorted(self.moving + tuple(started)))
+        # ---- The static group: everything that never moved ----
+        self._update_static(moving, started, first)
+        self.moving = moving
+        # ---- The moving meshes ----
+        self.dynamic.indices = tuple(i for i in moving if i in self.meshes)
+        dynamic_changed = [i for i in changed if i in self.dynamic.indices]
+        if (first and self.dynamic.indices) or dynamic_changed or self.dynamic.stale:
+            reshaped = first or any(
+                states[i].reshaped(self._states[i]) for i in dynamic_changed)
+            self.dynamic.update(self.shapes, self._build_options, self.policy, reshaped,
+                                decision="build" if first else "rebuild")
         else:
-            changed = [i for i in self.meshes if _new_buffers(buffers[i], self._buffers[i])]
-            # ---- Meshes changing for the first time leave the static group ----
-            moved = [i for i in changed if i in self.static.indices]
-            self.static.indices = tuple(i for i in self.static.indices if i not in moved)
-            self.dynamic.indices = tuple(sorted(self.dynamic.indices + tuple(moved)))
-            # ---- Each group follows its meshes (a stale group: after a failed build) ----
-            if self.static.stale:
-                # Built once for every frame to come: with the static builder.
-                self.static.update(self.shapes, policy.static_options(options), policy,
-                                   reshaped=True)
-            else:
-                self.static.keep()
-            if changed or self.dynamic.stale:
-                reshaped = any(_reshaped(buffers[i], self._buffers[i]) for i in changed)
-                self.dynamic.update(self.shapes, options, policy, reshaped)
-            else:
-                self.dynamic.keep()
-        self._buffers = buffers  # only once every group is up to date
-        traced = [g for g in (self.static, self.dynamic) if g.bvh is not None]
+            self.dynamic.keep()
+        self._states, self._current = states, True
+        traced = [g for g in (self.static, self.dynamic) if isinstance(g, MeshGroup) and g.bvh]
         if traced != self._traced or any(g.last["decision"] != "kept" for g in traced):
             self._join(traced)
+        groups = (self.static, self.dynamic)
         self.last_update = dict(
-            decision=max((g.last["decision"] for g in (self.static, self.dynamic)),
-                         key=DECISIONS.index),
+            decision=max((g.last["decision"] for g in groups), key=DECISIONS.index),
             ms=clock_ms() - start,
             triangles=self.static.triangles + self.dynamic.triangles,
             sah_cost=self._sah_cost(),
-            groups={g.name: dict(g.last) for g in (self.static, self.dynamic)},
+            moving=[self.shapes[i].id() for i in self.moving],
+            groups={g.name: dict(g.last) for g in groups},
         )
         return self
 
+    def _check_movable(self, i: int):
+        """Refuse a change this accelerator cannot follow: a shape that cannot be traced
+        moving, or a mesh whose faces were emptied."""
+        shape = self.shapes[i]
+        if i in self._others:
+            raise unmovable_error(shape)
+        if shape.is_mesh() and shape.face_count() == 0:
+            raise ValueError(f"{_describe(shape)} has no triangles any more: it would "
+                             "silently be missing from the image; give it faces")
+
+    def _update_static(self, moving: tuple, started: list, first: bool):
+        """The static group over every shape (``"native"``) or mesh (``"hlbvh"``) not in
+        ``moving``; ``started``: the shapes that just started moving."""
+        if isinstance(self.static, NativeGroup):
+            still = tuple(i for i in range(len(self.shapes)) if i not in moving)
+            self.static.update(self.shapes, still, [self.shapes[i].id() for i in started])
+            return
+        self.static.indices = tuple(i for i in self.meshes if i not in moving)
+        if first or self.static.stale:
+            # Built once for every frame to come: with the static builder, unless no
+            # shape was declared moving (the accelerator's first tree over everything).
+            options = (self._build_options if first and not self.moving
+                       else self.policy.static_options(self._build_options))
+            self.static.update(self.shapes, options, self.policy, reshaped=True,
+                               decision="build" if first else "rebuild")
+        else:
+            self.static.keep()
+
+    def _stale_groups(self) -> bool:
+        return any(isinstance(g, MeshGroup) and g.stale for g in (self.static, self.dynamic))
+
+    def _check_current(self):
+        """Refuse a query after a failed update, or when a mesh changed since the last
+        update (the trees hold its old geometry), naming the mesh. Looks at the meshes'
+        buffers only: a look at every shape would cost a traversal per query."""
+        if not self._current:
+            raise RuntimeError("SceneAccel: its last update() failed (see the error it "
+                               "raised); fix the scene and call update() before tracing")
+        for i in self.meshes:
+            shape = self.shapes[i]
+            if MeshState(shape.vertex_positions_buffer(), shape.faces_buffer()).moved(
+                    self._states[i]):
+                raise RuntimeError(
+                    f"SceneAccel: {_describe(shape)} changed since the accelerator's last "
+                    "update(); call update() before tracing (it would answer from the old "
+                    "geometry)")
+
     def _join(self, traced):
-        """One tree over the groups' BVHs (static first: its slots stay cached while
+        """One tree over our groups' BVHs (static first: its slots stay cached while
         the dynamic group changes), packed now, not inside some integrator's symbolic
         loop, and the mesh and in-mesh index of each of its face indices."""
         self._traced = traced
@@ -197,7 +259,7 @@ class SceneAccel(_Accel):
         self._prim_local = concat([g.geometry.prim_local for g in traced]) if traced else None
 
     def _sah_cost(self):
-        """SAH cost of both groups together (see :attr:`last_update`)."""
+        """SAH cost of our groups together (see :attr:`last_update`)."""
         if len(self._traced) < 2:
             return float(self._traced[0].bvh.stats.sah_cost) if self._traced else None
         boxes = [g.root_box() for g in self._traced]
@@ -206,36 +268,58 @@ class SceneAccel(_Accel):
         return sum((_half_area(*box) / union if union > 0 else 1.0) * g.bvh.stats.sah_cost
                    for g, box in zip(self._traced, boxes))
 
+    def _routine_shapes(self):
+        """``(index, shape)`` of the analytic shapes traced by their own routine: all of
+        them with ``static="hlbvh"``, the moving ones with ``"native"``."""
+        if isinstance(self.static, NativeGroup):
+            return [(i, s) for i, s in self.analytic if i in self.moving]
+        return self.analytic
+
     def _preliminary(self, ray, coherent, active, reorder):
-        """The groups' closest triangle hit, then each analytic shape's own routine,
-        merged by nearest ``t``; ``coherent`` and ``reorder`` change nothing here."""
+        """The static group's closest hit, then our BVHs', then each analytic shape's
+        own routine, merged by nearest ``t`` (ties to the earlier)."""
+        self._check_current()
         n = dr.width(ray)
         active = mi.Bool(active) & dr.full(mi.Bool, True, n)
-        t, prim_uv, prim_index, shape_index = self._closest_mesh_hit(ray, active)
-        for index, shape in self.analytic:
+        native = isinstance(self.static, NativeGroup) and self.static.scene is not None
+        if native:
+            pi = self.static.preliminary(ray, coherent, active, reorder)
+            t = dr.select(pi.is_valid(), pi.t, dr.inf)
+            prim_uv, prim_index, shape_index = pi.prim_uv, pi.prim_index, pi.shape_index
+            from_native = pi.is_valid()
+        else:
+            t, prim_uv = dr.full(mi.Float, dr.inf, n), dr.zeros(mi.Point2f, n)
+            prim_index, shape_index = dr.zeros(mi.UInt32, n), dr.zeros(mi.UInt32, n)
+            from_native = dr.zeros(mi.Bool, n)
+        hits = [self._closest_mesh_hit(ray, active)] if self._tree is not None else []
+        for index, shape in self._routine_shapes():
             pi_s = shape.ray_intersect_preliminary(ray, 0, active)
-            closer = pi_s.is_valid() & (pi_s.t < t)
-            t = dr.select(closer, pi_s.t, t)
-            prim_uv = dr.select(closer, pi_s.prim_uv, prim_uv)
-            prim_index = dr.select(closer, pi_s.prim_index, prim_index)
-            shape_index = dr.select(closer, index, shape_index)
-        pi = dr.zeros(mi.PreliminaryIntersection3f, n)
-        pi.valid = active & (t < dr.inf)
-        pi.t = dr.select(pi.valid, t, dr.inf)
-        pi.prim_uv = mi.Point2f(prim_uv)
-        pi.prim_index = dr.select(pi.valid, prim_index, 0)
-        pi.shape_index = dr.select(pi.valid, shape_index, 0xFFFFFFFF)
+            hits.append((dr.select(pi_s.is_valid(), pi_s.t, dr.inf), pi_s.prim_uv,
+                         pi_s.prim_index, dr.full(mi.UInt32, index, n)))
+        for t_h, uv_h, prim_h, shape_h in hits:
+            closer = t_h < t
+            t = dr.select(closer, t_h, t)
+            prim_uv = dr.select(closer, uv_h, prim_uv)
+            prim_index = dr.select(closer, prim_h, prim_index)
+            shape_index = dr.select(closer, shape_h, shape_index)
+            from_native &= ~closer
+        result = dr.zeros(mi.PreliminaryIntersection3f, n)
+        result.valid = active & (t < dr.inf)
+        result.t = dr.select(result.valid, t, dr.inf)
+        result.prim_uv = mi.Point2f(prim_uv)
+        result.prim_index = dr.select(result.valid, prim_index, 0)
+        result.shape_index = dr.select(result.valid, shape_index, 0xFFFFFFFF)
         if dr.width(self.shapes_dr) > 0:  # a scene may have no shape at all
-            pi.shape = dr.gather(mi.ShapePtr, self.shapes_dr, pi.shape_index, pi.valid)
-        return pi
+            ours = result.valid & ~from_native
+            result.shape = dr.gather(mi.ShapePtr, self.shapes_dr, result.shape_index, ours)
+            if native:
+                result.shape = dr.select(from_native, pi.shape, result.shape)
+                result.instance = dr.select(from_native, pi.instance, result.instance)
+        return result
 
     def _closest_mesh_hit(self, ray, active):
-        """(t, prim_uv, prim_index, shape_index) of the closest triangle hit of the
+        """(t, prim_uv, prim_index, shape_index) of the closest triangle hit of our
         groups' joined tree; t infinite where there is none."""
-        n = dr.width(ray)
-        if self._tree is None:
-            return (dr.full(mi.Float, dr.inf, n), dr.zeros(mi.Point2f, n),
-                    dr.zeros(mi.UInt32, n), dr.zeros(mi.UInt32, n))
         t, u, v, prim, valid = closest_hit(self._tree, ray.o, ray.d, ray.maxt, active)
         valid = mi.Bool(valid)
         return (dr.select(valid, mi.Float(t), dr.inf), mi.Point2f(mi.Float(u), mi.Float(v)),
@@ -243,13 +327,27 @@ class SceneAccel(_Accel):
                 dr.gather(mi.UInt32, self._prim_shape, mi.UInt32(prim), valid))
 
     def _test(self, ray, coherent, active):
+        self._check_current()
         active = mi.Bool(active) & dr.full(mi.Bool, True, dr.width(ray))
         hit = dr.zeros(mi.Bool, dr.width(ray))
+        if isinstance(self.static, NativeGroup) and self.static.scene is not None:
+            hit |= self.static.test(ray, coherent, active)
         if self._tree is not None:
-            hit |= mi.Bool(any_hit(self._tree, ray.o, ray.d, ray.maxt, active))
-        for _, shape in self.analytic:
+            hit |= mi.Bool(any_hit(self._tree, ray.o, ray.d, ray.maxt, active & ~hit))
+        for _, shape in self._routine_shapes():
             hit |= shape.ray_test(ray, active & ~hit)
         return hit & active
+
+
+def _declared(shapes, ids: tuple) -> tuple:
+    """Indices into ``shapes`` of the shapes whose ids are ``ids`` (every shape of an
+    id); ValueError naming the ids that name no shape."""
+    found = [i for i, shape in enumerate(shapes) if shape.id() in ids]
+    unknown = sorted(set(ids) - {shapes[i].id() for i in found})
+    if unknown:
+        raise ValueError(f"moving={list(ids)}: no shape of the scene has the id(s) {unknown} "
+                         f"(its shapes: {sorted({s.id() for s in shapes})})")
+    return tuple(found)
 
 
 def _half_area(lo, hi) -> float:
@@ -257,16 +355,6 @@ def _half_area(lo, hi) -> float:
     precision, as the SAH cost's areas)."""
     e = [max(h - l, 0.0) for l, h in zip(lo, hi)]
     return e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
-
-
-def _new_buffers(now: tuple, before: tuple) -> bool:
-    """Whether a mesh's (vertex, face) buffers are other variables than before."""
-    return now[0].index != before[0].index or now[1].index != before[1].index
-
-
-def _reshaped(now: tuple, before: tuple) -> bool:
-    """Whether a mesh's faces or vertex count changed (a refit cannot follow)."""
-    return now[1].index != before[1].index or dr.width(now[0]) != dr.width(before[0])
 
 
 def make_accel(scene, accel: str = "hlbvh", **options):

@@ -12,6 +12,7 @@ import drjit as dr
 import mitsuba as mi
 
 from hlbvh import scenes
+from hlbvh.parameters import traverse
 from hlbvh.scene_geometry import scene_shapes
 from hlbvh.errors import UserError
 from hlbvh.settings import RenderSettings
@@ -41,11 +42,14 @@ class FrameRenderer:
         ValueError: the integrator cannot be made from the settings (naming what
             Mitsuba or the builder objected to).
         UserError: the frame does not fit in Dr.Jit's arrays or the machine's memory
-            (:func:`check_frame_fits`), or ``accel="hlbvh"`` and the scene holds shapes
-            our accelerator does not intersect (instances, curves, ...).
+            (:func:`check_frame_fits`), or ``accel="hlbvh"`` with ``static="hlbvh"``
+            and the scene holds shapes our BVHs do not intersect (instances, curves,
+            ...).
 
     Attributes:
-        scene: the loaded ``mi.Scene``; ``params``: its ``mi.traverse``;
+        scene: the loaded ``mi.Scene``; ``params``: its parameters (with
+        ``accel="hlbvh"`` through :func:`hlbvh.traverse`, whose update skips Mitsuba's
+        whole-scene rebuild, since nothing queries Mitsuba's own accelerator then);
         integrator: its hlbvh integrator.
     """
 
@@ -53,6 +57,10 @@ class FrameRenderer:
         self.animation = animation
         self.settings = settings
         description = settings.integrator_dict()
+        if settings.accel == "hlbvh" and "moving" not in description:
+            # The animation says what moves: its static structure is built once, never
+            # rebuilt without the moving shapes at their first motion.
+            description["moving"] = ",".join(animation.animated_ids())
         try:
             mi.load_dict(description)  # a bad property fails here, alone, before the scene
         except RuntimeError as error:
@@ -61,14 +69,15 @@ class FrameRenderer:
             ) from None
         self.scene = mi.load_dict(animation.scene_dict(
             resolution=settings.resolution, spp=settings.spp, integrator=description))
-        self.params = mi.traverse(self.scene)
+        self.params = (traverse(self.scene) if settings.accel == "hlbvh"
+                       else mi.traverse(self.scene))
         self.integrator = self.scene.integrator()
         sensor = self.scene.sensors()[0]
         width, height = sensor.film().crop_size()
         check_frame_fits(int(width), int(height), int(sensor.sampler().sample_count()))
         if settings.accel == "hlbvh":
             try:
-                scene_shapes(self.scene.shapes())
+                scene_shapes(self.scene.shapes(), description.get("static", "native"))
             except ValueError as error:
                 reason = str(error).split(" Use accel=")[0]
                 raise UserError(f"{reason} Render this scene with --accel native "
@@ -87,12 +96,11 @@ class FrameRenderer:
             ValueError: the frame's geometry cannot be read or applied (naming the file
                 and the frame for sequences).
         """
-        # ---- The frame's geometry into the scene; Mitsuba updates itself ----
-        # With our accelerator, Mitsuba's own (Embree) is never queried: skip its rebuild.
+        # ---- The frame's geometry into the scene; its shapes update themselves ----
+        # (with our accelerator, through hlbvh.traverse: Mitsuba's is never rebuilt)
         start = clock_ms()
         parameters = _TimedUpdate(self.params)
-        scenes.apply_frame(self.scene, parameters, self.animation.frame(i),
-                           rebuild_native=self.settings.accel == "native")
+        scenes.apply_frame(self.scene, parameters, self.animation.frame(i))
         geometry_ms = clock_ms() - start - parameters.update_ms
 
         # ---- Our accelerator follows ----

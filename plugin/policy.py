@@ -12,12 +12,17 @@ from dataclasses import dataclass
 from hlbvh.kernels.bvh import BUILDERS, BuildConfig, integer_option
 
 ACCELS = ("hlbvh", "native")
+#: What traces the shapes that do not move (option ``static``): ``"native"``, the scene's
+#: own accelerator (Embree on LLVM, OptiX on CUDA) over a sub-scene of those shapes,
+#: built once; ``"hlbvh"``, our BVH and watertight traversal for every mesh.
+STATICS = ("native", "hlbvh")
 #: Per-frame policies of :meth:`SceneAccel.update` (option ``update``).
 UPDATES = ("rebuild", "fresh", "refit", "auto")
 #: The options of :func:`hlbvh.build` an accelerator accepts.
 BUILD_OPTIONS = tuple(f.name for f in dataclasses.fields(BuildConfig))
 #: The accelerator's own options (:class:`UpdatePolicy`).
-UPDATE_OPTIONS = ("update", "refit_tolerance", "static_builder", "static_leaf_size")
+UPDATE_OPTIONS = ("update", "refit_tolerance", "static", "moving", "static_builder",
+                  "static_leaf_size")
 #: The static tree's leaf size with the "sah" builder under ``static_leaf_size="auto"``.
 STATIC_SAH_LEAF_SIZE = 2
 #: What an update did to a group, from the least work to the most: ``kept`` (nothing
@@ -27,7 +32,8 @@ DECISIONS = ("kept", "refit", "rebuild", "build")
 
 @dataclass
 class UpdatePolicy:
-    """How :meth:`SceneAccel.update` brings the dynamic group up to date when only its
+    """What traces the shapes that do not move, which shapes move from the start, and
+    how :meth:`SceneAccel.update` brings the dynamic group up to date when only its
     meshes' vertex positions changed (new faces or vertex counts always rebuild).
 
     Attributes:
@@ -46,8 +52,19 @@ class UpdatePolicy:
             396 / 404, rigid 698 / 698; docs/decisions.md.)
         refit_tolerance: the drift ``"auto"`` accepts, a number >= 1 (default 1.05: at
             1.3 fracture's refit trees traced 10-13% slower than rebuilt ones).
-        static_builder: the builder of the static group once meshes have moved out of
-            it (``"sah"`` by default: it is built once and traced every frame, so the
+        static: ``"native"`` (default): shapes that have not moved are traced by the
+            scene's own accelerator (Embree on LLVM, OptiX on CUDA), any shape type
+            included, and only the moving meshes by hlbvh: the fastest images.
+            ``"hlbvh"``: every mesh in our BVHs, traced by our watertight traversal (no
+            ray slips between two triangles sharing an edge, also at extreme
+            coordinates, where Embree's test may miss), the analytic shapes by their own
+            routine; instances, curves and the like are refused.
+        moving: ids of shapes that will move (a tuple of str, or one str of ids
+            separated by commas or spaces): they are in the dynamic group from the
+            first build, so their first motion does not rebuild the static structure
+            without them. Unknown ids are refused, naming them.
+        static_builder: with ``static="hlbvh"``, the builder of the static group once
+            meshes have moved out of it (``"sah"`` by default: it is built once and traced every frame, so the
             best tree pays; measured on the cloth scene's ground and pole: SAH cost 7.9
             with "hlbvh", 4.5 with "sah", 1.5x the primary rays per second), or
             ``"same"`` for the scene's own builder.
@@ -61,6 +78,8 @@ class UpdatePolicy:
 
     update: str = "auto"
     refit_tolerance: float = 1.05
+    static: str = "native"
+    moving: tuple = ()
     static_builder: str = "sah"
     static_leaf_size: int | str = "auto"
 
@@ -76,6 +95,9 @@ class UpdatePolicy:
                 "cost a refit tree may reach, relative to a fresh build's)"
             )
         self.refit_tolerance = float(tolerance)
+        if self.static not in STATICS:
+            raise ValueError(f"static={self.static!r}: expected one of {STATICS}")
+        self.moving = _shape_ids(self.moving)
         if self.static_builder not in BUILDERS + ("same",):
             raise ValueError(
                 f"static_builder={self.static_builder!r}: expected one of {BUILDERS + ('same',)}"
@@ -98,6 +120,17 @@ class UpdatePolicy:
         elif self.static_leaf_size != "same":
             static["leaf_size"] = self.static_leaf_size
         return static
+
+
+def _shape_ids(value) -> tuple:
+    """``moving`` as a tuple of ids: from one string (ids separated by commas or
+    spaces, as an XML property gives them) or a sequence of strings."""
+    if isinstance(value, str):
+        return tuple(part for part in value.replace(",", " ").split() if part)
+    if isinstance(value, (list, tuple, set, frozenset)) and all(isinstance(v, str) for v in value):
+        return tuple(dict.fromkeys(value))
+    raise ValueError(f"moving={value!r}: expected shape ids, as a tuple of str or one str "
+                     "of ids separated by commas")
 
 
 def split_options(options: dict) -> tuple[UpdatePolicy, dict]:

@@ -1,7 +1,8 @@
-"""The meshes of a Mitsuba scene as the builder takes them: which shapes are meshes,
-which are analytic shapes intersected by Mitsuba's own routine, which are refused
-(naming the shape), and the world-space triangles of a set of meshes in one buffer,
-with each triangle's mesh and in-mesh index."""
+"""The shapes of a Mitsuba scene as the accelerator takes them: which shapes are
+meshes, which are analytic shapes intersected by Mitsuba's own routine, which are only
+traced while still (naming the shape when one is refused), and the world-space
+triangles of a set of meshes in one buffer, with each triangle's mesh and in-mesh
+index."""
 
 from __future__ import annotations
 
@@ -41,20 +42,24 @@ def _describe(shape) -> str:
     return f"shape {shape.id()!r} ({shape.class_name()})"
 
 
-def scene_shapes(shapes) -> tuple[tuple, list]:
-    """Sort a scene's shapes into meshes and analytic shapes.
+def scene_shapes(shapes, static: str = "hlbvh") -> tuple[tuple, list, tuple]:
+    """Sort a scene's shapes into meshes, analytic shapes and the rest.
 
     Args:
         shapes: ``scene.shapes()``.
+        static: the accelerator's ``static`` option. With ``"native"`` the other shapes
+            (instances, curves, SDF grids, ellipsoids, ...) are welcome while they stay
+            still: Mitsuba's own accelerator traces them. With ``"hlbvh"`` they are
+            refused.
     Returns:
-        ``(mesh indices, analytic)``: the indices of the meshes in ``shapes``, and
-        ``(index, shape)`` of every analytic shape.
+        ``(mesh indices, analytic, other indices)``: the indices of the meshes in
+        ``shapes``, ``(index, shape)`` of every analytic shape, and the indices of the
+        other shapes.
     Raises:
-        ValueError: naming the shape, for an instance, a curve, an SDF grid, ellipsoids
-            or any other shape type this accelerator does not intersect, and for a
-            mesh without triangles.
+        ValueError: naming the shape, for a mesh without triangles, and with
+            ``static="hlbvh"`` for any shape type our accelerator does not intersect.
     """
-    meshes, analytic = [], []
+    meshes, analytic, others = [], [], []
     for index, shape in enumerate(shapes):
         if shape.is_mesh():
             if shape.face_count() == 0:
@@ -65,14 +70,27 @@ def scene_shapes(shapes) -> tuple[tuple, list]:
             meshes.append(index)
         elif shape.class_name() in _ANALYTIC:
             analytic.append((index, shape))
+        elif static == "native":
+            others.append(index)
         else:
             raise ValueError(
-                f"{_describe(shape)}: hlbvh intersects meshes and the analytic shapes "
-                f"{', '.join(s.lower() for s in _ANALYTIC)}; instances, shape groups, "
-                "curves, SDF grids and ellipsoids are not supported yet. Use "
-                "accel='native' for this scene."
+                f"{_describe(shape)}: with static='hlbvh', hlbvh intersects meshes and the "
+                f"analytic shapes {', '.join(s.lower() for s in _ANALYTIC)}; instances, "
+                "curves, SDF grids and ellipsoids are traced only with static='native' "
+                "(the default) while they do not move. Use accel='native' for this scene."
             )
-    return tuple(meshes), analytic
+    return tuple(meshes), analytic, tuple(others)
+
+
+def unmovable_error(shape) -> ValueError:
+    """The error for a shape that moved but that hlbvh cannot trace as a moving shape
+    (anything but a mesh or an analytic shape: an instance's ``to_world``, a curve's
+    control points, an SDF grid): naming it and what to do."""
+    return ValueError(
+        f"{_describe(shape)} moved: hlbvh traces moving meshes and the analytic shapes "
+        f"{', '.join(s.lower() for s in _ANALYTIC)}, not moving {shape.class_name()} shapes; "
+        "keep it still, or render this scene with accel='native'"
+    )
 
 
 def collect_geometry(shapes, indices=None) -> SceneGeometry:
@@ -86,7 +104,7 @@ def collect_geometry(shapes, indices=None) -> SceneGeometry:
     A Python loop over the meshes (a few), none over triangles.
     """
     if indices is None:
-        indices = scene_shapes(shapes)[0]
+        indices = scene_shapes(shapes, "native")[0]
     vertices, faces, prim_shape, prim_local = [], [], [], []
     vertex_base = 0
     for index in indices:
@@ -112,11 +130,23 @@ def _concat(arrays):
     return arrays[0] if len(arrays) == 1 else dr.concat(arrays)
 
 
-def mesh_buffers(shapes, indices) -> dict:
-    """``{index: (vertex buffer, face buffer)}`` of the meshes ``shapes[i]``: the arrays
-    themselves, whose JIT variable indices tell whether a mesh got new buffers. Held,
-    they keep their indices from being given to other arrays."""
-    return {i: (shapes[i].vertex_positions_buffer(), shapes[i].faces_buffer()) for i in indices}
+def check_finite(shapes, indices) -> None:
+    """Refuse meshes among ``shapes[i]`` (``i`` in ``indices``) whose vertex positions
+    are not all finite, naming the first: Mitsuba's own accelerator would trace them
+    without a word, and render a wrong image. One reduction per mesh, evaluated
+    together."""
+    meshes = [i for i in indices if shapes[i].is_mesh()]
+    finite = [dr.all(dr.isfinite(shapes[i].vertex_positions_buffer()), axis=None) for i in meshes]
+    if finite:
+        dr.eval(*finite)
+    for i, ok in zip(meshes, finite):
+        if not ok[0]:
+            raise _non_finite(shapes[i])
+
+
+def _non_finite(mesh) -> ValueError:
+    return ValueError(f"{_describe(mesh)} has non-finite (NaN or infinite) vertex positions: "
+                      "fix the mesh or the parameters written into it")
 
 
 def _named_error(shapes, indices, error: ValueError) -> ValueError:
@@ -125,9 +155,6 @@ def _named_error(shapes, indices, error: ValueError) -> ValueError:
     for index in indices:
         mesh = shapes[index]
         if not dr.all(dr.isfinite(mesh.vertex_positions_buffer()), axis=None):
-            return ValueError(
-                f"{_describe(mesh)} has non-finite (NaN or infinite) vertex positions: "
-                "fix the mesh or the parameters written into it"
-            )
+            return _non_finite(mesh)
     names = ", ".join(repr(shapes[i].id()) for i in indices)
     return ValueError(f"building the HLBVH of the meshes {names} failed: {error}")

@@ -54,6 +54,9 @@ name           what moves                                                      s
 ``rigid``      ``objects=240`` bodies in ``groups=8`` meshes, bouncing and      walls, columns,
                spinning                                                        ground
 ``soup``       random triangles re-drawn every frame (incoherent, worst case)  ground
+``world``      the ``cloth`` flag (``flag_triangles=100_000``) over rolling     pole, terrain
+               hills (``triangles=1_100_000`` in all): a moving object in a
+               static world
 =============  ==============================================================  ==================
 
 Sequences (:class:`SequenceScene`)
@@ -87,8 +90,9 @@ from .rigid import Rigid
 from .sequence import SequenceScene
 from .soup import Soup
 from .twist import Twist
+from .world import World
 
-_PROCEDURAL = {cls.name: cls for cls in (Cloth, Twist, Fracture, Rigid, Soup)}
+_PROCEDURAL = {cls.name: cls for cls in (Cloth, Twist, Fracture, Rigid, Soup, World)}
 
 
 def names() -> list[str]:
@@ -121,6 +125,7 @@ __all__ = [
     "Fracture",
     "Rigid",
     "Soup",
+    "World",
     "apply_frame",
     "get",
     "names",

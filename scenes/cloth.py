@@ -34,9 +34,13 @@ class Cloth(ProceduralScene):
 
     name = "cloth"
 
+    def _flag_budget(self) -> int:
+        """The least number of triangles of the flag: all but the static parts'."""
+        return max(self.triangles - self._static_triangles(), 8)
+
     def _grid(self) -> tuple[int, int]:
         """Quads of the flag along x and y, the flag's aspect ratio kept."""
-        budget = max(self.triangles - self._static_triangles(), 8)
+        budget = self._flag_budget()
         aspect = FLAG_LENGTH / FLAG_HEIGHT
         ny = max(2, math.ceil(math.sqrt(budget / (2 * aspect))))
         nx = max(2, math.ceil(budget / (2 * ny)))
@@ -74,12 +78,15 @@ class Cloth(ProceduralScene):
         return {"flag": 2 * nx * ny, "pole": 4 * POLE_SEGMENTS, "ground": 2}
 
     def _build_parts(self) -> dict[str, Part]:
+        return {**self._flag_parts(), "ground": ground((0.30, 0.42, 0.22))}
+
+    def _flag_parts(self) -> dict[str, Part]:
+        """The flag and its pole."""
         pole, pole_faces = meshes.capped_tube(POLE_SEGMENTS, 1)
         pole = pole * np.array([POLE_RADIUS, POLE_HEIGHT, POLE_RADIUS])
         return {
             "flag": Part(self._flag[1], diffuse((0.75, 0.12, 0.10), two_sided=True)),
             "pole": Part(pole_faces, diffuse((0.8, 0.8, 0.78)), pole),
-            "ground": ground((0.30, 0.42, 0.22)),
         }
 
     def _animated_positions(self, t: float, i: int) -> dict[str, np.ndarray]:

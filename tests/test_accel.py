@@ -109,7 +109,7 @@ def test03_instances_are_rejected_naming_the_shape():
         "floor": {"type": "rectangle"},
     })
     with pytest.raises(ValueError, match="'copy' \\(Instance\\)"):
-        hlbvh.SceneAccel(scene)
+        hlbvh.SceneAccel(scene, static="hlbvh")
 
 
 def test04_curves_are_rejected_naming_the_shape(tmp_path):
@@ -118,7 +118,7 @@ def test04_curves_are_rejected_naming_the_shape(tmp_path):
     scene = mi.load_dict({"type": "scene",
                           "hair": {"type": "linearcurve", "filename": str(path)}})
     with pytest.raises(ValueError, match="'hair' \\(LinearCurve\\)"):
-        hlbvh.SceneAccel(scene)
+        hlbvh.SceneAccel(scene, static="hlbvh")
 
 
 def _scene_with_mesh(positions: np.ndarray, mesh_id="tri") -> mi.Scene:
@@ -135,12 +135,12 @@ def test05_non_finite_vertices_name_the_shape():
                           [0, 1, 1]], dtype=np.float32)
     scene = _scene_with_mesh(positions, "broken-mesh")
     with pytest.raises(ValueError, match="'broken-mesh'.*non-finite"):
-        hlbvh.SceneAccel(scene)
+        hlbvh.SceneAccel(scene, static="hlbvh")
 
 
 def test06_scene_without_geometry_misses_everywhere():
     scene = mi.load_dict({"type": "scene", "sky": {"type": "constant"}})
-    accel = hlbvh.SceneAccel(scene)
+    accel = hlbvh.SceneAccel(scene, static="hlbvh")
     ray = mi.Ray3f(mi.Point3f(0, 0, 0), mi.Vector3f([1, 0, 0], [0, 1, 0], [0, 0, 1]))
     pi = accel.ray_intersect_preliminary(ray)
     assert not dr.any(pi.is_valid()) and dr.all(pi.t == dr.inf)
@@ -154,7 +154,7 @@ def test07_meshes_without_triangles_name_the_shape():
     scene = mi.load_dict({"type": "scene", "empty": mi.Mesh("empty", 0, 0),
                           "ball": {"type": "sphere"}})
     with pytest.raises(ValueError, match="'empty' \\(Mesh\\) has no triangles"):
-        hlbvh.SceneAccel(scene)
+        hlbvh.SceneAccel(scene, static="hlbvh")
 
 
 # ---------------------------------------------------------------------------------------
@@ -213,7 +213,7 @@ def test10_collected_triangles_are_the_meshes_world_space_triangles():
     """Every global triangle maps back to (shape index, local index) and has exactly
     that mesh's world-space vertices (numpy reference built shape by shape)."""
     scene = mi.load_dict(analytic_scene())
-    accel = hlbvh.SceneAccel(scene)
+    accel = hlbvh.SceneAccel(scene, static="hlbvh")
     geometry = collect_geometry(scene.shapes())
     vertices = np.array(geometry.vertices).reshape(-1, 3)
     faces = np.array(geometry.faces).reshape(-1, 3)
@@ -265,7 +265,7 @@ def test11_preliminary_hits_and_shadow_tests_equal_native(scene_fn):
     """Camera rays (coherent) and rays from inside the scene in every direction
     (incoherent): at most 2 of 4096 may disagree (a grazing ray on a seam)."""
     scene = mi.load_dict(scene_fn())
-    accel = hlbvh.SceneAccel(scene)
+    accel = hlbvh.SceneAccel(scene, static="hlbvh")
     for coherent, ray in ((True, camera_rays(scene, 64)), (False, bounce_rays(scene))):
         allowed = 1 - 2 / dr.width(ray)
         ours = accel.ray_intersect_preliminary(ray, coherent)
@@ -281,7 +281,7 @@ def test12_analytic_hits_equal_native():
     spheres and disks give the same bits; cylinders differ in the last bits (Embree's
     callback evaluates them in double precision, a direct JIT call in float32)."""
     scene = mi.load_dict(analytic_scene())
-    accel = hlbvh.SceneAccel(scene)
+    accel = hlbvh.SceneAccel(scene, static="hlbvh")
     ray = bounce_rays(scene, 16384, seed=3)
     ours, theirs = accel.ray_intersect(ray), scene.ray_intersect(ray)
     shape_index = np.array(accel.ray_intersect_preliminary(ray).shape_index)
@@ -301,7 +301,7 @@ def test12_analytic_hits_equal_native():
 
 def test13_nan_and_degenerate_rays_miss_cleanly():
     scene = mi.load_dict(analytic_scene())
-    accel = hlbvh.SceneAccel(scene)
+    accel = hlbvh.SceneAccel(scene, static="hlbvh")
     nan, inf = float("nan"), float("inf")
     o = mi.Point3f([nan, 0, 0, 0, 0, inf], [0, nan, 1, 1, 1, 0], [5, 5, 5, 5, 5, 5])
     d = mi.Vector3f([0, 0, nan, 0, 0, 0], [0, 0, 0, 0, 0, 0], [-1, -1, -1, 0, -1, -1])
@@ -329,7 +329,7 @@ def test14_update_follows_params_update():
     """Move the Cornell box's geometry through params.update(): changed() notices,
     update() rebuilds, and the hits follow the native ones again."""
     scene = mi.load_dict(cornell_box())
-    accel = hlbvh.SceneAccel(scene)
+    accel = hlbvh.SceneAccel(scene, static="hlbvh")
     assert not accel.changed()
     params = mi.traverse(scene)
     key = next(k for k in params.keys() if k.endswith("vertex_positions"))

@@ -144,7 +144,7 @@ def cornell():
 
 
 @pytest.mark.parametrize("make", [
-    lambda s: hlbvh.SceneAccel(s, leafsize=2),
+    lambda s: hlbvh.SceneAccel(s, static="hlbvh", leafsize=2),
     lambda s: hlbvh.make_accel(s, "hlbvh", leafsize=2),
     lambda s: hlbvh.make_accel(s, "native", leafsize=2),
 ])
@@ -162,7 +162,7 @@ def test06_accelerators_reject_unknown_options_naming_them(make, cornell):
 ])
 def test07_scene_accel_rejects_bad_option_values_naming_them(options, pattern, cornell):
     with pytest.raises(ValueError, match=pattern):
-        hlbvh.SceneAccel(mi.load_dict(cornell), **options)
+        hlbvh.SceneAccel(mi.load_dict(cornell), static="hlbvh", **options)
 
 
 @pytest.mark.parametrize("accel", ["embree", None, "HLBVH", 3])
@@ -174,12 +174,12 @@ def test08_make_accel_rejects_unknown_accelerators(accel, cornell):
 @pytest.mark.parametrize("scene", [3, None, "scene.xml"])
 def test09_accelerators_reject_what_is_not_a_scene(scene):
     with pytest.raises(TypeError, match="scene"):
-        hlbvh.SceneAccel(scene)
+        hlbvh.SceneAccel(scene, static="hlbvh")
 
 
 @pytest.mark.parametrize("query", ["ray_intersect_preliminary", "ray_intersect", "ray_test"])
 def test10_queries_reject_what_is_not_a_ray(query, cornell):
-    accel = hlbvh.SceneAccel(mi.load_dict(cornell))
+    accel = hlbvh.SceneAccel(mi.load_dict(cornell), static="hlbvh")
     with pytest.raises(TypeError, match="ray"):
         getattr(accel, query)(3)
 
@@ -191,9 +191,10 @@ def test11_non_finite_and_empty_meshes_are_named(cornell):
     params["faces"] = mi.UInt32([0, 1, 2])
     params.update()
     raises_naming(ValueError, "'spiky'.*non-finite",
-                  lambda: hlbvh.SceneAccel(mi.load_dict(dict(cornell, spiky=mesh))))
+                  lambda: hlbvh.SceneAccel(mi.load_dict(dict(cornell, spiky=mesh)), static="hlbvh"))
     raises_naming(ValueError, "'hollow'.*no triangles",
-                  lambda: hlbvh.SceneAccel(mi.load_dict(dict(cornell, hollow=mi.Mesh("hollow", 0, 0)))))
+                  lambda: hlbvh.SceneAccel(mi.load_dict(dict(cornell, hollow=mi.Mesh("hollow", 0, 0))),
+                                           static="hlbvh"))
 
 
 def _break_and_restore(cornell, fresh: bool):
@@ -203,7 +204,7 @@ def _break_and_restore(cornell, fresh: bool):
     the back wall still hits. (``params[key]`` is a handle that the next assignment
     overwrites: keep a copy.)"""
     scene = mi.load_dict(cornell)
-    accel = hlbvh.SceneAccel(scene)
+    accel = hlbvh.SceneAccel(scene, static="hlbvh")
     params = mi.traverse(scene)
     key = next(k for k in params.keys() if k.endswith("vertex_positions"))
     good = mi.Float(params[key])  # the same JIT variable as the mesh's buffer

@@ -124,7 +124,7 @@ def trace_three_ways(V, F, o, d) -> dict:
     o, d = np.asarray(o, np.float32), np.asarray(d, np.float32)
     scene = mesh_scene(V, F)
     ray = as_ray(o, d)
-    accel = hlbvh.SceneAccel(scene)
+    accel = hlbvh.SceneAccel(scene, static="hlbvh")
     ref = brute_force(V, F, o, d)
     return {
         "ours": hits_of(accel.ray_intersect_preliminary(ray)),
@@ -448,7 +448,7 @@ def test09b_rays_through_a_zero_area_triangle_never_hit_it():
     scene = mesh_scene(V, F)
     ray = as_ray(o, d)
     assert not scene.ray_intersect_preliminary(ray).is_valid().numpy().any()
-    pi = hlbvh.SceneAccel(scene).ray_intersect_preliminary(ray)
+    pi = hlbvh.SceneAccel(scene, static="hlbvh").ray_intersect_preliminary(ray)
     assert not pi.is_valid().numpy().any()
     assert not np.isnan(np.array(pi.compute_surface_interaction(ray).n)).any()
 
@@ -462,7 +462,7 @@ def test09b_rays_through_a_zero_area_triangle_never_hit_it():
 def grid_scene():
     V, F = grid(40)
     scene = mesh_scene(V, F)
-    return V, F, scene, hlbvh.SceneAccel(scene), hlbvh.build(mi.Float(V.ravel()), mi.UInt32(F.ravel()))
+    return V, F, scene, hlbvh.SceneAccel(scene, static="hlbvh"), hlbvh.build(mi.Float(V.ravel()), mi.UInt32(F.ravel()))
 
 
 def queries(grid_scene, ray) -> dict:
@@ -529,7 +529,7 @@ def test12_rays_along_a_shared_edge_in_a_flat_mesh_miss_cleanly():
     ref = brute_force(V, F, o, d)
     assert not ref["valid"].any()
     scene = mesh_scene(V, F)
-    q = queries((V, F, scene, hlbvh.SceneAccel(scene), hlbvh.build(mi.Float(V.ravel()), mi.UInt32(F.ravel()))),
+    q = queries((V, F, scene, hlbvh.SceneAccel(scene, static="hlbvh"), hlbvh.build(mi.Float(V.ravel()), mi.UInt32(F.ravel()))),
                 as_ray(o, d))
     assert_all_queries_agree(q, ref)
 
@@ -648,7 +648,7 @@ def test17_scene_accel_updates_and_traces_keep_memory_flat():
     scene = mesh_scene(V, F)
     params = mi.traverse(scene)
     key = next(k for k in params.keys() if k.endswith("vertex_positions"))
-    accel = hlbvh.SceneAccel(scene)
+    accel = hlbvh.SceneAccel(scene, static="hlbvh")
     rng = np.random.default_rng(0)
     ray = as_ray(np.stack([rng.random(20_000), rng.random(20_000), np.ones(20_000)], 1),
                  np.tile([0.0, 0.0, -1.0], (20_000, 1)))

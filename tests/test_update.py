@@ -72,7 +72,7 @@ def test01_hits_equal_native_after_every_frame(name, update):
     later frames keep the static BVH (same object, no build) and update only the
     dynamic one. Hits, on static shapes too, equal native after every frame."""
     animation, scene, params = load(name)
-    accel = hlbvh.SceneAccel(scene, update=update)
+    accel = hlbvh.SceneAccel(scene, static="hlbvh", update=update)
     static = shape_indices(scene, animation.static_ids())
     animated = shape_indices(scene, animation.animated_ids())
     assert accel.last_update["decision"] == "build" and accel.static.indices == accel.meshes
@@ -99,7 +99,7 @@ def test01_hits_equal_native_after_every_frame(name, update):
 
 def test02_nothing_changed_keeps_everything():
     animation, scene, params = load("rigid")
-    accel = hlbvh.SceneAccel(scene)
+    accel = hlbvh.SceneAccel(scene, static="hlbvh")
     scenes.apply_frame(scene, params, animation.frame(3))
     accel.update()
     bvhs = accel.static.bvh, accel.dynamic.bvh
@@ -130,7 +130,7 @@ def test03_seeded_build_gives_the_hits_of_a_fresh_build(name):
     same triangle, another triangle only at the same t (a tie). SceneAccel offers its
     rebuilds last frame's order when the triangle count is unchanged."""
     animation, scene, params = load(name)
-    accel = hlbvh.SceneAccel(scene)
+    accel = hlbvh.SceneAccel(scene, static="hlbvh")
     ray = bounce_rays(scene, seed=2)
     for i in FRAMES:
         previous = accel.dynamic.bvh
@@ -163,8 +163,8 @@ def test04_refit_hits_equal_rebuild_hits(name):
     tree's (same validity; same t on the same triangle; another triangle only at the
     same t, a tie on a shared edge, at most 2 of 4096 rays)."""
     animation, scene, params = load(name)
-    refit = hlbvh.SceneAccel(scene, update="refit")
-    rebuild = hlbvh.SceneAccel(scene, update="rebuild")
+    refit = hlbvh.SceneAccel(scene, static="hlbvh", update="refit")
+    rebuild = hlbvh.SceneAccel(scene, static="hlbvh", update="rebuild")
     for i in FRAMES:
         scenes.apply_frame(scene, params, animation.frame(i))
         refit.update()
@@ -192,8 +192,8 @@ def test05_auto_rebuilds_when_the_refit_tree_drifts():
     deformation stays refit. With an unbounded tolerance "auto" refits the soup like
     "refit" does."""
     animation, scene, params = load("soup")
-    auto = hlbvh.SceneAccel(scene, update="auto", refit_tolerance=1.3)
-    lax = hlbvh.SceneAccel(scene, update="auto", refit_tolerance=1e30)
+    auto = hlbvh.SceneAccel(scene, static="hlbvh", update="auto", refit_tolerance=1.3)
+    lax = hlbvh.SceneAccel(scene, static="hlbvh", update="auto", refit_tolerance=1e30)
     tried = []
     for k, i in enumerate(range(1, 11)):
         scenes.apply_frame(scene, params, animation.frame(i))
@@ -215,7 +215,7 @@ def test05_auto_rebuilds_when_the_refit_tree_drifts():
     assert tried == [1, 2, 4, 8] and auto.dynamic.refits == len(tried)
 
     animation, scene, params = load("cloth")
-    auto = hlbvh.SceneAccel(scene, update="auto")
+    auto = hlbvh.SceneAccel(scene, static="hlbvh", update="auto")
     for i in (1, 2, 3):
         scenes.apply_frame(scene, params, animation.frame(i))
         auto.update()
@@ -227,7 +227,7 @@ def test06_new_faces_force_a_rebuild():
     """Under "refit": fewer triangles, or the same number of other triangles, rebuild
     (seeded only when the count is unchanged); hits follow native."""
     animation, scene, params = load("cloth")
-    accel = hlbvh.SceneAccel(scene, update="refit")
+    accel = hlbvh.SceneAccel(scene, static="hlbvh", update="refit")
     flag = animation.frame(1)["flag"]
     scenes.apply_frame(scene, params, {"flag": flag})
     accel.update()
@@ -276,7 +276,7 @@ def test08_non_finite_positions_name_the_mesh(restore):
     the error, good positions trace again, be they new or the very array (the same JIT
     variable) the mesh had before the failed update."""
     animation, scene, params = load("cloth", triangles=500)
-    accel = hlbvh.SceneAccel(scene, update="refit")
+    accel = hlbvh.SceneAccel(scene, static="hlbvh", update="refit")
     flag = next(s for s in scene.shapes() if s.id() == "flag")
     for i in (1, 2):
         before = flag.vertex_positions_buffer()  # params[...] would be updated in place
@@ -343,7 +343,7 @@ def test10_the_static_group_is_rebuilt_once_with_the_static_builder(
     the static builder and leaf size ("auto": leaves of 2 for "sah"); the dynamic group
     keeps the scene's; hits stay native's."""
     animation, scene, params = load("cloth")
-    accel = hlbvh.SceneAccel(scene, builder="lbvh", static_builder=static_builder,
+    accel = hlbvh.SceneAccel(scene, static="hlbvh", builder="lbvh", static_builder=static_builder,
                              static_leaf_size=static_leaf_size)
     assert accel.static.bvh.stats.builder == "lbvh"  # first build: nothing known to move
     scenes.apply_frame(scene, params, animation.frame(8))
@@ -364,7 +364,7 @@ def test11_fresh_rebuilds_without_last_frames_order_and_hits_equal_native():
     """update="fresh" (temporal reuse off) rebuilds unseeded; "rebuild" seeds."""
     for update, seeded in (("fresh", False), ("rebuild", True)):
         animation, scene, params = load("cloth")
-        accel = hlbvh.SceneAccel(scene, update=update)
+        accel = hlbvh.SceneAccel(scene, static="hlbvh", update=update)
         for frame in (8, 16):
             scenes.apply_frame(scene, params, animation.frame(frame))
             accel.update()

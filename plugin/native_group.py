@@ -1,0 +1,127 @@
+"""The shapes of a scene that do not move, traced by Mitsuba's own accelerator (Embree
+on the LLVM backend, OptiX on CUDA) over a sub-scene made of those very shape objects:
+the static group of :class:`hlbvh.SceneAccel` with ``static="native"``.
+
+Why a sub-scene and not the scene itself: the scene's accelerator covers the moving
+shapes too, and our per-frame updates refresh a moved mesh without rebuilding it, so
+it may hold buffers the mesh no longer has. A sub-scene of the shapes that stay still
+is always current. It is built once, and again only when a shape leaves it.
+
+How the sub-scene is made: a ``mi.Properties("scene")`` holding the shape objects
+under keys of our own, and every shape group of the scene (an instance is traced
+through its group's accelerator, which the sub-scene builds). Mitsuba keeps each
+shape's id and object (``mi.load_dict`` would rename the shapes to their keys, in the
+first scene too). A shape that emits light adds its emitter to the sub-scene's list,
+which nothing samples.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from hlbvh.scene_geometry import check_finite
+from hlbvh.timing import clock_ms
+
+
+class NativeGroup:
+    """The static shapes of a scene in a Mitsuba sub-scene, and what its last update did.
+
+    Args:
+        groups: the scene's shape groups (see :func:`shape_groups`).
+
+    Attributes:
+        name: ``"static"`` (its name in statistics).
+        indices: indices into ``scene.shapes()`` of the shapes it traces, ascending.
+        scene: the sub-scene; None while it holds no shape.
+        builds: how often it was built.
+        last: what the last update did: ``decision`` (``"build"``, ``"rebuild"`` or
+            ``"kept"``), ``ms``, ``shapes`` (how many it traces), ``triangles`` (of its
+            meshes), ``left`` (ids of the shapes whose motion made this update rebuild
+            it, empty otherwise), ``sah_cost`` None (Mitsuba's tree does not say).
+    """
+
+    name = "static"
+
+    def __init__(self, groups: list):
+        self.groups = groups
+        self.indices: tuple = ()
+        self.scene = None
+        self.builds = 0
+        self.last = None
+        self._shape_index = None  # UInt32: index into scene.shapes() per sub-scene shape
+        self._built = False
+        self._triangles = 0
+        self.keep()
+
+    @property
+    def triangles(self) -> int:
+        return self._triangles
+
+    def update(self, shapes, indices: tuple, left: list | None = None):
+        """Trace the shapes ``shapes[i]``, ``i`` in ``indices``: a new sub-scene when they
+        are not those of the last build (``left``: ids of the shapes that moved out),
+        nothing otherwise.
+
+        Raises:
+            ValueError: naming a mesh with non-finite vertex positions (first build).
+        """
+        if self._built and tuple(indices) == self.indices:
+            self.keep()
+            return
+        start = clock_ms()
+        decision = "rebuild" if self._built else "build"
+        if not self._built:
+            check_finite(shapes, indices)  # later builds trace fewer of the same shapes
+        self.indices = tuple(indices)
+        self.scene, self._shape_index = _sub_scene(shapes, self.indices, self.groups)
+        self._triangles = sum(shapes[i].face_count() for i in self.indices if shapes[i].is_mesh())
+        self._built = True
+        self.builds += 1
+        self.last = dict(decision=decision, ms=clock_ms() - start, shapes=len(self.indices),
+                         triangles=self._triangles, left=list(left or ()), sah_cost=None)
+
+    def keep(self):
+        """Record that the last update left the sub-scene as it was."""
+        self.last = dict(decision="kept", ms=0.0, shapes=len(self.indices),
+                         triangles=self.triangles, left=[], sah_cost=None)
+
+    def preliminary(self, ray, coherent, active, reorder) -> mi.PreliminaryIntersection3f:
+        """The sub-scene's closest hit, as the whole scene would report it: for a hit
+        outside any instance, ``shape_index`` is turned from the sub-scene's index into
+        the index into ``scene.shapes()``; inside an instance it is the shape's index in
+        its group, the same in both scenes."""
+        pi = self.scene.ray_intersect_preliminary(ray, coherent, *reorder, active)
+        direct = pi.is_valid() & (pi.instance == None)  # noqa: E711 (JIT pointer compare)
+        pi.shape_index = dr.select(
+            direct, dr.gather(mi.UInt32, self._shape_index, pi.shape_index, direct),
+            pi.shape_index)
+        return pi
+
+    def test(self, ray, coherent, active) -> mi.Bool:
+        """Whether anything of the sub-scene lies on the ray."""
+        return self.scene.ray_test(ray, coherent, active)
+
+
+def shape_groups(scene) -> list:
+    """The shape groups of ``scene`` (the shared geometry its instances refer to): they
+    are not among ``scene.shapes()``, so they are found in the scene's object graph."""
+    return [node for node in mi.traverse(scene).hierarchy
+            if isinstance(node, mi.Shape) and node.class_name().startswith("ShapeGroup")]
+
+
+def _sub_scene(shapes, indices: tuple, groups: list):
+    """A Mitsuba scene of the shapes ``shapes[i]`` (``i`` in ``indices``) and the shape
+    groups, and for each of its shapes the index into ``shapes``; ``(None, None)``
+    without shapes."""
+    if not indices:
+        return None, None
+    props = mi.Properties("scene")
+    for k, i in enumerate(indices):
+        props[f"hlbvh_static_{k}"] = shapes[i]
+    for k, group in enumerate(groups):
+        props[f"hlbvh_group_{k}"] = group
+    scene = mi.Scene(props)
+    where = {id(shapes[i]): i for i in indices}
+    order = [where[id(shape)] for shape in scene.shapes()]
+    return scene, mi.UInt32(order)
