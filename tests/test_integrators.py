@@ -236,7 +236,7 @@ def test13_accel_is_cached_per_scene_and_follows_updates():
     scene, rebuilt after params.update() gave a mesh new vertices, and does not keep
     the scene alive once the user lets go of it."""
     desc = cornell_box(res=8, spp=1)
-    desc["integrator"] = dict(type="hlbvh_path", max_depth=2)
+    desc["integrator"] = dict(type="hlbvh_path", max_depth=2, static="hlbvh")
     scene = mi.load_dict(desc)
     integrator = scene.integrator()
     mi.render(scene)
@@ -292,7 +292,8 @@ def test14_builder_options_reach_the_build(builder):
     """Builder properties of the integrator are the options of the scene's HLBVH, and
     every builder renders the same image as native (within test11's tolerance)."""
     desc = cornell_box(res=16, spp=2)
-    desc["integrator"] = dict(type="hlbvh_path", max_depth=4, builder=builder, leaf_size=2)
+    desc["integrator"] = dict(type="hlbvh_path", max_depth=4, builder=builder, leaf_size=2,
+                              static="hlbvh")
     scene = mi.load_dict(desc)
     ours = np.array(mi.render(scene, seed=8))
     config = scene.integrator().accel(scene).static.bvh.config
