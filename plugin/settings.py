@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from hlbvh.policy import ACCELS, UPDATES
+from hlbvh.policy import ACCELS, STATICS, UPDATES
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BuildConfig
 
@@ -36,6 +36,9 @@ class RenderSettings:
         update: our accelerator's per-frame policy (``"rebuild"``, ``"refit"``,
             ``"auto"``), or ``None`` for its default; handed to the integrator as its
             ``update`` property.
+        static: what traces the shapes that do not move, ``"native"`` (Mitsuba's own
+            accelerator) or ``"hlbvh"`` (our watertight traversal); the integrator's
+            ``static`` property.
         seed: frame ``i`` is rendered with seed ``seed + i``.
     Raises:
         ValueError: naming the setting, for any value outside the above.
@@ -49,6 +52,7 @@ class RenderSettings:
     build_options: dict = field(default_factory=dict)
     update: str | None = None
     seed: int = 0
+    static: str = "native"
 
     def __post_init__(self):
         if self.resolution is not None and (
@@ -66,6 +70,8 @@ class RenderSettings:
         BuildConfig.from_options(**self.build_options)
         if self.update is not None and self.update not in UPDATES:
             raise ValueError(f"update={self.update!r}: expected one of {UPDATES}")
+        if self.static not in STATICS:
+            raise ValueError(f"static={self.static!r}: expected one of {STATICS}")
         if not (_is_int(self.seed) and 0 <= self.seed <= MAX_SEED):
             raise ValueError(f"seed={self.seed!r}: expected an int in 0..{MAX_SEED}")
 
@@ -77,6 +83,7 @@ class RenderSettings:
             description["max_depth"] = self.max_depth
         if self.update is not None:
             description["update"] = self.update
+        description["static"] = self.static
         return description
 
     def as_dict(self) -> dict:
