@@ -99,6 +99,12 @@ def render_animation(animation, frames, out_dir, settings: RenderSettings,
             before it stay complete.
         ValueError: a frame cannot be read or applied; the frames finished before it
             stay complete.
+        KeyboardInterrupt: Ctrl-C; the frames finished before it stay complete. During
+            ``mi.render`` Mitsuba's own SIGINT handler takes the signal and only cancels
+            the integrator (its "winding down" warning), which a wavefront render does
+            not act on: the integrator's ``should_stop()`` says so once the frame in
+            flight is rendered, and that frame (whole: the JIT variants render every
+            pass) is written before the interrupt is raised here.
     """
     from tqdm import tqdm
 
@@ -120,6 +126,8 @@ def render_animation(animation, frames, out_dir, settings: RenderSettings,
                     rendered.append(i)
                     bar.set_postfix(build=f"{row['build_ms']:.0f}ms",
                                     render=f"{row['render_ms']:.0f}ms")
+                    if renderer.integrator.should_stop():
+                        raise KeyboardInterrupt
                 bar.update()
     return statistics.ordered(), rendered
 
