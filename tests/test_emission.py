@@ -1,6 +1,12 @@
 """The partial breadth-first hierarchy emission against trees written by hand and
 against the definition of the tree, written as the obvious recursion."""
 
+import hashlib
+import os
+import pathlib
+import subprocess
+import sys
+
 import drjit as dr
 import numpy as np
 import pytest
@@ -9,6 +15,7 @@ import hlbvh  # noqa: F401  (sets up Dr.Jit)
 import mitsuba as mi
 from hlbvh.kernels.arrays import namespace_of
 from hlbvh.kernels.emission import NodeRecords, emit_hierarchy
+from meshes import KEY_KINDS, random_sorted_keys
 
 
 def emitted_tree(keys, key_bits, leaf_size, p):
@@ -113,21 +120,41 @@ def test04_single_primitive_is_a_leaf():
 
 
 @pytest.mark.parametrize("key_bits", [30, 60])
-@pytest.mark.parametrize("kind", ["random", "few_values", "sparse_bits"])
+@pytest.mark.parametrize("kind", KEY_KINDS)
 def test05_random_keys_match_the_definition(key_bits, kind):
-    rng = np.random.default_rng(hash((key_bits, kind)) % 2**32)
-    dtype = np.uint64 if key_bits > 32 else np.uint32
-    for _ in range(6):
-        n = int(rng.integers(2, 400))
-        if kind == "random":
-            keys = rng.integers(0, 2**key_bits, n, dtype=np.uint64)
-        elif kind == "few_values":
-            keys = rng.integers(0, 6, n).astype(np.uint64) << np.uint64(key_bits - 3)
-        else:
-            keys = rng.integers(0, 2**key_bits, n, dtype=np.uint64) & np.uint64(0x0F0F0F0F0F0F0F0F)
-        keys = np.sort(keys % np.uint64(2**key_bits)).astype(dtype)
+    for keys in random_sorted_keys(key_bits, kind):
         for leaf_size in (1, 4):
             for p in (2, 3):
                 assert emitted_tree(keys, key_bits, leaf_size, p) == definition_tree(
                     keys, key_bits, leaf_size
                 )
+
+
+_DIGEST = """
+import hashlib, meshes
+h = hashlib.sha256()
+for bits in (30, 60):
+    for kind in meshes.KEY_KINDS:
+        for keys in meshes.random_sorted_keys(bits, kind):
+            h.update(keys.tobytes())
+print(h.hexdigest())
+"""
+
+
+def test06_random_keys_are_the_same_in_every_process():
+    """test05's keys do not depend on the process (Python salts string hashes per
+    process: a seed from ``hash()`` would test other keys each run, and a failure could
+    not be replayed)."""
+    here = pathlib.Path(__file__).parent
+    digests = {
+        subprocess.run([sys.executable, "-c", _DIGEST], cwd=here, check=True, text=True,
+                       capture_output=True,
+                       env=dict(os.environ, PYTHONHASHSEED=str(salt))).stdout.strip()
+        for salt in (1, 2)
+    }
+    expected = hashlib.sha256()
+    for bits in (30, 60):
+        for kind in KEY_KINDS:
+            for keys in random_sorted_keys(bits, kind):
+                expected.update(keys.tobytes())
+    assert digests == {expected.hexdigest()}
