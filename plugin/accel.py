@@ -291,18 +291,20 @@ class SceneAccel(_Accel):
             t, prim_uv = dr.full(mi.Float, dr.inf, n), dr.zeros(mi.Point2f, n)
             prim_index, shape_index = dr.zeros(mi.UInt32, n), dr.zeros(mi.UInt32, n)
             from_native = dr.zeros(mi.Bool, n)
-        hits = [self._closest_mesh_hit(ray, active)] if self._tree is not None else []
+        # Each later structure looks no further than the nearest hit so far.
+        ray = mi.Ray3f(ray)
+        if self._tree is not None:
+            ray.maxt = dr.minimum(ray.maxt, t)
+            t, prim_uv, prim_index, shape_index, from_native = _nearer(
+                self._closest_mesh_hit(ray, active), t, prim_uv, prim_index, shape_index,
+                from_native)
         for index, shape in self._routine_shapes():
+            ray.maxt = dr.minimum(ray.maxt, t)
             pi_s = shape.ray_intersect_preliminary(ray, 0, active)
-            hits.append((dr.select(pi_s.is_valid(), pi_s.t, dr.inf), pi_s.prim_uv,
-                         pi_s.prim_index, dr.full(mi.UInt32, index, n)))
-        for t_h, uv_h, prim_h, shape_h in hits:
-            closer = t_h < t
-            t = dr.select(closer, t_h, t)
-            prim_uv = dr.select(closer, uv_h, prim_uv)
-            prim_index = dr.select(closer, prim_h, prim_index)
-            shape_index = dr.select(closer, shape_h, shape_index)
-            from_native &= ~closer
+            t, prim_uv, prim_index, shape_index, from_native = _nearer(
+                (dr.select(pi_s.is_valid(), pi_s.t, dr.inf), pi_s.prim_uv, pi_s.prim_index,
+                 dr.full(mi.UInt32, index, n)), t, prim_uv, prim_index, shape_index,
+                from_native)
         result = dr.zeros(mi.PreliminaryIntersection3f, n)
         result.valid = active & (t < dr.inf)
         result.t = dr.select(result.valid, t, dr.inf)
@@ -337,6 +339,16 @@ class SceneAccel(_Accel):
         for _, shape in self._routine_shapes():
             hit |= shape.ray_test(ray, active & ~hit)
         return hit & active
+
+
+def _nearer(hit, t, prim_uv, prim_index, shape_index, from_native):
+    """The nearest-hit fields after one more structure's ``hit`` (t, prim_uv,
+    prim_index, shape_index): taken where strictly nearer, so ties keep the earlier."""
+    t_h, uv_h, prim_h, shape_h = hit
+    closer = t_h < t
+    return (dr.select(closer, t_h, t), dr.select(closer, uv_h, prim_uv),
+            dr.select(closer, prim_h, prim_index), dr.select(closer, shape_h, shape_index),
+            from_native & ~closer)
 
 
 def _declared(shapes, ids: tuple) -> tuple:

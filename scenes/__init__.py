@@ -54,7 +54,7 @@ name           what moves                                                      s
 ``rigid``      ``objects=240`` bodies in ``groups=8`` meshes, bouncing and      walls, columns,
                spinning                                                        ground
 ``soup``       random triangles re-drawn every frame (incoherent, worst case)  ground
-``world``      the ``cloth`` flag (``flag_triangles=100_000``) over rolling     pole, terrain
+``world``      the ``cloth`` flag (``flag_triangles``: 1/11) over rolling     pole, terrain
                hills (``triangles=1_100_000`` in all): a moving object in a
                static world
 =============  ==============================================================  ==================

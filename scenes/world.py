@@ -13,7 +13,7 @@ from .cloth import POLE_SEGMENTS, Cloth
 from .procedural import DEFAULT_FRAMES, Part, View, diffuse, positive_int
 
 DEFAULT_WORLD_TRIANGLES = 1_100_000
-DEFAULT_FLAG_TRIANGLES = 100_000
+FLAG_SHARE = 11  # by default the flag holds 1/11 of the triangles (100k of 1.1M)
 TERRAIN_SIZE = 160.0  # side of the square landscape, centred on the pole
 FLAT_RADIUS = 7.0  # the meadow around the pole is flat out to here
 HILLS_RADIUS = 30.0  # the hills reach their full height from here on
@@ -30,17 +30,19 @@ class World(Cloth):
 
     Args:
         triangles: the least number of triangles in all (default 1.1M).
-        flag_triangles: the least number of the flag's (default 100k); the terrain
-            takes the rest.
+        flag_triangles: the least number of the flag's (default: a 1/11 share,
+            100k of 1.1M); the terrain takes the rest.
         frames, seed: see :class:`ProceduralScene`.
     """
 
     name = "world"
 
     def __init__(self, triangles: int = DEFAULT_WORLD_TRIANGLES,
-                 flag_triangles: int = DEFAULT_FLAG_TRIANGLES,
+                 flag_triangles: int | None = None,
                  frames: int = DEFAULT_FRAMES, seed: int = 0):
         super().__init__(triangles=triangles, frames=frames, seed=seed)
+        if flag_triangles is None:
+            flag_triangles = max(self.triangles // FLAG_SHARE, 8)
         self.flag_triangles = positive_int("flag_triangles", flag_triangles, least=8)
         if self.flag_triangles + 2 + 4 * POLE_SEGMENTS > self.triangles:
             raise ValueError(f"flag_triangles={flag_triangles!r}: more than the scene's "

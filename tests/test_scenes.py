@@ -20,7 +20,7 @@ from hlbvh.scenes import rigid as rigid_module
 from hlbvh.scenes.procedural import mesh_object
 
 SMALL = 3000  # triangles: every scene at this size loads and renders in well under a second
-NAMES = ["cloth", "twist", "fracture", "rigid", "soup"]
+NAMES = ["cloth", "twist", "fracture", "rigid", "soup", "world"]
 TINY_RENDER = dict(resolution=(40, 24), spp=2)
 
 
@@ -445,7 +445,14 @@ def test16_sequence_rejects_wrong_counts_unknown_shapes_and_bad_input(sequence_d
         sequence.frame(1)
     with pytest.raises(ValueError, match=r"frame 2 of shape 'bar'.*frame_0003\.ply.*faces differ"):
         sequence.frame(2)
-    assert scenes.SequenceScene(root / "scene.xml", root / "frames", topology="changing").frame(2)
+    # Declared changing, the same files are read whole: the frame's own faces (each
+    # winding reversed, as written) and positions, for the animated shape only.
+    changing = scenes.SequenceScene(root / "scene.xml", root / "frames",
+                                    topology="changing").frame(2)
+    assert list(changing) == ["bar"]
+    np.testing.assert_array_equal(np.asarray(changing["bar"].faces),
+                                  np.asarray(faces)[:, ::-1].ravel())
+    np.testing.assert_array_equal(np.asarray(changing["bar"].positions), written[2])
     with pytest.raises(ValueError, match="topology"):
         scenes.SequenceScene(root / "scene.xml", root / "frames", topology="wobbly")
     with pytest.raises(ValueError, match="'teapot' cannot be animated: the scene has no mesh"):
