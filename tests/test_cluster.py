@@ -93,27 +93,59 @@ def test02_mesh_sequence_on_a_scheduler_equals_one_process(tmp_path, scheduler):
     assert_same_frames(tmp_path / "cluster", tmp_path / "single", range(4))
 
 
+# Run on the workers (by exec: a function of this module would not unpickle there): each
+# frame starts a quarter second late, so that a worker seen finishing its chunk's first
+# frame is still inside the chunk when it is killed. The images do not change.
+_SLOW_FRAMES = """
+import time
+from hlbvh.frame import FrameRenderer
+if not hasattr(FrameRenderer, "_fast_render"):
+    FrameRenderer._fast_render = FrameRenderer.render
+    def _slow_render(self, *args, **kwargs):
+        time.sleep(0.25)
+        return FrameRenderer._fast_render(self, *args, **kwargs)
+    FrameRenderer.render = _slow_render
+"""
+_FAST_FRAMES = """
+from hlbvh.frame import FrameRenderer
+if hasattr(FrameRenderer, "_fast_render"):
+    FrameRenderer.render = FrameRenderer._fast_render
+    del FrameRenderer._fast_render
+"""
+
+
 def test03_a_worker_killed_mid_run(tmp_path, scheduler, reference):
+    """A worker killed inside its chunk (after the chunk's first frame): the chunk is
+    retried on another worker from its last complete frame, and the run ends with
+    every frame, equal to one process's."""
     address, client = scheduler
     out = tmp_path / "cluster"
+    pids = client.run(os.getpid)
+    client.run(exec, _SLOW_FRAMES, {})
     status = []
     run = threading.Thread(target=lambda: status.append(run_cli(
         *CLOTH, "--frames", "0:10", "--scheduler", address, "--chunk-size", "5",
         "--out", out)))
-    run.start()
-    row = out / ".frame_0000.row.json"
-    deadline = time.monotonic() + 300
-    while not row.exists() and run.is_alive() and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert row.exists() or (out / "stats.json").exists()
-    if row.exists():
+    try:
+        run.start()
+        row = out / ".frame_0000.row.json"
+        deadline = time.monotonic() + 300
+        while not row.exists() and run.is_alive() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert row.exists() and run.is_alive(), "the run ended before a worker was killed"
         victim = json.loads(row.read_text())["worker"]
-        pid = client.run(os.getpid, workers=[victim])[victim]
-        os.kill(pid, signal.SIGKILL)
-    run.join(600)
+        os.kill(pids[victim], signal.SIGKILL)
+        run.join(600)
+    finally:
+        run.join(600)
+        client.wait_for_workers(2, timeout=120)  # the nanny restarts the killed one
+        client.run(exec, _FAST_FRAMES, {})
     assert status == [0]
     assert_same_frames(out, reference, range(10))
-    client.wait_for_workers(2, timeout=120)  # the nanny restarts the killed one
+    # Frame 0 was the victim's; its chunk's last frame was rendered after the kill, by
+    # another worker (the restarted one has another address).
+    workers = {int(r["frame"]): r["worker"] for r in stats(out)[1]}
+    assert workers[0] == victim and workers[4] != victim, workers
 
 
 def test04_ctrl_c_leaves_complete_frames_and_a_rerun_finishes(tmp_path, scheduler,
