@@ -54,6 +54,12 @@ def _checked_ray(ray):
     ``mi.Ray3f``); TypeError otherwise."""
     if not all(hasattr(ray, name) for name in ("o", "d", "maxt")):
         raise TypeError(f"ray: expected an mi.Ray3f, got {type(ray).__name__}")
+    widths = {name: dr.width(getattr(ray, name)) for name in ("o", "d", "maxt", "time")
+              if hasattr(ray, name)}
+    if len(set(widths.values()) - {1}) > 1:
+        raise ValueError("ray: its fields hold different numbers of rays ("
+                         + ", ".join(f"{k} {v}" for k, v in widths.items())
+                         + "); give every field one entry per ray, or one for all")
     return ray
 
 

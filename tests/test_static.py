@@ -1,0 +1,339 @@
+"""Only what moves goes through our BVH (``static="native"``, the default): the still
+shapes, of any type, through Mitsuba's own accelerator over a sub-scene; answers equal
+Mitsuba's and a float64 brute force before and after motion; the first motion, declared
+moving shapes, a shape that starts moving late; the public update path."""
+
+import drjit as dr
+import hlbvh
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from reference import brute_force
+from test_accel import bounce_rays, camera_rays
+
+T = mi.ScalarTransform4f
+
+
+def _film(res=24, spp=2):
+    return dict(film=dict(type="hdrfilm", width=res, height=res, rfilter=dict(type="box"),
+                          pixel_format="rgb"),
+                sampler=dict(type="independent", sample_count=spp))
+
+
+def _mesh(name, vertices, faces, bsdf=None):
+    props = mi.Properties()
+    if bsdf is not None:
+        props["bsdf"] = mi.load_dict(bsdf)
+    mesh = mi.Mesh(name, len(vertices), len(faces), props=props)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(np.asarray(vertices, np.float32).ravel())
+    params["faces"] = mi.UInt32(np.asarray(faces, np.uint32).ravel())
+    params.update()
+    return mesh
+
+
+def _blob(seed, center, count=300, size=0.35):
+    """A soup of ``count`` small triangles around ``center``."""
+    rng = np.random.default_rng(seed)
+    c = np.asarray(center) + rng.uniform(-0.6, 0.6, (count, 1, 3))
+    v = (c + size * rng.uniform(-0.5, 0.5, (count, 3, 3))).reshape(-1, 3)
+    return v, np.arange(3 * count).reshape(count, 3)
+
+
+def mixed_scene(res=24, spp=2, extra=None) -> dict:
+    """Static meshes, analytic shapes, two instances of one group (one rotated and
+    mirrored, one scaled non-uniformly) and a mesh that the tests move (``mover``)."""
+    desc = {
+        "type": "scene",
+        "sensor": dict(type="perspective", fov=50,
+                       to_world=T().look_at(origin=[0, 2, 6], target=[0, 0.5, 0], up=[0, 1, 0]),
+                       **_film(res, spp)),
+        "floor": dict(type="rectangle", to_world=T().rotate([1, 0, 0], -90).scale(5)),
+        "rock": _mesh("rock", *_blob(1, [-1.5, 0.6, 0])),
+        "mover": _mesh("mover", *_blob(2, [0.3, 0.8, 0.6]),
+                       bsdf=dict(type="diffuse", reflectance=dict(type="rgb", value=[0.8, 0.2, 0.1]))),
+        "ball": dict(type="sphere", center=[1.6, 0.5, -0.5], radius=0.5),
+        "disk": dict(type="disk", to_world=T().translate([0, 1.5, -2]).scale(0.7)),
+        "group": {"type": "shapegroup", "cube": {"type": "cube"},
+                  "s": {"type": "sphere", "center": [0, 1.2, 0], "radius": 0.3}},
+        "copy_a": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"},
+                   "to_world": T().translate([-0.5, 0.4, -1.2]).rotate([0, 1, 0], 35)
+                   .scale([-0.4, 0.4, 0.4])},
+        "copy_b": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"},
+                   "to_world": T().translate([1.0, 0.3, 1.3]).scale([0.5, 0.25, 0.3])},
+        "lamp": dict(type="sphere", center=[0, 4, 1], radius=0.4,
+                     emitter=dict(type="area", radiance=dict(type="rgb", value=12))),
+        "sky": dict(type="constant", radiance=dict(type="rgb", value=0.2)),
+    }
+    desc.update(extra or {})
+    return desc
+
+
+def _move(params, key, offset):
+    """Mitsuba's own update (the scene's accelerator is rebuilt: the reference stays
+    current) moving mesh ``key`` by ``offset``."""
+    v = np.array(params[f"{key}.vertex_positions"]).reshape(-1, 3) + np.asarray(offset)
+    params[f"{key}.vertex_positions"] = mi.Float(v.astype(np.float32).ravel())
+    params.update()
+
+
+def _agreement(scene, ray, ours, theirs, rtol=2e-5) -> float:
+    """Fraction of rays where ours and Mitsuba's both miss, or hit the same primitive of
+    the same shape (pointer, index and instance) at the same t; a different primitive
+    at the same t is a tie either way. Outside instances, our shape pointer must be the
+    shape our index names, always."""
+    v_o, v_t = np.array(ours.is_valid()), np.array(theirs.is_valid())
+    both = v_o & v_t
+    t_o, t_t = np.array(ours.t), np.array(theirs.t)
+    o = np.abs(np.array(ray.o)).max(axis=0)
+    t_o, t_t = np.where(both, t_o, 0), np.where(both, t_t, 0)
+    same_t = both & (np.abs(t_o - t_t) <= rtol * (t_t + o))
+    same = (np.array(ours.shape == theirs.shape) & np.array(ours.instance == theirs.instance)
+            & (np.array(ours.shape_index) == np.array(theirs.shape_index))
+            & (np.array(ours.prim_index) == np.array(theirs.prim_index)))
+    # Our shape pointer is the shape our index names (outside instances)
+    direct = np.array(ours.is_valid() & (ours.instance == None))  # noqa: E711
+    named = np.array(dr.gather(mi.ShapePtr, scene.shapes_dr(), ours.shape_index,
+                               ours.is_valid()) == ours.shape)
+    assert named[direct].all()
+    return np.mean((~v_o & ~v_t) | (same_t & same) | (same_t & ~same & (t_o == t_t)))
+
+
+def _rays(scene):
+    return ((True, camera_rays(scene, 48)), (False, bounce_rays(scene, 4096, seed=3)))
+
+
+def test01_mixed_scene_hits_equal_native_before_and_after_motion():
+    """Every field Mitsuba's query gives (t, shape, shape_index, prim_index,
+    instance) and every shadow test, on camera and incoherent rays: equal on all but
+    2 of 4096, before the mover moves, after its first motion and after more."""
+    scene = mi.load_dict(mixed_scene())
+    params = mi.traverse(scene)
+    accel = hlbvh.SceneAccel(scene)
+    for step in range(3):
+        if step:
+            _move(params, "mover", [0.2 * step, 0.1, -0.3])
+            accel.update()
+        for coherent, ray in _rays(scene):
+            allowed = 1 - 2 / dr.width(ray)
+            ours = accel.ray_intersect_preliminary(ray, coherent)
+            theirs = scene.ray_intersect_preliminary(ray, coherent)
+            assert dr.count(theirs.instance != None)[0] > 20  # noqa: E711 (instances seen)
+            assert _agreement(scene, ray, ours, theirs) >= allowed
+            occluded = np.array(accel.ray_test(ray, coherent, True))
+            assert np.mean(occluded == np.array(scene.ray_test(ray, coherent, True))) >= allowed
+    assert accel.last_update["moving"] == ["mover"]
+    assert accel.static.builds == 2 and accel.dynamic.bvh is not None
+
+
+def _world_triangles(scene):
+    """Every mesh's triangles in one soup, and each triangle's (shape index, prim)."""
+    vs, fs, owners = [], [], []
+    base = 0
+    for index, shape in enumerate(scene.shapes()):
+        v = np.array(shape.vertex_positions_buffer()).reshape(-1, 3)
+        f = np.array(shape.faces_buffer()).reshape(-1, 3)
+        vs.append(v), fs.append(f + base)
+        owners += [(index, k) for k in range(len(f))]
+        base += len(v)
+    return np.concatenate(vs), np.concatenate(fs), np.array(owners)
+
+
+@pytest.mark.parametrize("static", ["native", "hlbvh"])
+def test02_meshes_only_hits_equal_a_float64_brute_force(static):
+    """Static meshes and a moving one: the nearest hit's t, shape and primitive equal
+    a float64 brute force over every triangle, before and after motion (ties: any
+    triangle within the tolerance of the nearest)."""
+    desc = {"type": "scene", "rock": _mesh("rock", *_blob(4, [-0.5, 0, 0], 200)),
+            "pebbles": _mesh("pebbles", *_blob(5, [0.5, 0.2, 0], 200)),
+            "mover": _mesh("mover", *_blob(6, [0, 0.1, 0.5], 200))}
+    scene = mi.load_dict(desc)
+    params = mi.traverse(scene)
+    accel = hlbvh.SceneAccel(scene, static=static)
+    for step in range(2):
+        if step:
+            _move(params, "mover", [0.1, -0.2, -0.4])
+            accel.update()
+        ray = bounce_rays(scene, 2048, seed=step)
+        V, F, owners = _world_triangles(scene)
+        ref = brute_force(V.astype(np.float64), F, np.array(ray.o).T.astype(np.float64),
+                          np.array(ray.d).T.astype(np.float64))
+        pi = accel.ray_intersect_preliminary(ray)
+        valid = np.array(pi.is_valid())
+        assert np.mean(valid == ref["valid"]) >= 1 - 2 / 2048
+        both = valid & ref["valid"]
+        t = np.array(pi.t)[both]
+        assert np.allclose(t, ref["t"][both], rtol=1e-4, atol=1e-5)
+        hit = np.stack([np.array(pi.shape_index), np.array(pi.prim_index)], 1)[both]
+        rows = np.flatnonzero(both)
+        tied = [np.any(np.all(owners[np.abs(ref["t_all"][r] - ref["t"][r]) <= 1e-5 * (1 + ref["t"][r])]
+                              == h, axis=1)) for r, h in zip(rows, hit)]
+        assert np.mean(tied) >= 1 - 2 / 2048
+
+
+def test03_instances_curves_and_sdf_grids_beside_a_moving_mesh_render_like_native(tmp_path):
+    """Shapes only Mitsuba intersects (static instances, a curve, an SDF grid) beside a
+    moving mesh: hlbvh_path with accel="hlbvh" renders native's image, frame by frame."""
+    curve = tmp_path / "curve.txt"
+    curve.write_text("-1.5 0.2 1 0.05\n-1 0.8 1 0.05\n-0.5 0.3 1 0.05\n0 1 1 0.05\n")
+    x = np.linspace(-1, 1, 8, dtype=np.float32)
+    sdf = np.sqrt(x[:, None, None] ** 2 + x[None, :, None] ** 2 + x[None, None, :] ** 2) - 0.7
+    extra = {"hair": {"type": "bsplinecurve", "filename": str(curve)},
+             "blob": {"type": "sdfgrid", "grid": mi.TensorXf(sdf[..., None]),
+                      "to_world": T().translate([-2.2, 0.2, -1.5]).scale(0.8)}}
+    images = {}
+    for accel in ("native", "hlbvh"):
+        scene = mi.load_dict(mixed_scene(res=24, spp=4, extra=dict(
+            extra, integrator=dict(type="hlbvh_path", accel=accel, max_depth=4))))
+        params = mi.traverse(scene)
+        images[accel] = []
+        for frame in range(3):
+            if frame:
+                _move(params, "mover", [0.15, 0.0, -0.2])
+            images[accel].append(np.array(mi.render(scene, seed=frame)))
+    for ours, native in zip(images["hlbvh"], images["native"]):
+        assert native.mean() > 0.02
+        assert np.abs(ours - native).mean() < 2e-4 and np.abs(ours - native).max() < 0.05
+
+
+def test04_the_first_motion_rebuilds_the_static_world_once_unless_declared():
+    """Undeclared, the mover's first motion rebuilds the sub-scene without it (and
+    last_update names it); declared, the sub-scene is built once without it. Later
+    frames keep it."""
+    for declared in ((), ("mover",)):
+        scene = mi.load_dict(mixed_scene())
+        params = mi.traverse(scene)
+        accel = hlbvh.SceneAccel(scene, moving=declared)
+        assert accel.last_update["groups"]["static"]["decision"] == "build"
+        assert (accel.dynamic.bvh is not None) == bool(declared)
+        _move(params, "mover", [0.1, 0, 0])
+        static = accel.update().last_update["groups"]["static"]
+        if declared:
+            assert static["decision"] == "kept" and static["left"] == []
+        else:
+            assert static["decision"] == "rebuild" and static["left"] == ["mover"]
+        for _ in range(3):
+            _move(params, "mover", [0.1, 0, 0])
+            assert accel.update().last_update["groups"]["static"]["decision"] == "kept"
+        assert accel.static.builds == (1 if declared else 2)
+
+
+def test05_a_shape_that_starts_moving_late_leaves_the_static_world():
+    """The rock stays still for 10 updates, then moves: one rebuild of the sub-scene
+    then, naming it, and hits equal native's after it."""
+    scene = mi.load_dict(mixed_scene())
+    params = mi.traverse(scene)
+    accel = hlbvh.SceneAccel(scene, moving="mover")
+    for _ in range(10):
+        _move(params, "mover", [0.02, 0, 0])
+        assert accel.update().last_update["groups"]["static"]["decision"] == "kept"
+    _move(params, "rock", [0, 0.3, 0])
+    update = accel.update().last_update
+    assert update["groups"]["static"]["left"] == ["rock"]
+    assert update["moving"] == ["rock", "mover"] or update["moving"] == ["mover", "rock"]
+    assert accel.static.builds == 2
+    ray = bounce_rays(scene, 4096, seed=9)
+    assert _agreement(scene, ray, accel.ray_intersect_preliminary(ray),
+                      scene.ray_intersect_preliminary(ray)) >= 1 - 2 / 4096
+
+
+def test06_moving_shapes_we_cannot_trace_and_unknown_ids_are_named():
+    scene = mi.load_dict(mixed_scene())
+    with pytest.raises(ValueError, match=r"no shape of the scene has the id\(s\) \['flag'\]"):
+        hlbvh.SceneAccel(scene, moving="mover, flag")
+    with pytest.raises(ValueError, match="'copy_a' \\(Instance\\) moved"):
+        hlbvh.SceneAccel(scene, moving=["copy_a"])
+    accel = hlbvh.SceneAccel(scene)
+    params = mi.traverse(scene)
+    params["copy_b.to_world"] = mi.Transform4f().translate([0, 0.1, 0]) @ params["copy_b.to_world"]
+    params.update()
+    with pytest.raises(ValueError, match="'copy_b' \\(Instance\\) moved"):
+        accel.update()
+    with pytest.raises(RuntimeError, match="last update\\(\\) failed"):
+        accel.ray_test(bounce_rays(scene, 16))
+
+
+def test07_a_moving_sphere_is_traced_by_its_own_routine():
+    """A sphere that moves leaves the sub-scene and is intersected where it is now."""
+    scene = mi.load_dict(mixed_scene())
+    accel = hlbvh.SceneAccel(scene)
+    ball = next(s for s in scene.shapes() if s.id() == "ball")
+    params = mi.traverse(scene)
+    params["ball.to_world"] = mi.Transform4f().translate([-3.0, 0.0, 0.0]) @ params["ball.to_world"]
+    params.update()
+    accel.update()
+    assert accel.last_update["groups"]["static"]["left"] == ["ball"]
+    ray = mi.Ray3f(mi.Point3f(-1.4, 0.5, 5), mi.Vector3f(0, 0, -1))
+    pi = accel.ray_intersect_preliminary(ray)
+    assert pi.is_valid()[0] and pi.shape == ball and abs(pi.t[0] - 5.0) < 0.6
+
+
+def test08_stale_queries_and_emptied_meshes_are_refused_in_one_line():
+    """A query after the mover changed but before update() is refused naming it; an
+    update that finds a mesh emptied of faces names it and leaves the process usable."""
+    scene = mi.load_dict(mixed_scene())
+    accel = hlbvh.SceneAccel(scene, moving="mover")
+    params = mi.traverse(scene)
+    _move(params, "mover", [0.3, 0, 0])
+    ray = bounce_rays(scene, 64)
+    with pytest.raises(RuntimeError, match="'mover' \\(Mesh\\) changed since"):
+        accel.ray_intersect_preliminary(ray)
+    accel.update()
+    accel.ray_intersect_preliminary(ray)
+    faces = mi.UInt32(params["mover.faces"])  # a new handle: Mitsuba writes into the old
+    params["mover.faces"] = mi.UInt32()
+    params.update()
+    with pytest.raises(ValueError, match="'mover' \\(Mesh\\) has no triangles any more"):
+        accel.update()
+    params["mover.faces"] = faces
+    params.update()
+    accel.update()
+    assert _agreement(scene, ray, accel.ray_intersect_preliminary(ray),
+                      scene.ray_intersect_preliminary(ray)) >= 1 - 2 / 64
+
+
+def test09_rays_of_mismatched_widths_are_named():
+    accel = hlbvh.SceneAccel(mi.load_dict(mixed_scene()))
+    ray = mi.Ray3f(mi.Point3f([0, 1, 2], [0, 0, 0], [5, 5, 5]), mi.Vector3f([0, 0], [0, 0], [-1, -1]))
+    with pytest.raises(ValueError, match="ray: its fields hold different numbers of rays "
+                                         "\\(o 3, d 2"):
+        accel.ray_intersect_preliminary(ray)
+
+
+def test10_a_hand_written_loop_with_hlbvh_traverse_renders_like_hlbvh_render():
+    """The README's loop (hlbvh.traverse, params.update(), mi.render) gives the frames
+    FrameRenderer (what `hlbvh render` runs) gives, bit for bit, and never lets Mitsuba
+    rebuild its own accelerator."""
+    from hlbvh.frame import FrameRenderer
+    from hlbvh.settings import RenderSettings
+    animation = hlbvh.scenes.get("cloth", triangles=3000, frames=4)
+    settings = RenderSettings(resolution=(32, 18), spp=2, integrator="path", max_depth=4)
+    renderer = FrameRenderer(animation, settings)
+    expected = [np.array(renderer.render(i)[0]) for i in range(3)]
+
+    scene = mi.load_dict(animation.scene_dict(
+        resolution=(32, 18), spp=2,
+        integrator=dict(type="hlbvh_path", max_depth=4, moving="flag")))
+    params = hlbvh.traverse(scene)
+    native_tree = mi.traverse(scene)  # Mitsuba's parameters, to see what it rebuilds
+    for i in range(3):
+        params["flag.vertex_positions"] = mi.Float(animation.frame(i)["flag"].positions)
+        params["flag.vertex_normals"] = hlbvh.scenes.normals.vertex_normals(
+            params["flag.vertex_positions"], params["flag.faces"])
+        nodes = [node for node, _ in params.update()]
+        assert not any(isinstance(node, mi.Scene) for node in nodes)
+        np.testing.assert_array_equal(np.array(mi.render(scene, seed=i)), expected[i])
+    assert scene.integrator().accel(scene).static.builds == 1
+    assert native_tree is not None
+
+
+def test11_static_world_and_moving_meshes_merge_ties_to_the_static_world():
+    """A moving mesh lying exactly on a static one: the static world's hit is kept."""
+    v = np.array([[-1, -1, 0], [1, -1, 0], [0, 1, 0]], np.float32)
+    scene = mi.load_dict({"type": "scene", "still": _mesh("still", v, [[0, 1, 2]]),
+                          "twin": _mesh("twin", v, [[0, 1, 2]])})
+    accel = hlbvh.SceneAccel(scene, moving="twin")
+    ray = mi.Ray3f(mi.Point3f(0, 0, 2), mi.Vector3f(0, 0, -1))
+    pi = accel.ray_intersect_preliminary(ray)
+    assert pi.is_valid()[0] and pi.shape_index[0] == 0 and pi.t[0] == 2.0
