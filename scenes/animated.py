@@ -217,22 +217,44 @@ def _width(array) -> int:
     return int(array.size) if isinstance(array, np.ndarray) else dr.width(array)
 
 
+def _flat(shape_id: str, what: str, values, flat_type):
+    """``values`` (numpy, a flat Dr.Jit array, a tensor, or an array of 3-vectors such
+    as ``mi.Point3f``/``mi.Vector3u``) as one flat ``flat_type`` array of x, y, z (or
+    three corners) per entry.
+
+    Raises:
+        ValueError: naming the shape, for any other type (a list, a 3-vector of the
+            wrong length).
+    """
+    if isinstance(values, np.ndarray):
+        return flat_type(np.ascontiguousarray(values).reshape(-1).astype(
+            np.float32 if flat_type is mi.Float else np.uint32))
+    if dr.is_tensor_v(values):
+        return flat_type(dr.detach(values).array)
+    if dr.is_jit_v(values) and dr.depth_v(values) == 1:
+        return flat_type(dr.detach(values))
+    if dr.is_jit_v(values) and dr.depth_v(values) == 2 and dr.size_v(values) == 3:
+        vectors = dr.detach(values)
+        flat = dr.zeros(flat_type, 3 * dr.width(vectors))
+        index = dr.arange(mi.UInt32, dr.width(vectors)) * 3
+        for k in range(3):
+            dr.scatter(flat, flat_type(vectors[k]), index + k)
+        return flat
+    raise ValueError(f"frame geometry for shape {shape_id!r}: {what} of type "
+                     f"{type(values).__name__}; expected a flat numpy or Dr.Jit array (3 "
+                     f"per entry), a tensor, or an array of 3-vectors")
+
+
 def _checked_positions(shape_id: str, positions) -> mi.Float:
     """``positions`` as an ``mi.Float`` after checking size and finiteness."""
-    if isinstance(positions, np.ndarray):
-        flat = np.ascontiguousarray(positions, dtype=np.float32).reshape(-1)
-        finite = bool(np.isfinite(flat).all())
-        result = mi.Float(flat)
-    else:
-        result = mi.Float(dr.detach(positions))
-        finite = bool(dr.all(dr.isfinite(result), axis=None))
+    result = _flat(shape_id, "positions", positions, mi.Float)
     size = dr.width(result)
     if size == 0 or size % 3 != 0:
         raise ValueError(
             f"frame geometry for shape {shape_id!r}: {size} position values; expected a "
             f"non-empty flat array of 3 per vertex"
         )
-    if not finite:
+    if not bool(dr.all(dr.isfinite(result), axis=None)):
         raise ValueError(f"frame geometry for shape {shape_id!r}: non-finite vertex positions")
     return result
 
@@ -244,18 +266,18 @@ def _checked_faces(shape_id: str, faces, vertex_count: int) -> mi.UInt32:
         bad = flat[(flat < 0) | (flat >= vertex_count)]
         result = mi.UInt32(flat.astype(np.uint32))
     else:
-        result = mi.UInt32(faces)
+        result = _flat(shape_id, "faces", faces, mi.UInt32)
         bad = [int(dr.max(result, axis=None)[0])] if dr.width(result) else []
         bad = [b for b in bad if b >= vertex_count]
-    if len(bad):
-        raise ValueError(
-            f"frame geometry for shape {shape_id!r}: face index {int(bad[0])} outside "
-            f"0 .. {vertex_count - 1}"
-        )
     size = dr.width(result)
     if size == 0 or size % 3 != 0:
         raise ValueError(
             f"frame geometry for shape {shape_id!r}: {size} face indices; expected a "
             f"non-empty flat array of 3 per triangle"
+        )
+    if len(bad):
+        raise ValueError(
+            f"frame geometry for shape {shape_id!r}: face index {int(bad[0])} outside "
+            f"0 .. {vertex_count - 1}"
         )
     return result

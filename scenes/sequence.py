@@ -21,12 +21,14 @@ on; ``"changing"`` means every frame brings its own faces (any counts).
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from .animated import AnimatedScene, FrameGeometry
 
@@ -67,6 +69,12 @@ class SequenceScene(AnimatedScene):
             path = Path(scene)
             if not path.is_file():
                 raise ValueError(f"scene {str(scene)!r}: no such file (expected a Mitsuba XML file or a dict)")
+            try:
+                with open(path, "rb"):
+                    pass
+            except OSError as error:
+                raise ValueError(f"scene {str(scene)!r}: the file cannot be read "
+                                 f"({error.strerror})") from None
             self._source = path.resolve()
         self._box_filter = bool(box_filter)
         self._frames_dir = Path(frames_dir).resolve()
@@ -118,6 +126,57 @@ class SequenceScene(AnimatedScene):
     def triangle_counts(self) -> dict[str, int]:
         """Triangles of every mesh as the scene loads them (frame files not read)."""
         return {sid: face_count for sid, (_, face_count) in self._meshes.items()}
+
+    def integrator_description(self) -> dict | None:
+        """The scene's own integrator as ``{"type": plugin, property: value, ...}``, or
+        ``None`` when it has none.
+
+        Raises:
+            ValueError: a property of it that is not a number, a boolean or a string
+                (a nested integrator, a texture), which could not be handed on.
+        """
+        state = self._parse()
+        for index in _references(state.root):
+            node = state.nodes[index]
+            if node.type != mi.ObjectType.Integrator:
+                continue
+            description = {"type": node.props.plugin_name()}
+            for name, value in node.props.items():
+                if not isinstance(value, (bool, int, float, str)):
+                    raise ValueError(
+                        f"scene {self._describe()}: its integrator "
+                        f"{node.props.plugin_name()!r} has property {name!r} of a kind "
+                        f"hlbvh cannot hand on ({type(value).__name__}); replace the "
+                        f"integrator (hlbvh render: --integrator path or aov)")
+                description[name] = value
+            return description
+        return None
+
+    def source_digest(self) -> str | None:
+        """SHA-256 (hex) of what the scene is made of: the XML file, the files it
+        includes, and every file a ``filename`` property names (meshes, textures), so a
+        render folder can tell that the scene changed between two runs; ``None`` for a
+        dict scene. A file that cannot be read counts as its absence."""
+        if not isinstance(self._source, Path):
+            return None
+        state = self._parse()
+        files = [Path(str(name)) for name in state.files]
+        with _resolving_next_to(self._source):
+            resolver = mi.file_resolver()
+            for node in state.nodes:
+                value = node.props["filename"] if "filename" in node.props.keys() else None
+                if isinstance(value, str):
+                    files.append(Path(str(resolver.resolve(value))))
+        digest = hashlib.sha256()
+        for path in dict.fromkeys(files):
+            digest.update(str(path).encode() + b"\0")
+            try:
+                with open(path, "rb") as handle:
+                    for block in iter(lambda: handle.read(1 << 20), b""):
+                        digest.update(block)
+            except OSError:
+                digest.update(b"\0unreadable\0")
+        return digest.hexdigest()
 
     def frame(self, i: int) -> dict[str, FrameGeometry]:
         """Reads frame ``i`` of every animated shape.
@@ -253,7 +312,7 @@ class SequenceScene(AnimatedScene):
     def _scan_frames(self) -> tuple[dict[str, list[Path]], int]:
         """Every animated shape's files in frame order, and the frame count."""
         found: dict[str, dict[int, Path]] = {}
-        for entry in sorted(self._frames_dir.iterdir()):
+        for entry in _entries(self._frames_dir):
             if not entry.is_dir():
                 continue
             if entry.name not in self._writable:
@@ -268,10 +327,15 @@ class SequenceScene(AnimatedScene):
                     f"animated: {reason} (animatable meshes: {sorted(self._writable)})"
                 )
             numbered: dict[int, Path] = {}
-            for file in sorted(entry.iterdir()):
+            for file in _entries(entry):
                 match = FRAME_FILE.match(file.name)
-                if not match or not file.is_file():
+                if not match:
                     continue
+                if not file.is_file():
+                    raise ValueError(
+                        f"frame file {str(file)!r} of shape {entry.name!r}: "
+                        f"{_not_a_file(file)}; make it a readable mesh file or remove it"
+                    )
                 number = int(match.group(1))
                 if number in numbered:
                     raise ValueError(
@@ -332,12 +396,35 @@ class SequenceScene(AnimatedScene):
         if not path.is_file():
             raise ValueError(f"{where}: the file is missing")
         try:
+            with open(path, "rb") as handle:
+                head = handle.read(4)
+        except OSError as error:
+            raise ValueError(f"{where}: the file cannot be read ({error.strerror})") from None
+        if not head:
+            raise ValueError(f"{where}: the file is empty (0 bytes)")
+        kind = path.suffix.lower()[1:]
+        if kind == "obj" and head.startswith(b"ply"):
+            raise ValueError(f"{where}: it holds PLY data but is named .obj; name it .ply")
+        if kind == "ply" and self._topology[shape_id] == "changing":
+            negative = _ply_negative_index(path)
+            if negative is not None:
+                raise ValueError(f"{where}: face {negative[0]} has vertex index "
+                                 f"{negative[1]}; indices must be 0 or more")
+        try:
             mesh = mi.load_dict(plugin)
         except (RuntimeError, UnicodeDecodeError) as error:
             raise ValueError(f"{where}: Mitsuba cannot read it: {_first_line(error)}") from None
+        if mesh.vertex_count() == 0 or mesh.face_count() == 0:
+            raise ValueError(f"{where}: Mitsuba read {mesh.vertex_count()} vertices and "
+                             f"{mesh.face_count()} faces from it; a frame needs at least "
+                             f"one triangle")
         positions = mesh.vertex_positions_buffer()
         faces = mesh.faces_buffer()
         if self._topology[shape_id] == "changing":
+            largest = int(dr.max(faces, axis=None)[0])
+            if largest >= mesh.vertex_count():
+                raise ValueError(f"{where}: a face has vertex index {largest}, past its "
+                                 f"{mesh.vertex_count()} vertices")
             return FrameGeometry(positions, faces)
         vertex_count, face_count = self._meshes[shape_id]
         if mesh.vertex_count() != vertex_count or mesh.face_count() != face_count:
@@ -352,6 +439,120 @@ class SequenceScene(AnimatedScene):
                 f"{_changing_hint(shape_id)}"
             )
         return FrameGeometry(positions)
+
+
+def _entries(directory: Path) -> list[Path]:
+    """The entries of a frames directory, sorted.
+
+    Raises:
+        ValueError: naming the directory, when it cannot be listed (no permission).
+    """
+    try:
+        return sorted(directory.iterdir())
+    except OSError as error:
+        raise ValueError(f"frames directory {str(directory)!r}: cannot be listed "
+                         f"({error.strerror})") from None
+
+
+def _not_a_file(path: Path) -> str:
+    """Why an entry named like a frame file is not a regular file, in words."""
+    if path.is_symlink():
+        try:
+            path.stat()
+        except OSError as error:
+            return f"a symbolic link that leads to no file ({error.strerror})"
+    return "a directory" if path.is_dir() else "not a regular file"
+
+
+#: numpy types of PLY's scalar types.
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2",
+              "int16": "i2", "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4",
+              "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
+              "double": "f8", "float64": "f8"}
+
+
+def _ply_negative_index(path: Path) -> tuple[int, int] | None:
+    """``(face, index)`` of the first negative vertex index in a PLY file's faces, or
+    ``None``. Mitsuba's loader reads such an index as another vertex without a word, so
+    it is looked for before the file reaches Mitsuba. Indices of an unsigned type
+    cannot be negative and are not read; a header this does not follow is left to
+    Mitsuba."""
+    data = path.read_bytes()
+    end = data.find(b"end_header")
+    if end < 0:
+        return None
+    body = data[data.index(b"\n", end) + 1:]
+    form, elements = None, []
+    for line in data[:end].decode("ascii", "replace").splitlines():
+        words = line.split()
+        if words[:1] == ["format"] and len(words) > 1:
+            form = words[1]
+        elif words[:1] == ["element"] and len(words) == 3 and words[2].isdigit():
+            elements.append((words[1], int(words[2]), []))
+        elif words[:1] == ["property"] and elements:
+            elements[-1][2].append(words[1:])
+    faces = [e for e in elements if e[0] == "face"]
+    if form is None or not faces:
+        return None
+    index_type = next((p[2] for p in faces[0][2] if p[0] == "list" and len(p) == 4), None)
+    if index_type is None or _PLY_TYPES.get(index_type, "u")[0] == "u":
+        return None
+    try:
+        return _ply_first_negative(body, form, elements)
+    except (ValueError, IndexError, KeyError):
+        return None
+
+
+def _ply_first_negative(body: bytes, form: str, elements) -> tuple[int, int] | None:
+    """``(face, index)`` of the first negative index of a PLY body whose faces hold
+    only their vertex-index list, the elements before them skipped (raises
+    ``ValueError`` for a layout it does not follow). Binary faces that all have as many
+    corners as the first are read as one numpy table, others face by face."""
+    if form == "ascii":
+        lines = body.split(b"\n")
+        start = 0
+        for name, count, properties in elements:
+            if name == "face":
+                (_,) = properties
+                chosen = lines[start:start + count]
+                if b"-" not in b" ".join(chosen):
+                    return None
+                for k, line in enumerate(chosen):
+                    negative = [int(v) for v in line.split()[1:] if int(v) < 0]
+                    if negative:
+                        return k, negative[0]
+                return None
+            start += count
+        return None
+    order = "<" if form == "binary_little_endian" else ">"
+    offset = 0
+    for name, count, properties in elements:
+        if name == "face":
+            ((_, count_type, index_type, _),) = properties
+            count_dtype = np.dtype(order + _PLY_TYPES[count_type])
+            index_dtype = np.dtype(order + _PLY_TYPES[index_type])
+            corners = int(np.frombuffer(body, count_dtype, 1, offset)[0])
+            row = np.dtype([("n", count_dtype), ("i", index_dtype, (corners,))])
+            if count and len(body) - offset >= count * row.itemsize:
+                table = np.frombuffer(body, row, count, offset)
+                if (table["n"] == corners).all():
+                    bad = np.flatnonzero((table["i"] < 0).any(axis=1))
+                    if not len(bad):
+                        return None
+                    indices = table["i"][bad[0]]
+                    return int(bad[0]), int(indices[indices < 0][0])
+            for k in range(count):
+                corners = int(np.frombuffer(body, count_dtype, 1, offset)[0])
+                offset += count_dtype.itemsize
+                indices = np.frombuffer(body, index_dtype, corners, offset)
+                offset += corners * index_dtype.itemsize
+                if (indices < 0).any():
+                    return k, int(indices[indices < 0][0])
+            return None
+        if any(p[0] == "list" for p in properties):
+            raise ValueError("a list property before the faces")
+        offset += count * sum(np.dtype(_PLY_TYPES[p[0]]).itemsize for p in properties)
+    return None
 
 
 class _resolving_next_to:

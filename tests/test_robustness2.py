@@ -6,6 +6,8 @@ ends in complete frames only and, for a user error, one line naming what is wron
 
 import signal
 
+import numpy as np
+
 import pytest
 
 from cli_helpers import read_stats, run_cli, write_twist_scene
@@ -51,3 +53,146 @@ def test_ctrl_c_inside_mitsubas_render_stops_after_the_frame_and_resumes(
     monkeypatch.undo()
     status, text, _ = run_cli(capsys, *argv)
     assert status == 0 and "2 rendered, 2 already complete" in text
+
+
+# ---------------------------------------------------------------------------------------
+# Frame files: every entry that looks like a frame is read or named; what Mitsuba's
+# loader would misread or fail on is named with its frame and file
+# ---------------------------------------------------------------------------------------
+
+
+def ascii_ply(path, vertices, faces, index_type="int"):
+    """An ASCII PLY of ``vertices`` (rows of x y z) and ``faces`` (rows of indices)."""
+    lines = ["ply", "format ascii 1.0", f"element vertex {len(vertices)}",
+             "property float x", "property float y", "property float z",
+             f"element face {len(faces)}", f"property list uchar {index_type} vertex_indices",
+             "end_header"]
+    lines += [" ".join(map(str, v)) for v in vertices]
+    lines += [" ".join(map(str, [len(f), *f])) for f in faces]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def binary_ply(path, vertices, faces):
+    """A little-endian binary PLY with signed 32-bit indices."""
+    vertices = np.asarray(vertices, dtype="<f4")
+    rows = np.zeros(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    rows["n"], rows["i"] = 3, faces
+    header = ("ply\nformat binary_little_endian 1.0\n"
+              f"element vertex {len(vertices)}\nproperty float x\nproperty float y\n"
+              f"property float z\nelement face {len(faces)}\n"
+              "property list uchar int vertex_indices\nend_header\n")
+    path.write_bytes(header.encode() + vertices.tobytes() + rows.tobytes())
+
+
+QUAD = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)]
+
+
+def break_frame(frames, case):
+    """Make frame 1 (or, for links, a frame after the last) of shape ``bar`` what
+    ``case`` names; returns the file the message must name."""
+    bar = frames / "bar"
+    second = bar / "frame_0002.ply"
+    if case == "dangling link":
+        (bar / "frame_0004.ply").symlink_to(bar / "gone.ply")
+        return bar / "frame_0004.ply"
+    if case == "looping link":
+        (bar / "frame_0004.ply").symlink_to(bar / "frame_0004.ply")
+        return bar / "frame_0004.ply"
+    if case == "negative index, ascii":
+        ascii_ply(second, QUAD, [(0, 1, 2), (0, 2, -1)])
+    elif case == "negative index, binary":
+        binary_ply(second, QUAD, [(0, 1, 2), (-1, 2, 3)])
+    elif case == "face past the end":
+        ascii_ply(second, QUAD, [(0, 1, 2), (0, 2, 9)])
+    elif case == "no vertices":
+        ascii_ply(second, [], [])
+    elif case == "empty file":
+        second.write_bytes(b"")
+    elif case == "PLY named .obj":
+        second.rename(bar / "frame_0002.obj")
+        return bar / "frame_0002.obj"
+    return second
+
+
+@pytest.mark.parametrize("case, message", [
+    ("dangling link", "a symbolic link that leads to no file (No such file or directory); "
+                      "make it a readable mesh file or remove it"),
+    ("looping link", "a symbolic link that leads to no file (Too many levels of symbolic "
+                     "links); make it a readable mesh file or remove it"),
+    ("negative index, ascii", "face 1 has vertex index -1; indices must be 0 or more"),
+    ("negative index, binary", "face 1 has vertex index -1; indices must be 0 or more"),
+    ("face past the end", "a face has vertex index 9, past its 4 vertices"),
+    ("no vertices", "Mitsuba read 0 vertices and 0 faces from it; a frame needs at least "
+                    "one triangle"),
+    ("empty file", "the file is empty (0 bytes)"),
+    ("PLY named .obj", "it holds PLY data but is named .obj; name it .ply"),
+])
+def test_frame_files_that_are_not_meshes_name_the_frame_and_file(tmp_path, capsys, case,
+                                                                  message):
+    xml, frames = write_twist_scene(tmp_path, triangles=100)
+    named = break_frame(frames, case)
+    out = tmp_path / "out"
+    status, _, err = run_cli(capsys, "render", xml, "--frames-dir", frames, "--topology",
+                             "changing", "--accel", "native", "--out", out, *TINY[2:])
+    assert status == 2 and len(err) == 1, err
+    if "link" in case:
+        where = f"frame file {str(named)!r} of shape 'bar': "
+    else:
+        where = f"frame 1 of shape 'bar' ({str(named)!r}): "
+    assert err[0] == f"hlbvh render: {where}{message}"
+    assert not list(out.glob("frame_0001.*"))
+
+
+def test_an_unreadable_frames_folder_and_scene_file_are_named(tmp_path, capsys, monkeypatch):
+    """A folder that cannot be listed and a scene that cannot be read (as a user
+    without root's override meets them) get one line each."""
+    from pathlib import Path
+
+    from hlbvh.scenes import sequence
+
+    xml, frames = write_twist_scene(tmp_path, triangles=100)
+    argv = ["render", xml, "--frames-dir", frames, "--out", tmp_path / "out", *TINY[2:]]
+    real_iterdir, real_open = Path.iterdir, open
+
+    def iterdir(self):
+        if self == (frames / "bar").resolve():
+            raise PermissionError(13, "Permission denied", str(self))
+        return real_iterdir(self)
+
+    monkeypatch.setattr(Path, "iterdir", iterdir)
+    status, _, err = run_cli(capsys, *argv)
+    assert status == 2 and err == [
+        f"hlbvh render: frames directory {str((frames / 'bar').resolve())!r}: cannot be "
+        f"listed (Permission denied)"], err
+    monkeypatch.undo()
+
+    def unreadable(name, *args, **kwargs):
+        if Path(name) == xml:
+            raise PermissionError(13, "Permission denied", str(name))
+        return real_open(name, *args, **kwargs)
+
+    monkeypatch.setattr(sequence, "open", unreadable, raising=False)
+    status, _, err = run_cli(capsys, *argv)
+    assert status == 2 and err == [
+        f"hlbvh render: scene {str(xml)!r}: the file cannot be read (Permission denied)"], err
+
+
+def test_apply_frame_takes_tensors_and_vectors_and_names_other_types():
+    import mitsuba as mi
+
+    from hlbvh import scenes
+    from hlbvh.scenes import FrameGeometry, apply_frame
+
+    animation = scenes.get("cloth", triangles=200)
+    scene = mi.load_dict(animation.scene_dict(resolution=(8, 8), spp=1))
+    (shape, geometry), = animation.frame(3).items()
+    flat = np.asarray(geometry.positions, dtype=np.float32).reshape(-1)
+    for given in (mi.TensorXf(flat.reshape(-1, 3)), mi.Point3f(flat.reshape(-1, 3).T)):
+        apply_frame(scene, None, {shape: FrameGeometry(given)})
+        np.testing.assert_array_equal(np.asarray(mi.traverse(scene)[f"{shape}.vertex_positions"]),
+                                      flat)
+    with pytest.raises(ValueError) as raised:
+        apply_frame(scene, None, {shape: FrameGeometry(flat.tolist())})
+    assert str(raised.value) == (
+        f"frame geometry for shape {shape!r}: positions of type list; expected a flat numpy "
+        f"or Dr.Jit array (3 per entry), a tensor, or an array of 3-vectors")
