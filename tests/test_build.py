@@ -7,7 +7,9 @@ import pytest
 import hlbvh
 import mitsuba as mi
 from bvh_check import check_bvh, rows
+from hlbvh.kernels.layout import check_tree
 from meshes import grid, soup
+from reference import median_split_bvh, sweep_sah_bvh, tree_sah_cost
 
 BUILDERS = ["lbvh", "hlbvh", "sah"]
 
@@ -38,11 +40,31 @@ def test02_same_input_builds_bit_identical_arrays(builder):
         assert np.array_equal(rows(getattr(a, name)), rows(getattr(b, name))), name
 
 
+def reference_cost(bvh, V, F) -> float:
+    """The SAH cost of ``bvh``'s tree by the plain-numpy reference (boxes recomputed)."""
+    return tree_sah_cost(V, F, bvh.node_first.numpy(), bvh.node_count.numpy(),
+                         bvh.prim_ids.numpy())
+
+
 @pytest.mark.parametrize("mesh", ["grid", "soup"])
-def test03_hlbvh_sah_cost_within_125_percent_of_full_sah(mesh):
-    V, F = grid(60) if mesh == "grid" else soup(8000, seed=7)
-    cost = {b: build(V, F, builder=b).stats.sah_cost for b in ("hlbvh", "sah")}
-    assert cost["hlbvh"] <= 1.25 * cost["sah"], cost
+def test03_sah_cost_within_125_percent_of_a_sweep_sah_reference(mesh):
+    """Against an independent reference (tests/reference.py, plain numpy): the textbook
+    top-down SAH tree (every split of the sorted centroids on each axis) scored by a
+    numpy SAH cost that recomputes the boxes from the triangles. Our hlbvh and sah
+    builders' trees cost at most 125% of it (measured: hlbvh 1.14/1.05, sah 1.06/1.17
+    on the grid/soup; lbvh's 1.28 on the soup would fail), and ``stats.sah_cost`` is
+    the reference's cost of the same tree."""
+    V, F = grid(40) if mesh == "grid" else soup(3000, seed=7)
+    reference = sweep_sah_bvh(V, F, leaf_size=4)
+    assert sorted(reference.prim_ids.numpy()) == list(range(len(F)))
+    check_tree(reference)  # a valid tree of the layout (a hand-made one: no built_topology)
+    best = reference_cost(reference, V, F)
+    assert best <= 0.9 * reference_cost(median_split_bvh(V, F, 4), V, F)  # it optimises
+    for builder in ("hlbvh", "sah"):
+        bvh = build(V, F, builder=builder)
+        cost = reference_cost(bvh, V, F)
+        assert bvh.stats.sah_cost == pytest.approx(cost, rel=1e-5), builder
+        assert cost <= 1.25 * best, (builder, cost / best)
 
 
 @pytest.mark.parametrize("builder", ["lbvh", "hlbvh"])
