@@ -50,8 +50,8 @@ from hlbvh.errors import UserError
 from hlbvh.frame import FrameRenderer
 from hlbvh.options import open_animation
 from hlbvh.output import (Statistics, frame_images_complete, output_directory, output_lock,
-                          read_row, remove_stale_files, row_files, row_path, write_frame,
-                          write_row)
+                          read_row, recorded_settings, remove_stale_files, row_files, row_path,
+                          write_frame, write_row)
 from hlbvh.settings import RenderSettings, check_seed
 
 #: Most frames in a chunk unless ``--chunk-size`` says otherwise.
@@ -192,11 +192,11 @@ def render_on_cluster(animation, spec: SceneSpec, frames: range, out_dir,
 
     directory = output_directory(out_dir)
     check_seed(settings.seed, frames)
-    FrameRenderer(animation, settings)  # refuses what every worker would refuse
+    renderer = FrameRenderer(animation, settings)  # refuses what every worker would refuse
     with _connected(cluster, scheduler) as (client, workers, threads), output_lock(directory):
         remove_stale_files(directory)
-        statistics = Statistics(directory, {**(source or {}), **settings.as_dict()},
-                                 settings.resolution)
+        record = recorded_settings(source, settings, renderer)
+        statistics = Statistics(directory, record, tuple(record["resolution"]))
         statistics.add_rows([])  # the settings on record before any worker writes a row
         size = chunk_size or max(1, min(MAX_CHUNK, math.ceil(len(frames) / (2 * workers))))
         job = ChunkJob(spec, settings, str(directory.resolve()),

@@ -6,14 +6,16 @@ one line."""
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 from pathlib import Path
 
 from hlbvh import scenes
-from hlbvh.policy import BUILD_OPTIONS, UPDATES
+from hlbvh.policy import ACCELS, BUILD_OPTIONS, UPDATES
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.scenes.sequence import TOPOLOGIES
-from hlbvh.settings import DEFAULT_MAX_DEPTH, MAX_SEED, RenderSettings
+from hlbvh.settings import (DEFAULT_MAX_DEPTH, INTEGRATORS, MAX_SEED, SCENE_INTEGRATORS,
+                            RenderSettings, scene_integrator_fields)
 
 
 def add_scene_options(parser, out: str, *, builder_options: bool = True,
@@ -37,8 +39,8 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
     add("--resolution", help="W (W×W) or WxH; default: the scene's")
     add("--spp", help="samples per pixel; default: " + ("the scene's" if spp is None else str(spp)))
     add("--triangles", help="size of a procedural scene (default 200000)")
-    add("--max-depth", default=str(DEFAULT_MAX_DEPTH),
-        help=f"longest path of the path integrator (default {DEFAULT_MAX_DEPTH}; -1: unbounded)")
+    add("--max-depth", help=f"longest path of the path integrator (default: the scene's "
+                            f"integrator's, else {DEFAULT_MAX_DEPTH}; -1: unbounded)")
     if builder_options:
         for name in BUILD_OPTIONS:
             add(f"--{name.replace('_', '-')}", dest=name,
@@ -82,12 +84,68 @@ def render_settings(args, *, spp: int | None = None, integrator: str = "path",
         resolution=None if args.resolution is None else parse_resolution(args.resolution),
         spp=spp,
         integrator=integrator,
-        max_depth=int_flag("--max-depth", args.max_depth, least=-1),
+        max_depth=(DEFAULT_MAX_DEPTH if args.max_depth is None
+                   else int_flag("--max-depth", args.max_depth, least=-1)),
         accel=accel,
         build_options=build_options,
         update=None if update is None else choice("--update", update, UPDATES),
         seed=seed_flag(args.seed),
     )
+
+
+def scene_render_settings(args, animation, scene: str) -> tuple[RenderSettings, str | None]:
+    """The settings of ``hlbvh render``: the scene's own integrator and its properties
+    (:meth:`hlbvh.scenes.AnimatedScene.integrator_description`) where it has one, each
+    replaced by the flag that names it (``--integrator``, ``--accel``, ``--max-depth``,
+    the builder options, ``--update``); what no flag and no scene says takes the
+    defaults of :func:`render_settings`. Returns the settings and the line that says
+    what the flags override (``None`` when they override nothing).
+
+    Raises:
+        UserError: a malformed flag, or a scene integrator that ``hlbvh render`` does not
+            run (not one of :data:`hlbvh.settings.SCENE_INTEGRATORS`) without an
+            ``--integrator`` to replace it.
+        ValueError: a value out of range, from a flag or the scene.
+    """
+    integrator = None if args.integrator is None else choice(
+        "--integrator", args.integrator, tuple(INTEGRATORS))
+    accel = None if args.accel is None else choice("--accel", args.accel, ACCELS)
+    flags = render_settings(args, integrator=integrator or "path", accel=accel or "hlbvh")
+    own = animation.integrator_description()
+    if own is None:
+        return flags, None
+    kind = own["type"]
+    if kind not in SCENE_INTEGRATORS or (integrator and SCENE_INTEGRATORS[kind] != integrator):
+        if integrator is None:
+            raise UserError(
+                f"scene {scene!r}: its integrator {kind!r} is not one hlbvh render runs "
+                f"({', '.join(SCENE_INTEGRATORS)}); pass --integrator path or aov to render "
+                f"with hlbvh's instead")
+        return flags, (f"--integrator {integrator} overrides the scene's integrator "
+                       f"{kind!r} (its properties are not used)")
+    fields = scene_integrator_fields(own)
+    overrides = []
+
+    def override(flag: str, name: str, value, scene_value):
+        if value != scene_value:
+            overrides.append(f"{flag} {value} (the scene's {name}: {scene_value!r})")
+
+    if args.max_depth is not None and fields["integrator"] == "path":
+        override("--max-depth", "max_depth", flags.max_depth, fields["max_depth"])
+        fields["max_depth"] = flags.max_depth
+    if accel is not None:
+        if kind != "path":  # Mitsuba's path names no accelerator: either renders it alike
+            override("--accel", "accel", accel, fields["accel"])
+        fields["accel"] = accel
+    for name, value in flags.build_options.items():
+        override(f"--{name.replace('_', '-')}", name, value, fields["build_options"].get(name))
+    fields["build_options"] = {**fields["build_options"], **flags.build_options}
+    if flags.update is not None:
+        override("--update", "update", flags.update, fields["update"])
+        fields["update"] = flags.update
+    line = (f"the command line overrides the scene's integrator {kind!r}: "
+            f"{', '.join(overrides)}") if overrides else None
+    return replace(flags, **fields), line
 
 
 def seed_flag(text: str) -> int:
@@ -135,7 +193,8 @@ def open_animation(scene: str, frames_dir, triangles, frames, topology=None) -> 
             raise UserError("--triangles sizes procedural scenes; an XML scene has its own")
         kinds = parse_topology(topology)
         animation = scenes.SequenceScene(path, frames_dir, topology=kinds)
-        source = {"scene": str(path.resolve()), "frames_dir": str(Path(frames_dir).resolve())}
+        source = {"scene": str(path.resolve()), "frames_dir": str(Path(frames_dir).resolve()),
+                  "scene_sha256": animation.source_digest()}
         if topology is not None:
             source["topology"] = kinds
         stop = animation.frame_count if stop is None else stop

@@ -59,8 +59,9 @@ class Statistics:
         if stored_settings != settings and self.rows:
             differ = sorted(k for k in set(settings) | set(stored_settings)
                             if settings.get(k) != stored_settings.get(k))
-            changes = ", ".join(f"{k}: {stored_settings.get(k)!r} -> {settings.get(k)!r}"
-                                for k in differ)
+            changes = ", ".join(
+                f"{k}: the scene file or a file it names was edited" if k == "scene_sha256"
+                else f"{k}: {stored_settings.get(k)!r} -> {settings.get(k)!r}" for k in differ)
             raise UserError(
                 f"{directory} holds frames rendered with other settings ({changes}); "
                 f"choose another --out, or remove the directory to start over"
@@ -107,6 +108,18 @@ class Statistics:
         writer.writerows(ordered)
         with images.atomic_output(self.directory / "stats.csv") as temporary:
             temporary.write_text(table.getvalue())
+
+
+def recorded_settings(source: dict | None, settings, renderer: FrameRenderer) -> dict:
+    """What ``stats.json`` records as a folder's settings: what identifies the scene
+    (``source``), the :class:`hlbvh.settings.RenderSettings` as JSON values, and the
+    ``resolution`` and ``spp`` the loaded scene renders at (its film's size, its
+    sampler's count) in place of a ``None`` that left them to the scene: a resumed
+    folder then refuses a scene edited to render other frames."""
+    sensor = renderer.scene.sensors()[0]
+    width, height = sensor.film().crop_size()
+    return {**(source or {}), **settings.as_dict(), "resolution": [int(width), int(height)],
+            "spp": int(sensor.sampler().sample_count())}
 
 
 def frame_name(i: int) -> str:

@@ -66,13 +66,13 @@ from pathlib import Path
 
 import numpy as np
 
-from hlbvh.policy import ACCELS
 from hlbvh.errors import UserError
 from hlbvh.frame import FrameRenderer
-from hlbvh.options import (add_scene_options, choice, int_flag, open_animation, out_flag,
-                           render_settings)
-from hlbvh.output import Statistics, output_directory, output_lock, remove_stale_files, write_frame
-from hlbvh.settings import INTEGRATORS, RenderSettings, check_seed
+from hlbvh.options import (add_scene_options, int_flag, open_animation, out_flag,
+                           scene_render_settings)
+from hlbvh.output import (Statistics, output_directory, output_lock, recorded_settings,
+                          remove_stale_files, write_frame)
+from hlbvh.settings import RenderSettings, check_seed
 
 
 def render_animation(animation, frames, out_dir, settings: RenderSettings,
@@ -112,15 +112,14 @@ def render_animation(animation, frames, out_dir, settings: RenderSettings,
     check_seed(settings.seed, frames)
     with output_lock(directory):
         remove_stale_files(directory)
-        statistics = Statistics(directory, {**(source or {}), **settings.as_dict()},
-                                 settings.resolution)
-        renderer, rendered = None, []
+        renderer, rendered = FrameRenderer(animation, settings), []
+        record = recorded_settings(source, settings, renderer)
+        statistics = Statistics(directory, record, tuple(record["resolution"]))
         with tqdm(total=len(frames), desc=f"{animation.name} {settings.accel}",
                   unit="frame", file=sys.stderr, disable=not progress,
                   dynamic_ncols=True) as bar:
             for i in frames:
                 if not statistics.complete(i):
-                    renderer = renderer or FrameRenderer(animation, settings)
                     image, row = renderer.render(i)
                     write_frame(directory, i, image, renderer, row, statistics.add)
                     rendered.append(i)
@@ -142,9 +141,12 @@ def configure(parser) -> None:
     mistake is reported in one line)."""
     parser.description = __doc__.split("\n\n")[0]
     add_scene_options(parser, "out/render/<scene>-<accel>")
-    parser.add_argument("--integrator", default="path",
-                        help="path (hlbvh_path, default) or aov (hlbvh_aov)")
-    parser.add_argument("--accel", default="hlbvh", help="hlbvh (default) or native")
+    parser.add_argument("--integrator",
+                        help="path (hlbvh_path) or aov (hlbvh_aov); default: the scene's "
+                             "own (path, hlbvh_path or hlbvh_aov, with its properties), else "
+                             "path")
+    parser.add_argument("--accel", help="hlbvh or native; default: the scene's integrator's, "
+                                        "else hlbvh")
     parser.add_argument("--cluster", help="local:N: render on a Dask LocalCluster of N worker "
                                           "processes on this machine")
     parser.add_argument("--scheduler", help="ADDRESS (tcp://host:8786) of a running Dask "
@@ -156,11 +158,11 @@ def configure(parser) -> None:
 
 def run(args) -> int:
     """``hlbvh render``: see the module docstring. Returns the exit status (0)."""
-    settings = render_settings(
-        args, integrator=choice("--integrator", args.integrator, tuple(INTEGRATORS)),
-        accel=choice("--accel", args.accel, ACCELS))
     animation, source, frames = open_animation(args.scene, args.frames_dir, args.triangles,
                                                args.frames, args.topology)
+    settings, overrides = scene_render_settings(args, animation, args.scene)
+    if overrides is not None:
+        print(f"hlbvh render: {overrides}", file=sys.stderr)
     out = out_flag(args.out, Path("out/render") / f"{Path(args.scene).stem}-{settings.accel}")
     if args.cluster is None and args.scheduler is None:
         if args.chunk_size is not None:

@@ -7,15 +7,24 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from hlbvh.policy import ACCELS, STATICS, UPDATES
+from hlbvh.policy import ACCELS, BUILD_OPTIONS, STATICS, UPDATES
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BuildConfig
 
 #: ``--integrator`` choices and the registered integrators they name.
 INTEGRATORS = {"path": "hlbvh_path", "aov": "hlbvh_aov"}
 
-#: Longest path of ``--integrator path`` unless ``--max-depth`` says otherwise.
+#: Integrators a scene may name that ``hlbvh render`` runs, and the ``--integrator``
+#: choice each is (Mitsuba's ``path`` runs as ``hlbvh_path``, which mirrors it).
+SCENE_INTEGRATORS = {"path": "path", "hlbvh_path": "path", "hlbvh_aov": "aov"}
+
+#: Longest path of ``--integrator path`` unless ``--max-depth`` or the scene's own
+#: integrator says otherwise.
 DEFAULT_MAX_DEPTH = 8
+
+#: Longest path of a scene's ``path`` or ``hlbvh_path`` integrator that names none
+#: (theirs: unbounded).
+SCENE_MAX_DEPTH = -1
 
 #: Largest seed of a frame: Mitsuba's samplers take 32-bit seeds.
 MAX_SEED = 2**32 - 1
@@ -40,6 +49,9 @@ class RenderSettings:
             accelerator) or ``"hlbvh"`` (our watertight traversal); the integrator's
             ``static`` property.
         seed: frame ``i`` is rendered with seed ``seed + i``.
+        properties: the integrator's other properties (``rr_depth``,
+            ``hide_emitters``, ...: what a scene's own integrator sets), handed on as
+            they are; numbers, booleans and strings.
     Raises:
         ValueError: naming the setting, for any value outside the above.
     """
@@ -53,6 +65,7 @@ class RenderSettings:
     update: str | None = None
     seed: int = 0
     static: str = "native"
+    properties: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.resolution is not None and (
@@ -74,11 +87,15 @@ class RenderSettings:
             raise ValueError(f"static={self.static!r}: expected one of {STATICS}")
         if not (_is_int(self.seed) and 0 <= self.seed <= MAX_SEED):
             raise ValueError(f"seed={self.seed!r}: expected an int in 0..{MAX_SEED}")
+        for name, value in self.properties.items():
+            if not isinstance(value, (bool, int, float, str)):
+                raise ValueError(f"integrator property {name}={value!r}: expected a number, "
+                                 f"a boolean or a string")
 
     def integrator_dict(self) -> dict:
         """The Mitsuba description of the integrator these settings ask for."""
-        description = {"type": INTEGRATORS[self.integrator], "accel": self.accel,
-                       **self.build_options}
+        description = {"type": INTEGRATORS[self.integrator], **self.properties,
+                       "accel": self.accel, **self.build_options}
         if self.integrator == "path":
             description["max_depth"] = self.max_depth
         if self.update is not None:
@@ -91,6 +108,26 @@ class RenderSettings:
         record = asdict(self)
         record["resolution"] = None if self.resolution is None else list(self.resolution)
         return record
+
+
+def scene_integrator_fields(description: dict) -> dict:
+    """The :class:`RenderSettings` fields that a scene's own integrator (``{"type":
+    ..., property: value}``, one of :data:`SCENE_INTEGRATORS`) decides: ``integrator``,
+    ``max_depth`` (of a path tracer; :data:`SCENE_MAX_DEPTH` when it names none),
+    ``accel`` (``"hlbvh"`` for Mitsuba's ``path``), ``build_options``, ``update``,
+    ``static``, and every other property as ``properties``."""
+    kind = description["type"]
+    properties = {k: v for k, v in description.items() if k != "type"}
+    fields = {"integrator": SCENE_INTEGRATORS[kind]}
+    if fields["integrator"] == "path":
+        fields["max_depth"] = properties.pop("max_depth", SCENE_MAX_DEPTH)
+    fields["accel"] = properties.pop("accel", "hlbvh")
+    fields["build_options"] = {name: properties.pop(name) for name in BUILD_OPTIONS
+                               if name in properties}
+    fields["update"] = properties.pop("update", None)
+    fields["static"] = properties.pop("static", "native")
+    fields["properties"] = properties
+    return fields
 
 
 def _is_int(value) -> bool:

@@ -115,6 +115,12 @@ class AnimatedScene(abc.ABC):
         """Triangles per shape id (animated and static) as loaded, computed without
         building the geometry where the scene allows it."""
 
+    def integrator_description(self) -> dict | None:
+        """The scene's own integrator as ``{"type": plugin, property: value, ...}``, or
+        ``None`` when the scene leaves the integrator to whoever renders it (the
+        procedural scenes: ``hlbvh render``'s flags and defaults decide)."""
+        return None
+
     def triangle_count(self) -> int:
         """Total triangles of the scene as loaded (the sum of :meth:`triangle_counts`)."""
         return sum(self.triangle_counts().values())

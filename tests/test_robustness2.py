@@ -196,3 +196,83 @@ def test_apply_frame_takes_tensors_and_vectors_and_names_other_types():
     assert str(raised.value) == (
         f"frame geometry for shape {shape!r}: positions of type list; expected a flat numpy "
         f"or Dr.Jit array (3 per entry), a tensor, or an array of 3-vectors")
+
+
+# ---------------------------------------------------------------------------------------
+# What the scene file decides: recorded, checked on resume, honoured
+# ---------------------------------------------------------------------------------------
+
+PATH_8 = '<integrator type="path"><integer name="max_depth" value="8"/></integrator>'
+
+
+def edit(xml, old, new):
+    text = xml.read_text()
+    assert old in text
+    xml.write_text(text.replace(old, new))
+
+
+def test_a_scene_edited_between_resumes_is_refused_in_one_line(tmp_path, capsys):
+    xml, frames = write_twist_scene(tmp_path, triangles=100)
+    out = tmp_path / "out"
+    argv = ["render", xml, "--frames-dir", frames, "--accel", "native", "--out", out, "--quiet"]
+    assert run_cli(capsys, *argv, "--frames", "0:2")[0] == 0
+    document, _ = read_stats(out)
+    assert (document["settings"]["resolution"], document["settings"]["spp"]) == ([24, 16], 1)
+    assert len(document["settings"]["scene_sha256"]) == 64
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    edit(xml, '"width" value="24"', '"width" value="32"')
+    edit(xml, '"sample_count" value="1"', '"sample_count" value="4"')
+    status, _, err = run_cli(capsys, *argv, "--frames", "0:3")
+    assert status == 2 and err == [
+        f"hlbvh render: {out} holds frames rendered with other settings (resolution: "
+        f"[24, 16] -> [32, 16], scene_sha256: the scene file or a file it names was edited, "
+        f"spp: 1 -> 4); choose another --out, or remove the directory to start over"], err
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
+    # A file the scene names (its mesh), edited alone.
+    edit(xml, '"width" value="32"', '"width" value="24"')
+    edit(xml, '"sample_count" value="4"', '"sample_count" value="1"')
+    (tmp_path / "bar.ply").write_bytes((frames / "bar" / "frame_0002.ply").read_bytes())
+    status, _, err = run_cli(capsys, *argv, "--frames", "0:3")
+    assert status == 2 and len(err) == 1, err
+    assert "(scene_sha256: the scene file or a file it names was edited)" in err[0]
+
+
+def test_the_scenes_own_integrator_is_honoured_and_a_flag_says_what_it_overrides(
+        tmp_path, capsys):
+    import mitsuba as mi
+
+    from hlbvh import images
+
+    xml, frames = write_twist_scene(tmp_path, triangles=100)
+    edit(xml, PATH_8, '<integrator type="hlbvh_path"><string name="accel" value="native"/>'
+                      '<integer name="max_depth" value="1"/></integrator>')
+    out = tmp_path / "out"
+    argv = ["render", xml, "--frames-dir", frames, "--frames", "0:1", "--quiet"]
+    status, _, err = run_cli(capsys, *argv, "--out", out)
+    assert status == 0 and err == [], err
+    settings = read_stats(out)[0]["settings"]
+    assert (settings["integrator"], settings["accel"], settings["max_depth"]) == ("path", "native", 1)
+    ours = images.read_exr(out / "frame_0000.exr", ["R", "G", "B"])
+    reference = np.asarray(mi.render(mi.load_file(str(xml)), seed=0))
+    np.testing.assert_allclose(ours, reference, atol=1e-4)
+
+    status, _, err = run_cli(capsys, *argv, "--max-depth", "3", "--accel", "hlbvh",
+                             "--out", tmp_path / "flags")
+    assert status == 0 and err == [
+        "hlbvh render: the command line overrides the scene's integrator 'hlbvh_path': "
+        "--max-depth 3 (the scene's max_depth: 1), --accel hlbvh (the scene's accel: "
+        "'native')"], err
+    settings = read_stats(tmp_path / "flags")[0]["settings"]
+    assert (settings["accel"], settings["max_depth"]) == ("hlbvh", 3)
+
+    edit(xml, '<integer name="max_depth" value="1"/></integrator>', '</integrator>')
+    edit(xml, 'type="hlbvh_path"><string name="accel" value="native"/>', 'type="direct">')
+    status, _, err = run_cli(capsys, *argv, "--out", tmp_path / "direct")
+    assert status == 2 and err == [
+        f"hlbvh render: scene {str(xml)!r}: its integrator 'direct' is not one hlbvh render "
+        f"runs (path, hlbvh_path, hlbvh_aov); pass --integrator path or aov to render with "
+        f"hlbvh's instead"], err
+    status, _, err = run_cli(capsys, *argv, "--integrator", "aov", "--out", tmp_path / "aov")
+    assert status == 0 and err == [
+        "hlbvh render: --integrator aov overrides the scene's integrator 'direct' (its "
+        "properties are not used)"], err
