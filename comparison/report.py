@@ -159,6 +159,8 @@ def write_sweep_report(
     plots: Sequence[os.PathLike | str] = (),
     objective: str = "frame_ms",
     label: str = "setting",
+    lead: str | None = None,
+    digits: int = 4,
 ) -> dict[str, Path]:
     """Write the report of a sweep over builder settings and name the winner.
 
@@ -173,6 +175,10 @@ def write_sweep_report(
         objective: the key minimised to pick the winner (the fastest setting per frame
             by default).
         label: the key that names a row's setting.
+        lead: the page's first sentence, for a person (by default it names the
+            winner by ``objective``).
+        digits: significant digits of the page's table cells (the JSON and CSV keep
+            every digit).
 
     Returns:
         ``{"md": ..., "html": ..., "json": ..., "csv": ...}``; ``results.json`` also
@@ -190,13 +196,11 @@ def write_sweep_report(
     plot_links = _plot_links(out_dir, plots)
 
     page = _Page(title)
-    page.paragraph(
-        f"Fastest by {objective}: {format_value(best[label])} "
-        f"({objective} = {format_value(best[objective])})",
-        strong=True,
-    )
+    page.paragraph(lead or (f"Fastest by {objective}: {format_value(best[label])} "
+                            f"({objective} = {format_value(best[objective], digits)})"),
+                   strong=True)
     page.plots(plot_links)
-    page.table("Sweep", flat, highlight=flat.index(best))
+    page.table("Sweep", flat, highlight=flat.index(best), digits=digits)
     page.table("Settings", _setting_rows(settings))
     results = {
         "kind": "sweep",
@@ -230,15 +234,16 @@ class _Page:
         self.markdown.append(f"> **Warning:** {text}\n")
         self.html.append(f'<p class="warning">Warning: {html.escape(text)}</p>')
 
-    def table(self, heading: str, rows: Sequence[Mapping], highlight: int | None = None) -> None:
+    def table(self, heading: str, rows: Sequence[Mapping], highlight: int | None = None,
+              digits: int = 6) -> None:
         columns = column_keys(rows)
         self.markdown.append(f"## {heading}\n")
         self.html.append(f"<h2>{html.escape(heading)}</h2>")
         if not rows:
             self.paragraph("(none)")
             return
-        cells = [[format_value(row.get(column)) for column in columns] for row in rows]
-        self.markdown.append(markdown_table(rows, columns) + "\n")
+        cells = [[format_value(row.get(column), digits) for column in columns] for row in rows]
+        self.markdown.append(markdown_table(rows, columns, digits) + "\n")
         body = []
         for index, (row, line) in enumerate(zip(rows, cells)):
             tds = "".join(

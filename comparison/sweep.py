@@ -18,10 +18,13 @@ accelerator's per-frame ``update`` policy, each varying one knob from the defaul
 pass); ``leaf1``, ``leaf8`` (``leaf_size``); ``rebuild`` (a build every frame, seeded
 with last frame's order where that pays), ``fresh`` (the same, unseeded), ``refit``
 (refit every frame), ``auto`` (refit while the SAH cost stays near the last build's:
-the accelerator's default). A setting without an ``update`` rebuilds every frame, so
-that the builder settings measure their builder. A setting may also be spelled out:
-``builder=lbvh+leaf_size=8+update=refit`` (its label is that text).
-``native`` (Mitsuba's own accelerator) is always measured, as the reference.
+the accelerator's default); ``static_hlbvh`` (``static="hlbvh"``: the still shapes
+too in our BVHs and watertight traversal, the accuracy end of the trade; every other
+setting leaves them to Mitsuba's accelerator, ``static="native"``). A setting without
+an ``update`` rebuilds every frame, so that the builder settings measure their
+builder. A setting may also be spelled out: ``builder=lbvh+leaf_size=8+update=refit``
+or ``static=hlbvh+update=auto`` (its label is that text). ``native`` (Mitsuba's own
+accelerator) is always measured, as the reference.
 
 What is measured
 ----------------
@@ -47,12 +50,16 @@ every spp of ``--spp-curve``. Per setting, over the timed frames:
   ``frame_ms_spp<N>`` at each spp of the curve: medians;
 - ``image.*``: the setting's render at ``--spp`` against native's, frame by frame: the
   largest difference over the frames, the mean, the smallest fraction of pixels within
-  :data:`hlbvh.comparison.compare.TOLERANCE` and the lowest PSNR.
+  :data:`hlbvh.comparison.compare.TOLERANCE` and the lowest PSNR. Native's own row
+  compares its render with Mitsuba's C++ ``path`` integrator's (same scene, seed and
+  spp; ``--integrator path`` only, else none): the reference checked against one
+  that someone else wrote.
 
 The report (``--out``, default ``out/sweep/<scene>``)
 -----------------------------------------------------
-``report.md``, ``report.html``, ``results.json``, ``results.csv`` (one row per setting,
-native first; the winner marked), ``build_vs_sah.png`` (build ms against SAH cost, the
+``report.md``, ``report.html`` (led by a sentence: the fastest setting, its frame time
+against native's, and the spp from which native is faster), ``results.json``,
+``results.csv`` (one row per setting, native first; the winner marked), ``build_vs_sah.png`` (build ms against SAH cost, the
 Pareto front marked) and ``frame_vs_spp.png`` (frame ms against spp for every setting
 and native, the spp where native becomes faster marked).
 """
@@ -73,6 +80,7 @@ from hlbvh.comparison.machine import cpu_model
 from hlbvh.comparison.bench_trace import primary_rays, secondary_rays
 from hlbvh.policy import BUILD_OPTIONS, UPDATES
 from hlbvh.comparison.compare import TOLERANCE
+from hlbvh.comparison.crossover import crossover_spp
 from hlbvh.comparison.metrics import image_metrics
 from hlbvh.errors import UserError
 from hlbvh.frame import FrameRenderer
@@ -102,6 +110,7 @@ SETTINGS = {
     "fresh": {"update": "fresh"},
     "refit": {"update": "refit"},
     "auto": {"update": "auto"},
+    "static_hlbvh": {"static": "hlbvh", "update": "auto"},
 }
 
 #: The label of Mitsuba's own accelerator among the rows.
@@ -126,23 +135,26 @@ class Setting:
         build_options: options of :func:`hlbvh.build`.
         update: our accelerator's per-frame policy, or ``None`` for a rebuild every frame.
         accel: ``"hlbvh"``, or ``"native"`` for Mitsuba's accelerator.
+        static: what traces the still shapes (``"native"`` or ``"hlbvh"``).
     """
 
     label: str
     build_options: dict = field(default_factory=dict)
     update: str | None = None
     accel: str = "hlbvh"
+    static: str = "native"
 
     def render_settings(self, base: RenderSettings) -> RenderSettings:
         """``base`` with this setting's accelerator, builder options and policy (a
         rebuild every frame when it names none)."""
         update = None if self.accel == NATIVE else (self.update or "rebuild")
         return replace(base, accel=self.accel, build_options=dict(self.build_options),
-                       update=update)
+                       update=update, static=self.static)
 
     def description(self) -> str:
         """The options as ``key=value`` joined by ``+`` (``defaults`` when none)."""
-        options = {**self.build_options, **({"update": self.update} if self.update else {})}
+        options = {**self.build_options, **({"update": self.update} if self.update else {}),
+                   **({"static": self.static} if self.static != "native" else {})}
         return "+".join(f"{k}={v}" for k, v in options.items()) or (
             "Mitsuba's accelerator" if self.accel == NATIVE else "defaults")
 
@@ -172,14 +184,15 @@ def parse_settings(text: str | None) -> list[Setting]:
             raise UserError(f"--settings: unknown setting {word!r}; expected one of "
                             f"{', '.join(SETTINGS)} or key=value+key=value")
         update = options.pop("update", None)
+        static = options.pop("static", "native")
         if update is not None and update not in UPDATES:
             raise UserError(f"--settings {word!r}: update={update!r}: expected one of "
                             f"{', '.join(UPDATES)}")
         try:
-            RenderSettings(build_options=options)
+            RenderSettings(build_options=options, static=static)
         except ValueError as error:
             raise UserError(f"--settings {word!r}: {error}") from None
-        settings.append(Setting(word, options, update))
+        settings.append(Setting(word, options, update, static=static))
     labels = [s.label for s in settings]
     twice = sorted({label for label in labels if labels.count(label) > 1})
     if twice:
@@ -192,9 +205,9 @@ def _spelled_out(word: str) -> dict:
     for part in word.split("+"):
         key, _, value = part.partition("=")
         key = key.strip().replace("-", "_")
-        if key not in (*BUILD_OPTIONS, "update") or not value.strip():
+        if key not in (*BUILD_OPTIONS, "update", "static") or not value.strip():
             raise UserError(f"--settings {word!r}: {part!r} is not key=value with a key among "
-                            f"{', '.join((*BUILD_OPTIONS, 'update'))}")
+                            f"{', '.join((*BUILD_OPTIONS, 'update', 'static'))}")
         options[key] = option_value(value)
     return options
 
@@ -231,6 +244,8 @@ def sweep(animation, frames, settings: list[Setting], base: RenderSettings, spp:
     curve = sorted({*spp_curve, spp})
     everyone = [Setting(NATIVE, accel=NATIVE), *settings]
     renderers = {s.label: FrameRenderer(animation, s.render_settings(base)) for s in everyone}
+    cpp_path = (mi.load_dict({"type": "path", "max_depth": base.max_depth})
+                if base.integrator == "path" else None)
     cold, runs, images = {}, {s.label: [] for s in everyone}, {}
     with tqdm(total=(len(frames) + 2) * len(everyone), desc=f"sweep {animation.name}",
               unit="render", file=sys.stderr, disable=not progress,
@@ -253,9 +268,12 @@ def sweep(animation, frames, settings: list[Setting], base: RenderSettings, spp:
                 images[setting.label] = image
                 runs[setting.label].append(run)
                 bar.update()
-            for setting in everyone:
+            for setting in settings:
                 runs[setting.label][-1]["image"] = image_metrics(images[NATIVE],
                                                                  images[setting.label], TOLERANCE)
+            runs[NATIVE][-1]["image"] = None if cpp_path is None else image_metrics(
+                as_image(_render(renderers[NATIVE].scene, runs[NATIVE][-1]["seed"], spp,
+                                 cpp_path))[..., :3], images[NATIVE], TOLERANCE)
     throughput = _throughput(renderers)
     return [_row(setting, runs[setting.label], cold[setting.label], throughput[setting.label],
                  spp, curve) for setting in everyone]
@@ -272,12 +290,12 @@ def _frame(renderer: FrameRenderer, i: int, curve: list[int], spp: int) -> tuple
         if samples == spp:
             kept = image
     run = {"build_ms": row["build_ms"], "sah_cost": row["sah_cost"],
-           "decision": row["decision"], "render_ms": render_ms}
+           "decision": row["decision"], "render_ms": render_ms, "seed": row["seed"]}
     return run, as_image(kept)[..., :3]
 
 
-def _render(scene, seed: int, spp: int):
-    image = mi.render(scene, seed=seed, spp=spp)
+def _render(scene, seed: int, spp: int, integrator=None):
+    image = mi.render(scene, integrator=integrator, seed=seed, spp=spp)
     dr.eval(image)
     return image
 
@@ -314,7 +332,7 @@ def _row(setting: Setting, runs: list[dict], cold_ms: float, throughput: dict, s
     build = statistics.median(run["build_ms"] for run in runs)
     frame_ms = {samples: statistics.median(run["build_ms"] + run["render_ms"][samples]
                                            for run in runs) for samples in curve}
-    errors = [run["image"] for run in runs]
+    errors = [run["image"] for run in runs if run["image"] is not None]
     decisions = [run["decision"] for run in runs]
     return {
         "setting": setting.label,
@@ -333,7 +351,7 @@ def _row(setting: Setting, runs: list[dict], cold_ms: float, throughput: dict, s
             "mean_abs_diff": statistics.fmean(e["mean_abs_diff"] for e in errors),
             "fraction_within_tolerance": min(e["fraction_within_tolerance"] for e in errors),
             "psnr_db": min(e["psnr_db"] for e in errors),
-        },
+        } if errors else None,
     }
 
 
@@ -366,9 +384,32 @@ def write_sweep(out_dir, rows: list[dict], recorded: dict, spp: int, curve) -> d
     files = report.write_sweep_report(
         out, f"hlbvh sweep: {recorded['scene_name']} at {spp} spp", rows, recorded,
         plots=[pareto, by_spp], objective="frame_ms", label="setting",
+        lead=lead_sentence(rows, spp, curve),
     )
     return {"files": files, "plots": [pareto, by_spp], "winner": report.winner(rows),
             "fastest_hlbvh": report.winner(ours)}
+
+
+def lead_sentence(rows: list[dict], spp: int, curve) -> str:
+    """What the page says first, for a person: the fastest hlbvh setting per frame, its
+    frame time against native's at ``spp``, and the spp from which native is faster."""
+    native = next(row for row in rows if row["setting"] == NATIVE)
+    best = report.winner([row for row in rows if row["setting"] != NATIVE])
+    ratio = native["frame_ms"] / best["frame_ms"]
+    pace = f"{ratio:.2f}x faster than" if ratio >= 1 else f"{1 / ratio:.2f}x slower than"
+    curve = sorted(curve)
+    ours_ms = [best[f"frame_ms_spp{s}"] for s in curve]
+    native_ms = [native[f"frame_ms_spp{s}"] for s in curve]
+    crossing = crossover_spp(curve, ours_ms, native_ms)
+    if crossing is not None:
+        native_wins = f"native is faster per frame from {crossing:.3g} spp on"
+    elif ours_ms[0] >= native_ms[0]:
+        native_wins = f"native is faster at every spp measured ({curve[0]} to {curve[-1]})"
+    else:
+        native_wins = f"native is slower at every spp measured, up to {curve[-1]}"
+    return (f"The fastest hlbvh setting at {spp} spp is {best['setting']}: "
+            f"{best['frame_ms']:.1f} ms a frame, {pace} native's {native['frame_ms']:.1f} ms; "
+            f"{native_wins}.")
 
 
 def machine_note(recorded: dict) -> str | None:

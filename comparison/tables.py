@@ -43,10 +43,11 @@ COLUMN_TITLES = {
 }
 
 
-def format_value(value) -> str:
+def format_value(value, digits: int = 6) -> str:
     """The table text of one result value.
 
-    Integers and strings as they are; floats with six significant digits, but never
+    Integers and strings as they are; floats with ``digits`` significant digits (six
+    by default; a page for people passes fewer), but never
     rounded to a whole number they are not (``0.9999995`` stays ``0.9999995``, not
     ``1``), so a fraction just below one cannot read as "all"; non-finite floats as
     ``inf``, ``-inf``, ``nan``; ``None`` as ``-``; booleans as ``yes``/``no``; lists
@@ -61,14 +62,13 @@ def format_value(value) -> str:
     if isinstance(value, float):
         if not math.isfinite(value):
             return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
-        digits = 6
         text = f"{value:.{digits}g}"
         while float(text) != value and float(text) == round(float(text)) and digits < 17:
             digits += 1
             text = f"{value:.{digits}g}"
         return text
     if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(format_value(item) for item in value) + "]"
+        return "[" + ", ".join(format_value(item, digits) for item in value) + "]"
     return str(value)
 
 
@@ -91,14 +91,16 @@ def column_title(key: str) -> str:
     return words + unit
 
 
-def markdown_table(rows: Sequence[Mapping], columns: Sequence[str] | None = None) -> str:
+def markdown_table(rows: Sequence[Mapping], columns: Sequence[str] | None = None,
+                   digits: int = 6) -> str:
     """A Markdown table of flat ``rows`` (``columns``: their keys, by default every key
     in order of first appearance), headed by :func:`column_title`, cells by
-    :func:`format_value`."""
+    :func:`format_value` with ``digits`` significant digits."""
     columns = column_keys(rows) if columns is None else list(columns)
     lines = ["| " + " | ".join(_md_escape(column_title(c)) for c in columns) + " |",
              "|" + "|".join("---" for _ in columns) + "|"]
-    lines += ["| " + " | ".join(_md_escape(format_value(row.get(c))) for c in columns) + " |"
+    lines += ["| " + " | ".join(_md_escape(format_value(row.get(c), digits)) for c in columns)
+              + " |"
               for row in rows]
     return "\n".join(lines)
 

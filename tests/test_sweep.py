@@ -25,12 +25,13 @@ hlbvh = run_cli
 
 @pytest.fixture(scope="module")
 def swept(tmp_path_factory):
-    """A sweep of two settings over frames 0..2 of a small cloth: (status, stdout, dir)."""
+    """A sweep of three settings over frames 0..2 of a small cloth: (status, stdout,
+    dir)."""
     out = tmp_path_factory.mktemp("sweep") / "cloth"
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
         status = cli.main(["sweep", "cloth", *TINY, "--settings",
-                           "lbvh,builder=hlbvh+update=refit", "--out", str(out)])
+                           "lbvh,builder=hlbvh+update=refit,static_hlbvh", "--out", str(out)])
     return status, printed.getvalue(), out
 
 
@@ -42,7 +43,7 @@ def image_size(path) -> tuple:
     return spec.width, spec.height
 
 
-def test01_two_settings_give_their_rows_and_both_plots(swept):
+def test01_three_settings_give_their_rows_and_both_plots(swept):
     status, _, out = swept
     assert status == 0
     for name in ("report.md", "report.html", "results.json", "results.csv"):
@@ -51,21 +52,24 @@ def test01_two_settings_give_their_rows_and_both_plots(swept):
         assert image_size(out / plot)[0] > 100, plot
     results = read_results(out / "results.json")
     rows = results["rows"]
-    assert [row["setting"] for row in rows] == ["native", "lbvh", "builder=hlbvh+update=refit"]
+    assert [row["setting"] for row in rows] == ["native", "lbvh", "builder=hlbvh+update=refit",
+                                                "static_hlbvh"]
     assert results["settings"]["spp_curve"] == [1, 2, 4]
     for row in rows:
         for key in ("build_ms", "build_cold_ms", "mrays_primary", "mrays_secondary",
                     "render_ms", "frame_ms", "frame_ms_spp1", "frame_ms_spp2", "frame_ms_spp4"):
             assert math.isfinite(row[key]) and row[key] > 0, (row["setting"], key)
-    native, lbvh, refit = rows
+    native, lbvh, refit, accurate = rows
     assert native["sah_cost"] is None and native["decisions"] == "native x3"
     assert lbvh["sah_cost"] >= 1 and refit["sah_cost"] >= 1
     assert lbvh["decisions"] == "rebuild x3" and refit["decisions"] == "refit x3"
     assert lbvh["options"] == "builder=lbvh"
-    # Native against itself is exact; every setting renders native's image within the
+    assert accurate["options"] == "update=auto+static=hlbvh"
+    # Native (hlbvh_path through Mitsuba's accelerator) renders Mitsuba's C++ path
+    # integrator's image bit for bit; every setting renders native's image within the
     # plugin's tolerance (same seed, box filter).
     assert native["image.max_abs_diff"] == 0 and native["image.psnr_db"] == math.inf
-    for row in (lbvh, refit):
+    for row in (lbvh, refit, accurate):
         assert row["image.fraction_within_tolerance"] >= 1 - 1 / SIZE**2
         assert row["image.mean_abs_diff"] < 1e-5
 
@@ -80,7 +84,7 @@ def test02_numbers_are_consistent_with_each_other(swept):
     for row, line in zip(rows, table[2:]):
         cells = dict(zip(header, (cell.strip() for cell in line.strip("|").split(" | "))))
         for key, value in row.items():
-            assert cells[column_title(key)] == format_value(value), key
+            assert cells[column_title(key)] == format_value(value, 4), key
 
 
 def test03_the_winner_is_the_fastest_by_its_own_numbers(swept):
@@ -94,7 +98,11 @@ def test03_the_winner_is_the_fastest_by_its_own_numbers(swept):
     assert f"at {SPP} spp: {fastest['setting']} ({fastest['frame_ms']:.1f} ms" in printed
     if fastest is not ours:
         assert f"fastest hlbvh setting: {ours['setting']} ({ours['frame_ms']:.1f} ms)" in printed
-    assert f"Fastest by frame_ms: {fastest['setting']}" in (out / "report.md").read_text()
+    page = (out / "report.md").read_text()
+    native = rows[0]
+    assert (f"The fastest hlbvh setting at {SPP} spp is {ours['setting']}: "
+            f"{ours['frame_ms']:.1f} ms a frame, ") in page
+    assert f"native's {native['frame_ms']:.1f} ms; native is" in page
     assert '<tr class="winner">' in (out / "report.html").read_text()
 
 
@@ -107,6 +115,8 @@ def test04_settings_are_parsed_named_or_spelled_out():
     assert spelled.update == "auto"
     assert spelled.description() == "builder=sah+leaf_size=2+update=auto"
     assert [s.label for s in sweep.parse_settings(None)] == list(sweep.SETTINGS)
+    (accurate,) = sweep.parse_settings("static=hlbvh")
+    assert accurate.static == "hlbvh" and accurate.description() == "static=hlbvh"
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -114,6 +124,7 @@ def test04_settings_are_parsed_named_or_spelled_out():
     (["cloth", "--settings", "fastest"], "unknown setting 'fastest'"),
     (["cloth", "--settings", "leaf_size=99"], "leaf_size"),
     (["cloth", "--settings", "update=sometimes"], "update"),
+    (["cloth", "--settings", "static=embree"], "static='embree'"),
     (["cloth", "--settings", "colour=red"], "colour=red"),
     (["cloth", "--settings", "lbvh,,sah"], "--settings"),
     (["cloth", "--settings", "lbvh,lbvh"], "more than once"),
