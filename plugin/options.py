@@ -10,7 +10,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from hlbvh import scenes
-from hlbvh.policy import ACCELS, BUILD_OPTIONS, UPDATES
+from hlbvh.policy import ACCELS, BUILD_OPTIONS, STATICS, UPDATES
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.scenes.sequence import TOPOLOGIES
@@ -23,9 +23,9 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
     """The options of a scene and its renders (``hlbvh render``, ``compare``, ``sweep``): SCENE,
     ``--frames-dir``, ``--frames``, ``--resolution``, ``--spp``, ``--triangles``,
     ``--max-depth``, ``--seed``, ``--out``, ``--quiet``; with ``builder_options`` also
-    the builder's options and ``--update``. ``out``, ``frames`` and ``spp`` are the
-    defaults the help states (``None``: every frame, the scene's spp); the caller
-    applies them."""
+    the builder's options, ``--update`` and ``--static``. ``out``, ``frames`` and
+    ``spp`` are the defaults the help states (``None``: every frame, the scene's spp);
+    the caller applies them."""
     add = parser.add_argument
     add("scene", help=f"a procedural scene ({', '.join(scenes.names())}) or a Mitsuba XML "
                       "file (with --frames-dir)")
@@ -47,6 +47,9 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
                 help=f"builder option {name} (hlbvh.build; default {getattr(BuildConfig, name)!r})")
         add("--update", help="our accelerator's per-frame policy: auto, rebuild, fresh or refit "
                              "(default: the accelerator's own, auto)")
+        add("--static", help="what traces the shapes that do not move: native (Mitsuba's own "
+                             "accelerator, the fastest; default) or hlbvh (our watertight "
+                             "traversal for every mesh, the accurate end)")
     add("--seed", default="0", help="frame i is rendered with seed SEED + i (default 0)")
     add("--out", help=f"output directory (default {out})")
     add("--quiet", action="store_true", help="no progress bars")
@@ -78,6 +81,7 @@ def render_settings(args, *, spp: int | None = None, integrator: str = "path",
     build_options = {name: option_value(getattr(args, name)) for name in BUILD_OPTIONS
                      if getattr(args, name, None) is not None}
     update = getattr(args, "update", None)
+    static = getattr(args, "static", None)
     if spp is None and args.spp is not None:
         spp = int_flag("--spp", args.spp, least=1)
     return RenderSettings(
@@ -90,6 +94,7 @@ def render_settings(args, *, spp: int | None = None, integrator: str = "path",
         build_options=build_options,
         update=None if update is None else choice("--update", update, UPDATES),
         seed=seed_flag(args.seed),
+        static="native" if static is None else choice("--static", static, STATICS),
     )
 
 
@@ -143,6 +148,9 @@ def scene_render_settings(args, animation, scene: str) -> tuple[RenderSettings, 
     if flags.update is not None:
         override("--update", "update", flags.update, fields["update"])
         fields["update"] = flags.update
+    if getattr(args, "static", None) is not None:
+        override("--static", "static", flags.static, fields["static"])
+        fields["static"] = flags.static
     line = (f"the command line overrides the scene's integrator {kind!r}: "
             f"{', '.join(overrides)}") if overrides else None
     return replace(flags, **fields), line

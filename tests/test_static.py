@@ -337,3 +337,25 @@ def test11_static_world_and_moving_meshes_merge_ties_to_the_static_world():
     ray = mi.Ray3f(mi.Point3f(0, 0, 2), mi.Vector3f(0, 0, -1))
     pi = accel.ray_intersect_preliminary(ray)
     assert pi.is_valid()[0] and pi.shape_index[0] == 0 and pi.t[0] == 2.0
+
+
+def test12_the_static_flag_reaches_the_accelerator(tmp_path, capsys):
+    """`hlbvh render --static hlbvh` renders through our BVHs for every mesh (the
+    statistics record it, and the SAH cost covers the still ground and pole too); a
+    bad value is one line naming the flag."""
+    from cli_helpers import run_cli
+    import json
+    sah = {}
+    for static in ("native", "hlbvh"):
+        out = tmp_path / static
+        status, _, err = run_cli(capsys, "render", "cloth", "--triangles", "2000", "--frames",
+                                 "0:2", "--resolution", "16", "--spp", "1", "--static", static,
+                                 "--out", out, "--quiet")
+        assert status == 0, err
+        stats = json.loads((out / "stats.json").read_text())
+        assert stats["settings"]["static"] == static
+        sah[static] = stats["frames"][-1]["sah_cost"]
+    assert sah["native"] != sah["hlbvh"]
+    status, _, err = run_cli(capsys, "render", "cloth", "--static", "embree", "--out",
+                             tmp_path / "bad", "--quiet")
+    assert status == 2 and err == ["hlbvh render: --static 'embree': expected one of native, hlbvh"]
