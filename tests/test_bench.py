@@ -1,0 +1,276 @@
+"""The benchmarks run end to end at small sizes (a few thousand triangles, tiny images):
+``hlbvh bench build|trace|frame`` (table and ``--json``), the ``main()`` of
+``bench_trace``, ``bench_frame`` and ``readme_figures`` with their flags. Every table
+has the rows and columns it promises and every ratio is finite and positive; no time
+is asserted."""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+
+import numpy as np
+import pytest
+
+import hlbvh  # noqa: F401  (sets up Dr.Jit's LLVM and the variant)
+import mitsuba as mi
+from cli_helpers import run_cli
+from hlbvh import scenes
+from hlbvh.comparison import bench_build, bench_frame, bench_trace, readme_figures
+
+#: The cloth is a 200k-triangle flag unless told otherwise; the benchmarks that trace
+#: it (bench trace, readme_figures) name no size, so tests shrink it here.
+SMALL_CLOTH = 2000
+
+
+@pytest.fixture
+def small_cloth(monkeypatch):
+    real = scenes.get
+
+    def get(name, **kwargs):
+        if name == "cloth":
+            kwargs["triangles"] = min(kwargs.get("triangles", SMALL_CLOTH), SMALL_CLOTH)
+        return real(name, **kwargs)
+
+    monkeypatch.setattr(scenes, "get", get)
+
+
+def positive(value) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value) and value > 0
+
+
+def strict_json(text: str):
+    def refuse(constant):
+        raise AssertionError(f"non-standard JSON constant {constant}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+# ---------------------------------------------------------------------------------------
+# bench build
+# ---------------------------------------------------------------------------------------
+
+
+def test01_subdivided_box_is_a_closed_surface_of_about_the_size_asked():
+    """Midpoint subdivision keeps the rounded box closed (every edge in exactly two
+    triangles, both windings) and its new vertices on the surface |x|^4 = 1."""
+    for triangles in (800, 5000):
+        vertices, faces = bench_build.subdivided_box(triangles)
+        v = vertices.numpy().reshape(-1, 3)
+        f = faces.numpy().reshape(-1, 3).astype(np.int64)
+        assert triangles / 4 <= len(f) <= 4 * triangles
+        assert f.max() < len(v)
+        directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+        pairs, counts = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
+        assert np.all(counts == 2), "an edge not shared by exactly two triangles"
+        assert len(np.unique(directed, axis=0)) == len(directed), "inconsistent winding"
+        used = np.unique(f)
+        np.testing.assert_allclose((np.abs(v[used]) ** 4).sum(axis=1), 1, rtol=1e-4)
+
+
+def test02_bench_build_rows_columns_and_ratios():
+    rows = bench_build.run(sizes=(2000,), repeats=1)
+    assert [(r["mesh"], r["builder"]) for r in rows] == [
+        (m, b) for m in ("grid", "soup", "box") for b in ("hlbvh", "lbvh", "sah")]
+    embree = bench_build._embree() is not None
+    for r in rows:
+        assert r["triangles"] >= 500 and r["cores"] >= 1 and r["launches"] > 0
+        for key in ("build", "pack", "ready", "seeded", "refit", "native"):
+            assert set(r[key]) == {"cold", "min", "median"}, key
+            assert all(positive(v) for v in r[key].values()), (key, r[key])
+        assert positive(r["native_over_ready"]) and positive(r["mtris_per_s_per_core"])
+        assert r["native_over_ready"] == pytest.approx(r["native"]["min"] / r["ready"]["min"])
+        assert r["mtris_per_s_per_core"] == pytest.approx(
+            r["triangles"] / r["ready"]["min"] / 1e3 / r["cores"])
+        assert r["sah_cost"] >= 1 and r["stage_ms"]
+        for key in ("embree_low", "embree_medium", "embree_refit"):
+            assert (key in r) == embree, key
+    by_mesh = {r["mesh"]: r["triangles"] for r in rows}
+    assert by_mesh["soup"] == 2000
+    table = bench_build.format_table(rows).splitlines()
+    head = table[0].split()
+    for column in ("mesh", "builder", "ready", "native", "E.low", "E.med", "E.refit",
+                   "nat/rdy", "SAH"):
+        assert column in head, column
+    body = table[2:2 + len(rows)]
+    assert [line.split()[:3] for line in body] == [
+        [r["mesh"], str(r["triangles"]), r["builder"]] for r in rows]
+    for line, r in zip(body, rows):
+        assert f"{r['native_over_ready']:6.2f}x" in line
+        if not embree:  # the Embree columns show a dash, not a crash
+            assert line.split().count("-") == 3
+    assert table[-2].startswith("stages of the first row's last build")
+
+
+def test03_bench_build_embree_columns():
+    pytest.importorskip("embreex")
+    rows = bench_build.run(sizes=(2000,), meshes=("grid",), builders=("lbvh",), repeats=1)
+    for key in ("embree_low", "embree_medium", "embree_refit"):
+        assert all(positive(v) for v in rows[0][key].values()), key
+    assert "-" not in bench_build.format_table(rows).splitlines()[2].split()
+
+
+def test04_hlbvh_bench_build_table_and_json(capsys):
+    argv = ["bench", "build", "--sizes", "1500", "--repeats", "1", "--builder", "lbvh,hlbvh"]
+    status, table, errors = run_cli(capsys, *argv)
+    assert status == 0 and not errors
+    lines = table.splitlines()
+    assert lines[0].split()[:3] == ["mesh", "tris", "builder"]
+    assert [line.split()[0] + " " + line.split()[2] for line in lines[2:8]] == [
+        f"{m} {b}" for m in ("grid", "soup", "box") for b in ("lbvh", "hlbvh")]
+    status, printed, errors = run_cli(capsys, *argv, "--json")
+    assert status == 0 and not errors
+    rows = strict_json(printed)
+    assert [(r["mesh"], r["builder"]) for r in rows] == [
+        (m, b) for m in ("grid", "soup", "box") for b in ("lbvh", "hlbvh")]
+    assert all(positive(r["native_over_ready"]) for r in rows)
+
+
+# ---------------------------------------------------------------------------------------
+# bench trace
+# ---------------------------------------------------------------------------------------
+
+KINDS = [(k, q) for k in ("coherent", "incoherent", "shadow") for q in ("closest", "any")]
+RATIOS = ("ratio", "ratio_median", "ratio_cpu", "ours_mrays", "native_mrays")
+
+
+def test05_hlbvh_bench_trace_with_cornell_box_and_cloth(capsys, small_cloth):
+    """The CLI's trace suite traces the grid, Cornell box and the cloth (their default
+    branches), each kind and query, and prints them as JSON or as a table."""
+    argv = ["bench", "trace", "--sizes", "2000", "--repeats", "1", "--resolution", "12"]
+    status, printed, errors = run_cli(capsys, *argv, "--json")
+    assert status == 0 and not errors
+    rows = strict_json(printed)
+    assert [(r["scene"], r["kind"], r["query"]) for r in rows] == [
+        (s, k, q) for s in ("grid 2k", "cornell box", "cloth") for k, q in KINDS]
+    triangles = {r["scene"]: r["triangles"] for r in rows}
+    assert triangles["cornell box"] == sum(
+        s.face_count() for s in mi.load_dict(mi.cornell_box()).shapes())
+    assert SMALL_CLOTH <= triangles["cloth"] < 2 * SMALL_CLOTH + 10
+    for r in rows:
+        assert all(positive(r[key]) for key in RATIOS), r
+        assert r["rays"] > 0 and 0.9 <= r["agree"] <= 1, r
+        if r["kind"] == "coherent":
+            assert r["rays"] == 12 * 12
+    status, table, errors = run_cli(capsys, *argv)
+    assert status == 0 and not errors
+    lines = table.splitlines()
+    assert lines[0].split()[:5] == ["scene", "tris", "rays", "rays", "kind"]
+    assert len(lines) == 2 + len(rows)
+    assert [line.split()[0] for line in lines[2:]] == ["grid"] * 6 + ["cornell"] * 6 + ["cloth"] * 6
+
+
+def test06_bench_trace_main_flags(capsys):
+    """``python -m hlbvh.comparison.bench_trace`` with --no-cornell, --no-cloth,
+    --threads and --builder: the grid alone, traced with the builder and threads named."""
+    status = bench_trace.main(["--sizes", "2000", "--repeats", "1", "--resolution", "10",
+                               "--no-cornell", "--no-cloth", "--threads", "1",
+                               "--builder", "lbvh"])
+    out = capsys.readouterr().out.splitlines()
+    assert status == 0
+    assert out[0].startswith(f"hlbvh trace benchmark ({mi.variant()}, builder=lbvh, 1 threads")
+    body = out[3:]
+    assert len(body) == 6 and all(line.startswith("grid 2k") for line in body)
+    for line, (kind, query) in zip(body, KINDS):
+        cells = line.split()
+        assert cells[4:6] == [kind, query]  # after "grid 2k", triangles, rays
+        assert all(positive(float(c)) for c in cells[6:11])  # Mr/s, Embree, three ratios
+
+
+# ---------------------------------------------------------------------------------------
+# bench frame
+# ---------------------------------------------------------------------------------------
+
+
+def test07_hlbvh_bench_frame_through_the_cli(capsys, monkeypatch):
+    """``hlbvh bench frame`` hands its options to bench_frame.run and prints its two
+    tables (the suite's scenes and drift frames, which the CLI does not set, made small
+    here)."""
+    seen = {}
+    real = bench_frame.run
+
+    def small(**kwargs):
+        seen.update(kwargs)
+        return real(scenes=("fracture",), spps=(1, 2), drift_frames=2, **kwargs)
+
+    monkeypatch.setattr(bench_frame, "run", small)
+    status, table, errors = run_cli(capsys, "bench", "frame", "--sizes", "1500", "--repeats",
+                                    "1", "--resolution", "8", "--builder", "lbvh")
+    assert status == 0 and not errors
+    assert seen == {"repeats": 1, "sizes": [1500], "resolution": 8, "builder": "lbvh"}
+    lines = table.splitlines()
+    assert lines[0].startswith("per-frame build (ms)")
+    assert lines[3].split()[0] == "fracture" and "(over 2 frames)" in lines[3]
+    frames = [line for line in lines if line.startswith("fracture") and "|" in line]
+    assert [line.split()[2] for line in frames] == ["1", "2"]
+    for line in frames:
+        ratio = line.split("|")[3].split()[0]
+        assert ratio.endswith("x") and positive(float(ratio[:-1]))
+    assert "builder=lbvh" in lines[-1]
+
+
+def test08_bench_frame_main_flags_json(capsys):
+    status = bench_frame.main(["--scenes", "twist", "--sizes", "1200", "--spp", "1,2",
+                               "--resolution", "8", "--repeats", "1", "--drift-frames", "3",
+                               "--builder", "lbvh", "--max-depth", "2", "--json"])
+    assert status == 0
+    rows = strict_json(capsys.readouterr().out)
+    assert [(r["scene"], r["spp"]) for r in rows] == [("twist", 1), ("twist", 2)]
+    for r in rows:
+        assert set(r) == set(bench_frame.ROW_KEYS)
+        assert r["builder"] == "lbvh" and r["drift_frames"] == 3 and r["resolution"] == 8
+        assert r["triangles"] >= 1200
+        assert positive(r["native_over_hlbvh"]) and positive(r["sah_drift_max"])
+        assert r["sah_drift_max"] >= r["sah_drift_last"]
+
+
+# ---------------------------------------------------------------------------------------
+# readme_figures
+# ---------------------------------------------------------------------------------------
+
+FIGURE_FLAGS = ["--build-sizes", "1500", "--sah-max", "1500", "--trace-sizes", "1500",
+                "--frame-sizes", "1200", "--frame-scenes", "fracture",
+                "--sweep-triangles", "1500", "--sweep-settings", "hlbvh,lbvh",
+                "--resolution", "8", "--repeats", "1", "--spp", "1", "--spp-curve", "1,2",
+                "--frames", "0:2", "--quiet"]
+
+
+@pytest.mark.slow
+def test09_readme_figures_main_and_replot(tmp_path, capsys, small_cloth):
+    out = tmp_path / "docs"
+    assert readme_figures.main(["--out", str(out), *FIGURE_FLAGS]) == 0
+    printed = capsys.readouterr().out
+    assert str(out / "bench.md") in printed
+    md = (out / "bench.md").read_text()
+    for heading in ("## Build (`hlbvh bench build --sizes 1500 --repeats 1`",
+                    "## Trace (`hlbvh bench trace --sizes 1500 --resolution 8",
+                    "## Frame (`python -m hlbvh.comparison.bench_frame --scenes fracture "
+                    "--sizes 1200 --resolution 8 --spp 1,2 --repeats 1 --drift-frames 20`)",
+                    "## Sweep (`hlbvh sweep cloth --triangles 1500 --resolution 8 --spp 1 "
+                    "--spp-curve 1,2 --frames 0:2 --settings hlbvh,lbvh`)"):
+        assert heading in md, heading
+    assert "--sweep-settings hlbvh,lbvh" in md  # the command as given
+    document = strict_json((out / "bench.json").read_text())
+    built = [(r["mesh"], r["builder"]) for r in document["build"]]
+    assert [m for m, b in built if b == "hlbvh"] == ["grid", "soup", "box"]
+    assert [b for m, b in built if m == "grid"] == ["hlbvh", "lbvh", "sah"]
+    # sah only up to --sah-max triangles
+    assert all((r["builder"] == "sah") <= (r["triangles"] <= 1500) for r in document["build"])
+    assert {r["scene"] for r in document["trace"]} == {"grid 1k", "cornell box", "cloth"}
+    assert [(r["scene"], r["spp"]) for r in document["frame"]] == [("fracture", 1),
+                                                                   ("fracture", 2)]
+    assert [r["setting"] for r in document["sweep"]][-2:] == ["hlbvh", "lbvh"]
+    for section, key in (("build", "native_over_ready"), ("trace", "ratio"),
+                         ("frame", "native_over_hlbvh")):
+        assert all(positive(r[key]) for r in document[section]), section
+    assert document["machine_before"]["variant"] == mi.variant()
+    plots = [out / "sweep.png", out / "sweep_frame_vs_spp.png"]
+    assert all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in plots)
+
+    # --replot draws both plots again from bench.json alone.
+    for p in plots:
+        p.unlink()
+    assert readme_figures.main(["--out", str(out), "--replot"]) == 0
+    assert "drawn from" in capsys.readouterr().out
+    assert all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in plots)
