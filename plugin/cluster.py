@@ -37,6 +37,8 @@ import functools
 import math
 import os
 import secrets
+import socket
+import struct
 import sys
 import threading
 from dataclasses import dataclass
@@ -45,9 +47,10 @@ from pathlib import Path
 import drjit as dr
 from distributed import (Client, Event, KilledWorker, LocalCluster, as_completed, get_worker,
                          wait)
+from distributed.comm.addressing import parse_address, parse_host_port
 
 from hlbvh.errors import UserError
-from hlbvh.frame import FrameRenderer
+from hlbvh.frame import FrameRenderer, available_memory
 from hlbvh.options import open_animation
 from hlbvh.output import (Statistics, frame_images_complete, output_directory, output_lock,
                           read_row, recorded_settings, remove_stale_files, row_files, row_path,
@@ -62,6 +65,18 @@ IN_FLIGHT = 2
 
 #: Seconds to wait for a scheduler to answer, and for its first worker.
 CONNECT_TIMEOUT = 10
+
+#: Memory a ``--cluster local:N`` worker process is given room for: about three times
+#: what one takes once it has imported hlbvh (165 MiB on Linux with Dr.Jit 1.5), for
+#: its scene and its frame.
+WORKER_BYTES = 512 * 2**20
+
+#: Largest first message a Dask scheduler sends (its handshake, a few hundred bytes):
+#: a length past this is another protocol's bytes.
+MAX_HANDSHAKE = 2**20
+
+#: The port of a ``--scheduler`` address that names none (Dask's).
+DEFAULT_PORT = 8786
 
 #: Seconds Ctrl-C waits for the chunks to stop after the frame they are on (a second
 #: Ctrl-C stops waiting).
@@ -312,6 +327,7 @@ class _connected:
             self.client = Client(self.cluster)
         else:
             try:
+                check_scheduler_greets(self.scheduler)
                 self.client = Client(self.scheduler, timeout=CONNECT_TIMEOUT)
             except (OSError, TimeoutError, ValueError) as error:
                 raise UserError(f"--scheduler {self.scheduler}: no Dask scheduler answers "
@@ -344,9 +360,62 @@ class _connected:
 
 
 def parse_cluster(text: str) -> int:
-    """``--cluster local:N`` -> N (>= 1)."""
+    """``--cluster local:N`` -> N, from 1 to what this machine runs
+    (:func:`machine_capacity`: a worker per core, :data:`WORKER_BYTES` of memory each).
+
+    Raises:
+        UserError: a malformed value, or more workers than the machine runs, naming its
+            cores and free memory.
+    """
     kind, _, count = text.partition(":")
     if kind != "local" or not count.isdigit() or int(count) < 1:
         raise UserError(f"--cluster {text!r}: expected local:N (N worker processes on this "
                         f"machine); for other machines use --scheduler ADDRESS")
+    cores, memory = machine_capacity()
+    most = cores if memory is None else max(1, min(cores, memory // WORKER_BYTES))
+    if int(count) > most:
+        free = "" if memory is None else f", {memory / 2**30:.1f} GiB free"
+        raise UserError(f"--cluster {text!r}: this machine runs at most {most} workers "
+                        f"({cores} cores{free}, {WORKER_BYTES // 2**20} MiB a worker); use "
+                        f"local:1 .. local:{most}, or --scheduler ADDRESS for more machines")
     return int(count)
+
+
+def machine_capacity() -> tuple[int, int | None]:
+    """The cores this process may run on, and the bytes it can still allocate
+    (:func:`hlbvh.frame.available_memory`; ``None`` when nothing says)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return cores or 1, available_memory()
+
+
+def check_scheduler_greets(address: str) -> None:
+    """Refuse a ``tcp://`` address where no Dask scheduler answers, within
+    :data:`CONNECT_TIMEOUT`, before a Dask client connects: a scheduler sends its
+    handshake first (an 8-byte length, then the message), while the client waits for it
+    without a deadline once the connection is made, and reads another protocol's reply
+    (an HTTP server's) as a length to allocate. Other schemes are left to Dask.
+
+    Raises:
+        UserError: nothing listens there, the connection is made but nothing is sent,
+            or what is sent is not a Dask handshake.
+        ValueError: a malformed address.
+    """
+    scheme, location = parse_address(address)
+    if scheme != "tcp":
+        return
+    host, port = parse_host_port(location, DEFAULT_PORT)
+    with socket.create_connection((host, port), timeout=CONNECT_TIMEOUT) as probe:
+        header = b""
+        try:
+            while len(header) < 8:
+                received = probe.recv(8 - len(header))
+                if not received:
+                    break
+                header += received
+        except TimeoutError:
+            raise UserError(f"--scheduler {address}: something accepts connections there but "
+                            f"sends nothing within {CONNECT_TIMEOUT} s, which a Dask scheduler "
+                            f"does at once (another kind of server?); check the address") from None
+    if len(header) < 8 or struct.unpack("Q", header)[0] > MAX_HANDSHAKE:
+        raise UserError(f"--scheduler {address}: what answers there is not a Dask scheduler "
+                        f"(it began {header!r}); check the address")

@@ -276,3 +276,75 @@ def test_the_scenes_own_integrator_is_honoured_and_a_flag_says_what_it_overrides
     assert status == 0 and err == [
         "hlbvh render: --integrator aov overrides the scene's integrator 'direct' (its "
         "properties are not used)"], err
+
+
+# ---------------------------------------------------------------------------------------
+# Clusters: bounded by the machine; schedulers that do not speak Dask
+# ---------------------------------------------------------------------------------------
+
+
+def test_a_local_cluster_is_bounded_by_the_machine(tmp_path, capsys, monkeypatch):
+    cluster = pytest.importorskip("hlbvh.cluster")
+    argv = ["render", "cloth", "--frames", "0:2", "--out", tmp_path / "out", *TINY]
+    status, _, err = run_cli(capsys, *argv, "--cluster", "local:100000")
+    assert status == 2 and len(err) == 1 and "this machine runs at most" in err[0], err
+    monkeypatch.setattr(cluster, "machine_capacity", lambda: (16, 3 * 2**30))
+    status, _, err = run_cli(capsys, *argv, "--cluster", "local:7")
+    assert status == 2 and err == [
+        "hlbvh render: --cluster 'local:7': this machine runs at most 6 workers (16 cores, "
+        "3.0 GiB free, 512 MiB a worker); use local:1 .. local:6, or --scheduler ADDRESS "
+        "for more machines"], err
+    assert not (tmp_path / "out").exists() or not list((tmp_path / "out").iterdir())
+
+
+class Server:
+    """A TCP server on 127.0.0.1 that does one of: accept and never send (``"silent"``),
+    answer what it is sent with an HTTP error (``"http"``), greet with another
+    protocol's banner (``"ssh"``)."""
+
+    def __init__(self, kind):
+        import socket
+        import threading
+
+        self.kind, self.socket = kind, socket.create_server(("127.0.0.1", 0))
+        self.address = f"tcp://127.0.0.1:{self.socket.getsockname()[1]}"
+        self.connections = []
+        threading.Thread(target=self.serve, daemon=True).start()
+
+    def serve(self):
+        while True:
+            try:
+                connection, _ = self.socket.accept()
+            except OSError:
+                return
+            self.connections.append(connection)
+            if self.kind == "ssh":
+                connection.sendall(b"SSH-2.0-OpenSSH_9.2\r\n")
+            elif self.kind == "http" and connection.recv(1024):
+                connection.sendall(b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n")
+
+    def close(self):
+        self.socket.close()
+        for connection in self.connections:
+            connection.close()
+
+
+@pytest.mark.parametrize("kind, message", [
+    ("silent", "something accepts connections there but sends nothing within 1 s, which a "
+               "Dask scheduler does at once (another kind of server?); check the address"),
+    ("http", "something accepts connections there but sends nothing within 1 s, which a "
+             "Dask scheduler does at once (another kind of server?); check the address"),
+    ("ssh", "what answers there is not a Dask scheduler (it began b'SSH-2.0-'); check the "
+            "address"),
+])
+def test_a_scheduler_address_that_does_not_speak_dask_is_one_line(tmp_path, capsys,
+                                                                   monkeypatch, kind, message):
+    cluster = pytest.importorskip("hlbvh.cluster")
+    monkeypatch.setattr(cluster, "CONNECT_TIMEOUT", 1)
+    server = Server(kind)
+    try:
+        status, _, err = run_cli(capsys, "render", "cloth", "--frames", "0:2", "--scheduler",
+                                 server.address, "--out", tmp_path / "out", *TINY)
+    finally:
+        server.close()
+    assert status == 2 and err == [f"hlbvh render: --scheduler {server.address}: {message}"], err
