@@ -66,7 +66,15 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     import importlib
 
-    args = _parser().parse_args(argv)
+    from hlbvh.environment import end_of_start_up
+
+    try:
+        parser = _parser()
+    except KeyboardInterrupt:
+        print("hlbvh: interrupted", file=sys.stderr)
+        return 130
+    end_of_start_up()
+    args = parser.parse_args(argv)
     try:
         if args.command == "doctor":
             return _doctor(args)

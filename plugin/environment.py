@@ -5,6 +5,10 @@ the first real kernel ("Cannot select: fminimum"); LLVM 16 and newer work (Debia
 ``libllvm19`` is the tested one). This module picks the newest suitable library it can
 find and exports it through ``DRJIT_LIBLLVM_PATH``, unless the user already set that
 variable, which is always respected.
+
+It also keeps Ctrl-C while the ``hlbvh`` command starts (importing Dr.Jit and Mitsuba
+takes a while) from ending in a traceback out of an import: see
+:func:`exit_quietly_on_interrupt`.
 """
 
 from __future__ import annotations
@@ -12,7 +16,9 @@ from __future__ import annotations
 import glob
 import os
 import re
+import signal
 import sys
+import threading
 
 #: Oldest LLVM major version known to work with Dr.Jit 1.5.
 MIN_LLVM_MAJOR = 16
@@ -107,3 +113,31 @@ def check_backend() -> None:
         "Dr.Jit could not initialise its LLVM backend with "
         f"{os.environ.get('DRJIT_LIBLLVM_PATH')!r}: {INSTALL_HINT}."
     )
+
+
+def exit_quietly_on_interrupt() -> None:
+    """While the ``hlbvh`` command starts, make Ctrl-C end it with one line and exit
+    status 130 instead of a ``KeyboardInterrupt`` traceback out of whichever import it
+    lands in; :func:`end_of_start_up` gives Ctrl-C back to Python once the command
+    line is parsed. Only the ``hlbvh`` console script is affected (its ``__main__`` is
+    a file named ``hlbvh``), and only where Python's own handler is in place: a program
+    that imports hlbvh keeps its Ctrl-C."""
+    main = sys.modules.get("__main__")
+    if (os.path.basename(getattr(main, "__file__", None) or "") == "hlbvh"
+            and threading.current_thread() is threading.main_thread()
+            and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
+        signal.signal(signal.SIGINT, _interrupted_while_starting)
+
+
+def end_of_start_up() -> None:
+    """Python's Ctrl-C handler back in place of :func:`exit_quietly_on_interrupt`'s."""
+    if signal.getsignal(signal.SIGINT) is _interrupted_while_starting:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def _interrupted_while_starting(signum, frame):
+    print("hlbvh: interrupted", file=sys.stderr)
+    raise SystemExit(130)
+
+
+exit_quietly_on_interrupt()

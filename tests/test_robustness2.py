@@ -348,3 +348,38 @@ def test_a_scheduler_address_that_does_not_speak_dask_is_one_line(tmp_path, caps
     finally:
         server.close()
     assert status == 2 and err == [f"hlbvh render: --scheduler {server.address}: {message}"], err
+
+
+# ---------------------------------------------------------------------------------------
+# Ctrl-C during start-up
+# ---------------------------------------------------------------------------------------
+
+STARTING = """
+import signal, sys
+
+class Interrupt:
+    \"\"\"Ctrl-C as the command imports {module}.\"\"\"
+    def find_spec(self, name, path, target=None):
+        if name == {module!r}:
+            signal.raise_signal(signal.SIGINT)
+        return None
+
+sys.meta_path.insert(0, Interrupt())
+from hlbvh.cli import main
+sys.exit(main(["render", "cloth", "--frames", "0:1", "--out", {out!r}]))
+"""
+
+
+@pytest.mark.parametrize("module", ["mitsuba", "hlbvh.render"])
+def test_ctrl_c_while_the_command_starts_is_one_line(tmp_path, module):
+    """The console script (a file named ``hlbvh``) interrupted while it imports
+    Mitsuba (the package) or a verb's module (the parser)."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "hlbvh"
+    script.write_text(STARTING.format(module=module, out=str(tmp_path / "out")))
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                          timeout=120)
+    assert (done.returncode, done.stderr) == (130, "hlbvh: interrupted\n")
+    assert not (tmp_path / "out").exists()
