@@ -29,16 +29,28 @@ Each frame
 5. its row (:data:`hlbvh.frame.STATS_FIELDS`) is added to ``stats.csv`` and ``stats.json``, both
    rewritten whole and atomically.
 
-A frame is complete when its EXR and its PNG decode whole, at one size (the
-``--resolution`` when given), and its row is in ``stats.json``. Running the same
+The integrator is the scene's own when it names ``path`` (run as ``hlbvh_path``, which
+mirrors it), ``hlbvh_path`` or ``hlbvh_aov``, with its properties (``accel``,
+``max_depth``, the builder's); ``--integrator``, ``--accel``, ``--max-depth``, the builder
+options and ``--update`` each replace what the scene says, and one line on stderr says
+what they override. A scene with another integrator is refused unless ``--integrator``
+replaces it; a scene without one, and the procedural scenes, take ``path`` with
+``--max-depth`` 8 and ``hlbvh``.
+
+A frame is complete when its EXR and its PNG decode whole, at the film's size, and
+its row is in ``stats.json``. Ctrl-C stops after the frame in flight (written whole:
+Mitsuba's own handler, installed during ``mi.render``, only marks the integrator
+cancelled, and the loop stops on it), exit status 130. Running the same
 command again renders only the frames of the range that are not complete (after an
 interrupt: from the one that was being rendered; a truncated or emptied file: that
 frame again), rewrites ``stats.csv`` from ``stats.json`` (a kill between the two writes
 is healed), and removes the temporary files a killed process left. A write that fails
 (a full disk) leaves no partial file and stops with one line; the frames before it stay
-complete. ``stats.json`` records the settings (scene, size, resolution, spp,
-integrator, accelerator, builder options, seed); rendering into a directory that
-holds frames of other settings is refused, so one directory never mixes two renders.
+complete. ``stats.json`` records the settings (scene, size, the resolution and spp the
+scene renders at, integrator and its properties, accelerator, builder options, seed,
+and for an XML scene a SHA-256 of the file, its includes and every file a ``filename``
+property names); rendering into a directory that holds frames of other settings, or
+of the scene before an edit, is refused, so one directory never mixes two renders.
 One render writes into a directory at a time: it holds the directory's lock file
 (:data:`hlbvh.output.LOCK_NAME`, naming its pid and host); a second is refused, and a lock left by a
 process that died is taken over. Frame ranges are iterated, never listed, and the seed
