@@ -87,3 +87,21 @@ def concat(parts, into=None):
         offset += width
     dr.eval(out)
     return out
+
+
+def pack_halves(high, low):
+    """UInt64 keys ``high << 32 | low`` of two UInt32 arrays (of one backend): a min,
+    a sort or a prefix sum over the keys orders or counts by ``high``, then ``low``."""
+    UInt64 = dr.uint64_array_t(type(high) if dr.is_array_v(high) else type(low))
+    return (UInt64(high) << 32) | UInt64(low)
+
+
+def high_half(key):
+    """The upper 32 bits of 64-bit ``key`` (UInt64 array: a UInt32 array; int: an int)."""
+    return dr.uint32_array_t(type(key))(key >> 32) if dr.is_array_v(key) else key >> 32
+
+
+def low_half(key):
+    """The lower 32 bits of 64-bit ``key`` (UInt64 array: a UInt32 array; int: an int)."""
+    return dr.uint32_array_t(type(key))(key & 0xFFFFFFFF) if dr.is_array_v(key) else \
+        key & 0xFFFFFFFF

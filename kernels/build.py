@@ -34,7 +34,8 @@ from .geometry import (checked_faces, checked_vertices, gather_triangles,
                        records_to_triangles, slot_triangles, triangle_boxes,
                        triangle_records, warn_if_out_of_range)
 from .morton import choose_key, morton_codes, point_bounds
-from .sah import binned_sah, top_level
+from .sah import binned_sah
+from .top_level import top_level
 
 
 class _StageClock:
@@ -203,14 +204,9 @@ def _morton_topology(config: BuildConfig, stats: BuildStats, clock, points, face
     else:
         with clock("sah_top"):
             top = top_level(csd.cluster_start, slot_boxes, config.sah_bins)
-            internal = top.tree.node_count == 0
-            nodes = dr.arange(UInt32, top.tree.size)
-            dr.scatter(records.first, top.tree.node_first, nodes, internal)
-            dr.scatter(records.count, 0, nodes, internal)
-            dr.scatter(records.depth, top.tree.leaf_depth, nodes, internal)
-            records.total = dr.opaque(UInt32, top.tree.size)
+            top.write_internal(records)
         level = coarse_bits
-        roots = (top.start, top.end, top.node, top.depth)
+        roots = top.roots
 
     with clock("emission"):
         emit_hierarchy(csd.sorted_keys, bits, level, roots, records, config.leaf_size, config.p)

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import drjit as dr
 
-from .arrays import namespace_of
+from .arrays import high_half, low_half, namespace_of, pack_halves
 
 
 NONE = 0xFFFFFFFF  # a range still owned by its segment's node (no split created it)
@@ -217,7 +217,7 @@ def _emit_treelets(keys, key_bits, level, pe, seg, records: NodeRecords, leaf_si
     tables = [dr.empty(UInt32, S * width) for _ in columns]
     for table, column in zip(tables, columns):
         dr.scatter(table, ns.ArrayXu(column), s)
-    counts = (ns.UInt64(n_split) << 32) | ns.UInt64(kept)
+    counts = pack_halves(n_split, kept)
     dr.eval(tables, counts)
 
     # ---- First new node and first next-pass segment of every segment ----
@@ -225,11 +225,11 @@ def _emit_treelets(keys, key_bits, level, pe, seg, records: NodeRecords, leaf_si
     # value, with no size-1 kernels in between)
     through = dr.cumsum(counts)
     total = int(through[S - 1])
-    count, nodes = total & 0xFFFFFFFF, int(records.total[0])
+    count, nodes = low_half(total), int(records.total[0])
     before = through - counts
-    node_base = UInt32(before >> 32) * 2 + dr.opaque(UInt32, nodes)
-    seg_base = UInt32(before & 0xFFFFFFFF)
-    records.total = dr.opaque(UInt32, nodes + 2 * (total >> 32))
+    node_base = high_half(before) * 2 + dr.opaque(UInt32, nodes)
+    seg_base = low_half(before)
+    records.total = dr.opaque(UInt32, nodes + 2 * high_half(total))
     dr.eval(node_base, seg_base)
 
     # ---- One lane per position: node records, next-pass segments ----

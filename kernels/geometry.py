@@ -223,3 +223,9 @@ def records_to_triangles(records, prims):
     ns = namespace_of(prims)
     r = dr.gather(ns.ArrayXf, records, prims, shape=(TRIANGLE_RECORD, dr.width(prims)))
     return ns.Matrix3f(*(ns.Array3f(r[3 * k], r[3 * k + 1], r[3 * k + 2]) for k in range(3)))
+
+
+def half_area(d):
+    """Half the surface area of a box of extent ``d`` (Array3f, or Array3f64): the SAH
+    needs only ratios of areas."""
+    return dr.fma(d.x, d.y + d.z, d.y * d.z)
