@@ -25,7 +25,10 @@ inside a kernel. Every array is of the backend of the input vertices.
 ``built_topology`` is :meth:`BVH.topology_key` as the builder returned the tree (None for
 a tree made by hand): while the key still matches, the tree is the builder's own, whose
 invariants the tests check on every builder, and the packer
-(:func:`hlbvh.kernels.layout.packed_records`) skips validating it on every frame.
+(:func:`hlbvh.kernels.packing.packed_records`) skips validating it on every frame.
+
+``cache`` (:class:`BVHCache`) holds what the packer and the refit keep between calls,
+each entry keyed by the arrays it was made from, so a stale one is never used.
 """
 
 from __future__ import annotations
@@ -184,6 +187,44 @@ class BuildStats:
 
 
 @dataclass
+class BVHCache:
+    """What the stages keep on a :class:`BVH` between calls. Every entry is a pair
+    ``(key, value)`` (or None), the key naming the Dr.Jit variables (and the place) it
+    was made for: a stage uses an entry only while its key still matches.
+
+    Attributes:
+        traversal_records: ``(arrays and place, (records, root))``: the packed slots
+            (:func:`hlbvh.kernels.packing.packed_records`).
+        pack_plan: ``(topology and slot base, Placement)``: where each node and triangle
+            goes (:func:`hlbvh.kernels.placement.placement`); a refit keeps it.
+        last_pack: ``(slot_base, face_base, front)`` of the last pack meant for tracing:
+            where a fused refit writes its slots.
+        ready_records: ``(arrays and place, records)``: slots a fused refit wrote
+            (:func:`hlbvh.kernels.refit.refit_packed`), handed over to the next pack
+            for that place.
+        refit_plan: ``(pack plan key, RefitPlan)``: where the fused refit reads each
+            box from.
+        refit_faces: ``(faces and order, (Array3u[F], largest index))``: each slot's
+            face's vertex indices (:func:`hlbvh.kernels.refit.refit`).
+    """
+
+    traversal_records: tuple | None = None
+    pack_plan: tuple | None = None
+    last_pack: tuple | None = None
+    ready_records: tuple | None = None
+    refit_plan: tuple | None = None
+    refit_faces: tuple | None = None
+
+
+def _cache_entry(name: str) -> property:
+    """The :class:`BVHCache` entry ``name`` under the attribute name it had before the
+    cache was declared (``bvh._pack_plan``: tests reset and read entries so)."""
+    return property(lambda self: getattr(self.cache, name),
+                    lambda self, value: setattr(self.cache, name, value),
+                    doc=f"``cache.{name}``")
+
+
+@dataclass
 class BVH:
     """A built hierarchy over a triangle mesh (layout in the module docstring): a plain
     record of arrays, what the builder writes and traversal reads. The methods are
@@ -203,6 +244,12 @@ class BVH:
     config: BuildConfig
     stats: BuildStats
     built_topology: tuple | None = None
+    cache: BVHCache = field(default_factory=BVHCache, repr=False, compare=False)
+
+    _traversal_records = _cache_entry("traversal_records")
+    _pack_plan = _cache_entry("pack_plan")
+    _last_pack = _cache_entry("last_pack")
+    _ready_records = _cache_entry("ready_records")
 
     def topology_key(self) -> tuple:
         """The Dr.Jit variables of the arrays that give the tree its shape (``node_first``,

@@ -1,0 +1,170 @@
+"""Packing a BVH into the slots traversal reads (:mod:`hlbvh.kernels.slots`), and what
+is kept between packs (``BVH.cache``): the slots of each place, the placement of the
+tree's shape (:mod:`hlbvh.kernels.placement`), and slots a fused refit already wrote.
+
+A tree as the builder returned it (``bvh.built_topology`` matches its arrays) is packed
+from its own levels without validation; any other is validated first
+(:mod:`hlbvh.kernels.validation`).
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+
+from .arrays import namespace_of
+from .placement import Placement, placement
+from .slots import SLOT, is_leaf, node_rows, triangle_rows
+
+
+def packed_records(bvh, slot_base: int = 0, face_base: int = 0):
+    """The packed slots of ``bvh`` (:mod:`hlbvh.kernels.slots`), built on first use
+    and cached on the BVH object (keyed by the Dr.Jit variables of its arrays, so a
+    refit, which assigns new arrays, repacks on the next call, from the placement kept
+    for the tree's shape).
+
+    Args:
+        bvh: the BVH.
+        slot_base: the slot the records will start at (references count from there:
+            see :func:`hlbvh.kernels.layout.joined`).
+        face_base: added to every face index.
+
+    Returns:
+        ``(records, root)``: Float (``SLOT`` per slot) and the Python int reference of
+        the root.
+    Raises:
+        ValueError: an empty tree, one deeper than ``MAX_DEPTH`` levels, a leaf of more
+            than ``MAX_LEAF_SIZE`` triangles, more than ``MAX_SLOTS`` slots, or a
+            corrupt tree (a child or leaf range outside its arrays, a node reached twice
+            or never, a slot in no leaf or in two).
+    """
+    key = arrays_key(bvh) + (slot_base, face_base)
+    kept = bvh.cache.traversal_records
+    if kept is not None and kept[0] == key:
+        return kept[1]
+    records = pack(bvh, slot_base, face_base, check=not is_built(bvh))
+    bvh.cache.traversal_records = (key, records)
+    return records
+
+
+def arrays_key(bvh) -> tuple:
+    """The Dr.Jit variables of every array the slots are packed from."""
+    arrays = (bvh.node_min, bvh.node_max, bvh.node_first, bvh.node_count, bvh.prim_ids,
+              bvh.tri_p0, bvh.tri_p1, bvh.tri_p2)
+    return tuple(c.index for a in arrays for c in (a if dr.depth_v(a) > 1 else (a,)))
+
+
+def is_built(bvh) -> bool:
+    """Whether ``bvh`` is a tree as the builder returned it (``built_topology`` still
+    matches its arrays)."""
+    return bvh.built_topology is not None and bvh.built_topology == bvh.topology_key()
+
+
+def check_tree(bvh):
+    """Validate ``bvh`` as :func:`packed_records` validates a tree made by hand, whoever
+    made it (the tests call it on every builder's trees, whose packing skips it).
+
+    Raises:
+        ValueError: as :func:`packed_records`.
+    """
+    pack(bvh, 0, 0, check=True)
+
+
+def pack(bvh, slot_base, face_base, check: bool, front: int = 0):
+    """``(records, root)`` of ``bvh`` (see :func:`packed_records`), validated first when
+    ``check``; the records start with ``front`` slots left for the caller to fill.
+
+    Where each node and triangle goes depends on the tree's shape only, so it is kept on
+    the BVH (``cache.pack_plan``, keyed by :meth:`BVH.topology_key` and ``slot_base``): a refit,
+    which changes boxes and triangles only, is packed again without the per-level
+    passes that place the nodes. A pack that validates (``check``) places anew."""
+    if bvh.size == 0 or bvh.prim_count == 0:
+        raise ValueError("BVH is empty: build it from at least one triangle")
+    plan_key = (bvh.topology_key(), slot_base)
+    cache = bvh.cache
+    plan = cache.pack_plan
+    if check or plan is None or plan[0] != plan_key:
+        plan = cache.pack_plan = (plan_key, placement(bvh, slot_base, check))
+    placed: Placement = plan[1]
+    root = int(placed.ref[0])
+    if not check:  # (a validation, e.g. check_tree, is not where the tree is traced)
+        cache.last_pack = (slot_base, face_base, front)  # where a refit writes its slots
+    ready = cache.ready_records
+    place = (slot_base, face_base, front)
+    if not check and ready is not None and ready[0] == (arrays_key(bvh),) + place:
+        cache.ready_records = None  # handed over: the caller may write into its front
+        return ready[1], root
+    return _write_records(bvh, placed, face_base, front), root
+
+
+
+def _write_records(bvh, placed: Placement, face_base, front):
+    """The slots of ``bvh`` placed as ``placed`` says, after ``front`` slots left for
+    the caller."""
+    ref, wide, at, record_of, total = (placed.ref, placed.wide, placed.at, placed.record_of,
+                                       placed.total)
+    ns = namespace_of(bvh.node_count)
+    UInt32, Float, ArrayXf = ns.UInt32, ns.Float, ns.ArrayXf
+    n_prims = bvh.prim_count
+    # Not zeroed: the wide nodes and triangles write every slot whole (check_layout
+    # refuses a hand-made tree for which they would not; check_tree, a builder's).
+    records = dr.empty(Float, SLOT * (front + total))
+    front = dr.opaque(UInt32, front)
+
+    # ---- Wide nodes: children's boxes and references ----
+    if dr.width(wide):
+        rows = _wide_rows(bvh, UInt32(bvh.node_first), ref, wide)
+        # Each scatter into one target is a kernel of its own: the rows are gathered
+        # once, not once per slot.
+        dr.eval(rows)
+        dr.scatter(records, ArrayXf(rows[:SLOT]), at + front)
+        dr.scatter(records, ArrayXf(rows[SLOT:]), at + front + 1)
+
+    # ---- Triangles: each slot's record where its leaf stands ----
+    slot = dr.arange(UInt32, n_prims)
+    p = [dr.gather(ns.Array3f, q, slot) for q in (bvh.tri_p0, bvh.tri_p1, bvh.tri_p2)]
+    dr.scatter(records, ArrayXf(triangle_rows(p, bvh.prim_ids, face_base)), record_of + front)
+    dr.eval(records)
+    return records
+
+
+
+#: Floats per node in the packing's staging records: lo.xyz, hi.xyz, reference, first.
+_NODE_RECORD = 8
+
+
+def _wide_rows(bvh, first, ref, wide):
+    """The 32 floats of each wide node in ``wide`` (:mod:`hlbvh.kernels.slots`).
+
+    Every node's box, reference and first child are staged first as one 32-byte record
+    (one coherent pass over the nodes), so a wide node reads each of its binary and
+    grandchildren with one packet gather: node numbers are far apart in a large tree,
+    and six box coordinates in six arrays were six cache misses a child (a 1M grid:
+    18.5 ms for the wide nodes, most of the packing)."""
+    ns = namespace_of(first)
+    UInt32, Float = ns.UInt32, ns.Float
+    n = dr.width(first)
+    as_float = lambda u: dr.reinterpret_array(Float, UInt32(u))
+    staged = dr.empty(Float, _NODE_RECORD * n)
+    dr.scatter(staged, ns.ArrayXf([*bvh.node_min, *bvh.node_max, as_float(ref),
+                                   as_float(first)]), dr.arange(UInt32, n))
+    dr.eval(staged)
+
+    def node_at(node, active=True):
+        """(lo, hi, reference, first) of the staged records ``node``."""
+        r = dr.gather(ns.ArrayXf, staged, node, active, shape=(_NODE_RECORD, dr.width(node)))
+        return (ns.Array3f(r[0], r[1], r[2]), ns.Array3f(r[3], r[4], r[5]),
+                dr.reinterpret_array(UInt32, r[6]), dr.reinterpret_array(UInt32, r[7]))
+
+    children = []
+    left = dr.gather(UInt32, first, wide)
+    for side in (0, 1):
+        c_lo, c_hi, c_ref, c_first = node_at(left + side)
+        c_internal = ~is_leaf(c_ref)
+        # An internal child (odd depth) hands over its two children; a leaf stays.
+        g_lo, g_hi, g_ref, _ = node_at(c_first, c_internal)
+        children.append((dr.select(c_internal, g_lo, c_lo), dr.select(c_internal, g_hi, c_hi),
+                         dr.ones(ns.Bool, dr.width(wide)), dr.select(c_internal, g_ref, c_ref)))
+        g_lo, g_hi, g_ref, _ = node_at(c_first + 1, c_internal)
+        children.append((g_lo, g_hi, c_internal, g_ref))
+    return node_rows(children)
+
