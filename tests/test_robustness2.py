@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from cli_helpers import read_stats, run_cli, write_twist_scene
-from hlbvh.integrators.path import PathIntegrator
 from hlbvh.output import LOCK_NAME
 
 TINY = ["--triangles", "200", "--resolution", "16", "--spp", "1", "--quiet"]
@@ -35,7 +34,11 @@ def test_ctrl_c_inside_mitsubas_render_stops_after_the_frame_and_resumes(
         tmp_path, capsys, monkeypatch, accel):
     """SIGINT raised inside ``mi.render`` (while Mitsuba's own handler is installed)
     stops the loop after that frame, exit 130; the same command renders the rest."""
-    real = PathIntegrator.sample
+    import mitsuba as mi
+
+    # The class registered now (registering again, as other tests do, makes a new one).
+    integrator = type(mi.load_dict({"type": "hlbvh_path"}))
+    real = integrator.sample
     calls = []
 
     def sample(self, *args, **kwargs):
@@ -44,7 +47,7 @@ def test_ctrl_c_inside_mitsubas_render_stops_after_the_frame_and_resumes(
             signal.raise_signal(signal.SIGINT)
         return real(self, *args, **kwargs)
 
-    monkeypatch.setattr(PathIntegrator, "sample", sample)
+    monkeypatch.setattr(integrator, "sample", sample)
     out = tmp_path / "out"
     argv = ["render", "cloth", "--frames", "0:4", "--accel", accel, "--out", out, *TINY]
     status, _, err = run_cli(capsys, *argv)
