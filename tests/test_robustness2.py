@@ -231,13 +231,28 @@ def test_a_scene_edited_between_resumes_is_refused_in_one_line(tmp_path, capsys)
         f"[24, 16] -> [32, 16], scene_sha256: the scene file or a file it names was edited, "
         f"spp: 1 -> 4); choose another --out, or remove the directory to start over"], err
     assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
-    # A file the scene names (its mesh), edited alone.
+    # A file the scene includes, and a file it names (its mesh), each edited alone.
     edit(xml, '"width" value="32"', '"width" value="24"')
     edit(xml, '"sample_count" value="4"', '"sample_count" value="1"')
-    (tmp_path / "bar.ply").write_bytes((frames / "bar" / "frame_0002.ply").read_bytes())
-    status, _, err = run_cli(capsys, *argv, "--frames", "0:3")
-    assert status == 2 and len(err) == 1, err
-    assert "(scene_sha256: the scene file or a file it names was edited)" in err[0]
+    edit(xml, '<emitter type="constant"/>', '<include filename="light.xml"/>')
+    light = tmp_path / "light.xml"
+    light.write_text('<scene version="3.0.0"><emitter type="constant"/></scene>')
+    brighter = (b'<scene version="3.0.0"><emitter type="constant"><rgb name="radiance" '
+                b'value="2"/></emitter></scene>')
+    moved = (frames / "bar" / "frame_0002.ply").read_bytes()
+    for k, (path, edited) in enumerate([(light, brighter), (tmp_path / "bar.ply", moved)]):
+        again = tmp_path / f"again{k}"
+        base = ["render", xml, "--frames-dir", frames, "--accel", "native", "--out", again,
+                "--quiet"]
+        assert run_cli(capsys, *base, "--frames", "0:1")[0] == 0
+        original = path.read_bytes()
+        path.write_bytes(edited)
+        status, _, err = run_cli(capsys, *base, "--frames", "0:3")
+        path.write_bytes(original)
+        assert status == 2 and err == [
+            f"hlbvh render: {again} holds frames rendered with other settings (scene_sha256: "
+            f"the scene file or a file it names was edited); choose another --out, or remove "
+            f"the directory to start over"], err
 
 
 def test_the_scenes_own_integrator_is_honoured_and_a_flag_says_what_it_overrides(
