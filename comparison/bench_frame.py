@@ -1,8 +1,11 @@
 """``hlbvh bench frame``: what an animation costs per frame, our HLBVH against
 Mitsuba's native rebuild, measured side by side in one process.
 
-For each scene (the deforming ``cloth`` and ``twist``, the fracturing ``fracture``) and
-size:
+For each scene and size: ``world`` (the case users have: a 100k-triangle flag moving
+over a 1M-triangle static landscape, ``size`` triangles in all, so Mitsuba rebuilds
+the landscape every frame and we rebuild the flag alone), then the worst cases, where
+everything deforms (the deforming ``cloth`` and ``twist``, the fracturing
+``fracture``):
 
 **Build**, over the animated meshes (the geometry that moves; static shapes are a few
 triangles), with :func:`hlbvh.build` on frames ``0 .. drift_frames-1``:
@@ -22,15 +25,16 @@ unless Dr.Jit's disk cache holds them); ``min``/``median`` are over frames ``1 .
 consecutive frames per spp, every frame a new pose, the two accelerators taking turns
 frame by frame (both see the same machine load):
 
-- ``hlbvh``: ``hlbvh_path`` with ``accel="hlbvh"``; frame = build (our accelerator's
-  update for the new pose, as its default policy decides: refit or rebuild) + render;
+- ``hlbvh``: ``hlbvh_path`` with ``accel="hlbvh"`` and its defaults (the still shapes
+  through Mitsuba's accelerator, ``static="native"``); frame = build (our
+  accelerator's update for the new pose, as its default policy decides: refit or
+  rebuild) + render;
 - ``native``: ``hlbvh_path`` with ``accel="native"`` (bit-identical to Mitsuba's C++
   ``path`` and as fast: every query goes to the scene's Embree BVH); frame =
   ``params.update()`` (Mitsuba's rebuild of its accelerator) + render.
 
-hlbvh frames write the new geometry through each mesh's own parameters
-(``apply_frame(..., rebuild_native=False)``), so Mitsuba does not rebuild its unused
-Embree tree; what Mitsuba still spends refreshing the scene is reported
+hlbvh frames write the new geometry through :func:`hlbvh.traverse`'s parameters, so
+Mitsuba does not rebuild its unused Embree tree; what Mitsuba still spends refreshing the scene is reported
 (``mitsuba_update_ms``, 0 on hlbvh frames) and not counted in the hlbvh frame. ``cold`` is the first frame at that spp (for the first spp: the scene's
 first build and kernel compilation).
 
@@ -63,7 +67,7 @@ from hlbvh.timing import timed
 #: The accelerator's default per-frame policy, which the hlbvh frames run under.
 _POLICY = UpdatePolicy()
 
-SCENES = ("cloth", "twist", "fracture")
+SCENES = ("world", "cloth", "twist", "fracture")
 SPPS = (1, 4, 16)
 
 #: Keys of every row :func:`run` returns.

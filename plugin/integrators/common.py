@@ -24,16 +24,22 @@ class AccelIntegrator(mi.SamplingIntegrator):
         accel: ``"hlbvh"`` (default) or ``"native"``.
         builder, leaf_size, morton_bits, quantization, coarse_bits, p, sah_bins:
             options of :func:`hlbvh.build` (see :class:`hlbvh.BuildConfig`).
+        static: what traces the shapes that do not move: ``"native"`` (default: the
+            scene's own accelerator over a sub-scene of them, any shape type; only
+            what moves goes through our BVH) or ``"hlbvh"`` (every mesh through our
+            watertight traversal).
+        moving: ids of the shapes that will move, comma separated (they skip the
+            static structure from the start).
         update, refit_tolerance, static_builder, static_leaf_size: the per-frame policy
             of the accelerator (``"auto"``, the default, ``"rebuild"``, ``"fresh"`` or
             ``"refit"``; the SAH drift ``"auto"`` accepts, default 1.05; the builder
-            and leaf size of the static group;
+            and leaf size of the static group with ``static="hlbvh"``;
             see :class:`hlbvh.policy.UpdatePolicy`).
 
     The accelerator is built on the first render of a scene and kept for the next
     renders of that scene; it is built anew when another scene is rendered, and
-    updated (only the meshes that changed) when a mesh of the scene got new buffers
-    (``params.update()``).
+    updated (only what moved) when a shape of the scene changed (``params.update()``,
+    or the cheaper update of :func:`hlbvh.traverse`).
     """
 
     def __init__(self, props):
