@@ -102,6 +102,6 @@ def high_half(key):
 
 
 def low_half(key):
-    """The lower 32 bits of 64-bit ``key`` (UInt64 array: a UInt32 array; int: an int)."""
-    return dr.uint32_array_t(type(key))(key & 0xFFFFFFFF) if dr.is_array_v(key) else \
-        key & 0xFFFFFFFF
+    """The lower 32 bits of 64-bit ``key`` (UInt64 array: a UInt32 array, by the
+    conversion's truncation; int: an int)."""
+    return dr.uint32_array_t(type(key))(key) if dr.is_array_v(key) else key & 0xFFFFFFFF

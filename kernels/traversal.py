@@ -37,7 +37,7 @@ its own loops evaluated still gets one traversal kernel per query.
 A hit is reported at the smallest ``t`` with ``0 < t <= maxt``. Rays with a NaN or
 infinite component, a zero direction, ``maxt <= 0`` or ``maxt`` NaN are clean misses.
 
-Short stack: the top ``REGISTERS`` (4) entries of each lane's stack live in loop
+Short stack: the top ``REGISTERS`` entries of each lane's stack live in loop
 registers, the rest in local memory (``dr.alloc_local``), which only a packet in which
 some lane pushes past the registers, or pops with none held, touches (in a symbolic
 if). A wide node pushes at most three entries and the packer refuses trees deeper than
@@ -51,21 +51,28 @@ the traversal is then traced inside one, since packing evaluates arrays.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
 import drjit as dr
 
-from . import layout
-from .arrays import namespace_of, plain
-from .layout import packed_records  # noqa: F401  (what traversal reads, built on first use)
+from .arrays import high_half, low_half, namespace_of, pack_halves, plain
+from .layout import Packed
+from .packing import packed_records  # noqa: F401  (what traversal reads, built on first use)
+from .slots import (EMPTY, LEAF_BIT, MAX_DEPTH, NODE_HI, NODE_LO, NODE_REF, SLOT, TRI_FACE,
+                    TRI_P, WIDTH, open_ref)
 
 #: Entries of the per-lane traversal stack: a wide node pushes at most three, one wide
 #: level per two of the deepest tree that packs.
-STACK_SIZE = (layout.WIDTH - 1) * layout.MAX_DEPTH // 2
+STACK_SIZE = (WIDTH - 1) * MAX_DEPTH // 2
 #: Of these, the top entries held in loop registers (the rest in local memory). At
 #: least the WIDTH - 1 that one node pushes: the push moves older entries out to local
-#: memory, never the new ones, so fewer registers would drop a child (measured: 2 lost
-#: hits on up to 6% of rays).
+#: memory, never the new ones, so fewer registers would drop a child (docs/decisions.md).
 REGISTERS = 4
-assert REGISTERS >= layout.WIDTH - 1
+assert REGISTERS >= WIDTH - 1
+#: The compare-exchange pairs that sort a wide node's ``WIDTH`` (four) child entries.
+_SORTING_NETWORK = ((0, 1), (2, 3), (0, 2), (1, 3), (1, 2))
+assert WIDTH == 4, "the sorting network sorts four entries"
 _MISS = 0xFFFFFFFFFFFFFFFF  # the entry of a child the ray misses (sorts last)
 _MISS32 = 0xFFFFFFFF  # the same for any hit's 32-bit entries
 _FLT_MIN = 2.0**-126  # smallest normal float: 1 / _FLT_MIN is finite
@@ -203,31 +210,20 @@ def _ratios_in_double(ax, ay, az, bx, by, bz, cx, cy, cz, edges, det, t_scaled):
     return Float(e0 * inv_det), Float(e1 * inv_det), Float(e2 * inv_det), Float(t64)
 
 
-def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False):
-    if not dr.is_array_v(o) or not dr.is_array_v(d):
-        raise TypeError("ray origin and direction must be Dr.Jit Array3f/Point3f/Vector3f")
-    ns = namespace_of(o)
-    Float, UInt32, UInt64, Bool, Array3f = ns.Float, ns.UInt32, ns.UInt64, ns.Bool, ns.Array3f
-    widths = {dr.width(x) for x in (o, d, maxt, active) if dr.is_array_v(x)} - {1}
-    if len(widths) > 1:
-        raise ValueError(f"ray arrays of different widths {sorted(widths)}: expected one")
-    n = widths.pop() if widths else 1
-    if n == 0:
-        return UInt32() if count_steps else Bool() if any_hit else \
-            (Float(), Float(), Float(), UInt32(), Bool())
-    if isinstance(bvh, layout.Packed):
-        records, root = bvh.records, bvh.root
-    else:
-        records, root = packed_records(bvh)
+@dataclass
+class _Ray:
+    """What a ray's tests read, fixed through the loop (one entry per ray)."""
 
-    o = _broadcast(o, "Array3f", ns, n)
-    d = _broadcast(d, "Array3f", ns, n)
-    maxt = _broadcast(maxt, "Float", ns, n)
-    active = _broadcast(active, "Bool", ns, n)
+    o: Any  # Array3f origin
+    inv_d: Any  # Array3f reciprocal of the direction clamped away from zero (slab test)
+    perm: tuple  # masks (k == 0, k == 1) of kx, ky, kz: the watertight test's axes
+    o_p: list  # the origin's coordinates on kx, ky, kz
+    shear: tuple  # (d[kx] / d[kz], d[ky] / d[kz], 1 / d[kz])
 
-    # ---- Per-ray set-up ----
-    finite = dr.all(dr.isfinite(o)) & dr.all(dr.isfinite(d))
-    alive = active & finite & dr.any(d != 0) & (maxt > 0)
+
+def _ray_setup(o, d) -> _Ray:
+    """The per-ray constants of the slab and watertight tests."""
+    Array3f, UInt32 = type(o), dr.uint32_array_t(type(o.x))
     # Slab test: reciprocal of the direction clamped away from zero (sign kept).
     d_safe = dr.select(dr.abs(d) < _FLT_MIN, dr.copysign(Array3f(_FLT_MIN), d), d)
     inv_d = dr.rcp(d_safe)
@@ -242,227 +238,318 @@ def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False):
     kx, ky = dr.select(dz < 0, ky, kx), dr.select(dz < 0, kx, ky)
     perm = ((kx == 0, kx == 1), (ky == 0, ky == 1), (kz == 0, kz == 1))
     o_p = [_pick(o, *m) for m in perm]
-    shear_x = _pick(d, *perm[0]) / dz
-    shear_y = _pick(d, *perm[1]) / dz
-    shear_z = dr.rcp(dz)
+    shear = (_pick(d, *perm[0]) / dz, _pick(d, *perm[1]) / dz, dr.rcp(dz))
+    return _Ray(o=o, inv_d=inv_d, perm=perm, o_p=o_p, shear=shear)
 
-    def slot(base):
+
+# ---- The triangle test ----
+
+
+def _vertex(ray: _Ray, rec, offset):
+    """A triangle vertex translated, permuted and sheared into ray space."""
+    p = [rec[offset + i] for i in range(3)]
+    a = [dr.select(m0, p[0], dr.select(m1, p[1], p[2])) - oc
+         for (m0, m1), oc in zip(ray.perm, ray.o_p)]
+    return a[0] - ray.shear[0] * a[2], a[1] - ray.shear[1] * a[2], ray.shear[2] * a[2]
+
+
+def _triangle_test(ray: _Ray, rec, t_max):
+    """Watertight intersection with the triangle in ``rec``: (hit, t, u, v)."""
+    ax, ay, az = _vertex(ray, rec, TRI_P[0])
+    bx, by, bz = _vertex(ray, rec, TRI_P[1])
+    cx, cy, cz = _vertex(ray, rec, TRI_P[2])
+    edges = (cx * by - cy * bx, ax * cy - ay * cx, bx * ay - by * ax)
+    det = edges[0] + edges[1] + edges[2]
+    t_scaled = dr.fma(edges[0], az, dr.fma(edges[1], bz, edges[2] * cz))
+    # Products of coordinates beyond ~1e19 overflow and below ~1e-19 underflow in
+    # float32: redo those triangles (and zero determinants) in double precision.
+    in_range = dr.isfinite(t_scaled) & dr.isfinite(det) & (det != 0)
+    b0, b1, b2, t = dr.if_stmt(
+        args=(ax, ay, az, bx, by, bz, cx, cy, cz, edges, det, t_scaled),
+        cond=in_range,
+        true_fn=_ratios,
+        false_fn=_ratios_in_double,
+        arg_labels=("ax", "ay", "az", "bx", "by", "bz", "cx", "cy", "cz", "edges",
+                    "det", "t_scaled"),
+        rv_labels=("b0", "b1", "b2", "t"),
+        label="hlbvh_woop_range", mode="symbolic",
+    )
+    inside = (b0 >= -BARYCENTRIC_MARGIN) & (b1 >= -BARYCENTRIC_MARGIN) \
+        & (b2 >= -BARYCENTRIC_MARGIN)
+    return inside & (t > 0) & (t <= t_max), t, b1, b2
+
+
+# ---- The box test and the stack entries ----
+
+
+@dataclass
+class _Query:
+    """What a query reads besides the ray: the slots, and the kind of stack entries.
+
+    Stack entries. Closest hit: ``t_near bits << 32 | reference`` (t_near >= 0, so the
+    bits order as the floats do: sorting entries sorts by distance). Any hit: the
+    reference with its leaf bit flipped (leaves sort before nodes: a leaf may end the
+    query at once), no distance."""
+
+    records: Any  # Float, SLOT per slot
+    n: int  # rays
+    any_hit: bool
+    no_t: Any  # Float[n] zeros: an any-hit entry's distance
+
+    @property
+    def Entry(self):
+        return dr.uint32_array_t(type(self.records)) if self.any_hit else \
+            dr.uint64_array_t(type(self.records))
+
+    @property
+    def miss(self):
+        return _MISS32 if self.any_hit else _MISS
+
+    def slot(self, base):
         """The 16 floats of slot ``base``: one packet gather (a vector load per lane
         and a transpose, far cheaper than a gather per float)."""
-        return dr.gather(ns.ArrayXf, records, base, shape=(layout.SLOT, n))
+        ns = namespace_of(self.records)
+        return dr.gather(ns.ArrayXf, self.records, base, shape=(SLOT, self.n))
 
-    def vertex(rec, offset):
-        """A triangle vertex translated, permuted and sheared into ray space."""
-        p = [rec[offset + i] for i in range(3)]
-        a = [dr.select(m0, p[0], dr.select(m1, p[1], p[2])) - oc
-             for (m0, m1), oc in zip(perm, o_p)]
-        return a[0] - shear_x * a[2], a[1] - shear_y * a[2], shear_z * a[2]
+    def entry_of(self, ref, t_near):
+        if self.any_hit:
+            return ref ^ LEAF_BIT
+        return pack_halves(dr.reinterpret_array(type(ref), t_near), ref)
 
-    def woop(rec, t_max):
-        """Watertight intersection with the triangle in ``rec``: (hit, t, u, v)."""
-        ax, ay, az = vertex(rec, layout.TRI_P[0])
-        bx, by, bz = vertex(rec, layout.TRI_P[1])
-        cx, cy, cz = vertex(rec, layout.TRI_P[2])
-        edges = (cx * by - cy * bx, ax * cy - ay * cx, bx * ay - by * ax)
-        det = edges[0] + edges[1] + edges[2]
-        t_scaled = dr.fma(edges[0], az, dr.fma(edges[1], bz, edges[2] * cz))
-        # Products of coordinates beyond ~1e19 overflow and below ~1e-19 underflow in
-        # float32: redo those triangles (and zero determinants) in double precision.
-        in_range = dr.isfinite(t_scaled) & dr.isfinite(det) & (det != 0)
-        b0, b1, b2, t = dr.if_stmt(
-            args=(ax, ay, az, bx, by, bz, cx, cy, cz, edges, det, t_scaled),
-            cond=in_range,
-            true_fn=_ratios,
-            false_fn=_ratios_in_double,
-            arg_labels=("ax", "ay", "az", "bx", "by", "bz", "cx", "cy", "cz", "edges",
-                        "det", "t_scaled"),
-            rv_labels=("b0", "b1", "b2", "t"),
-            label="hlbvh_woop_range", mode="symbolic",
-        )
-        inside = (b0 >= -BARYCENTRIC_MARGIN) & (b1 >= -BARYCENTRIC_MARGIN) \
-            & (b2 >= -BARYCENTRIC_MARGIN)
-        return inside & (t > 0) & (t <= t_max), t, b1, b2
+    def ref_of(self, entry):
+        return entry ^ LEAF_BIT if self.any_hit else low_half(entry)
 
-    def no_triangle(rec, t_max):
-        return dr.zeros(Bool, n), dr.zeros(Float, n), dr.zeros(Float, n), dr.zeros(Float, n)
+    def t_of(self, entry):
+        return self.no_t if self.any_hit else \
+            dr.reinterpret_array(type(self.no_t), high_half(entry))
 
-    # Stack entries. Closest hit: ``t_near bits << 32 | reference`` (t_near >= 0, so
-    # the bits order as the floats do: sorting entries sorts by distance). Any hit: the
-    # reference with its leaf bit flipped (leaves sort before nodes: a leaf may end the
-    # query at once), no distance.
-    Entry = UInt32 if any_hit else UInt64
-    miss = _MISS32 if any_hit else _MISS
 
-    def entry_of(ref, t_near):
-        if any_hit:
-            return ref ^ layout.LEAF_BIT
-        return (UInt64(dr.reinterpret_array(UInt32, t_near)) << 32) | UInt64(ref)
+def _box_test(query: _Query, ray: _Ray, rec, cur, t_best):
+    """The wide node whose first slot is ``rec`` (at slot ``cur``; its second slot
+    is read here): entries of the children the ray enters before ``t_best``, sorted
+    ascending, a missed or absent child as ``miss`` (so the hit ones come first)."""
+    UInt32 = dr.uint32_array_t(type(t_best))
+    rec = [*rec, *query.slot(cur + 1)]
+    keys = []
+    limit = t_best * _TFAR_SCALE
+    for k in range(WIDTH):
+        ref = dr.reinterpret_array(UInt32, rec[NODE_REF + k])
+        t0 = [(rec[NODE_LO[i] + k] - ray.o[i]) * ray.inv_d[i] for i in range(3)]
+        t1 = [(rec[NODE_HI[i] + k] - ray.o[i]) * ray.inv_d[i] for i in range(3)]
+        near = [_min(a, b) for a, b in zip(t0, t1)]
+        far = [_max(a, b) for a, b in zip(t0, t1)]
+        t_near = _max(_max(near[0], near[1]), _max(near[2], 0.0))
+        t_far = _min(_min(far[0], far[1]), far[2])
+        hit = (t_near <= _min(t_far * _TFAR_SCALE, limit)) & (ref != EMPTY)
+        keys.append(dr.select(hit, query.entry_of(ref, t_near), query.miss))
+    for i, j in _SORTING_NETWORK:
+        keys[i], keys[j] = _min(keys[i], keys[j]), _max(keys[i], keys[j])
+    return tuple(keys)
 
-    def ref_of(entry):
-        return entry ^ layout.LEAF_BIT if any_hit else UInt32(entry)
 
-    def t_of(entry):
-        return node_t if any_hit else dr.reinterpret_array(Float, UInt32(entry >> 32))
+# ---- The short stack ----
 
-    def children(rec, cur, t_best):
-        """The wide node whose first slot is ``rec`` (at slot ``cur``; its second slot
-        is read here): entries of the children the ray enters before ``t_best``, sorted
-        ascending, a missed or absent child as ``miss`` (so the hit ones come first)."""
-        rec = [*rec, *slot(cur + 1)]
-        keys = []
-        limit = t_best * _TFAR_SCALE
-        for k in range(layout.WIDTH):
-            ref = dr.reinterpret_array(UInt32, rec[layout.NODE_REF + k])
-            t0 = [(rec[layout.NODE_LO[i] + k] - o[i]) * inv_d[i] for i in range(3)]
-            t1 = [(rec[layout.NODE_HI[i] + k] - o[i]) * inv_d[i] for i in range(3)]
-            near = [_min(a, b) for a, b in zip(t0, t1)]
-            far = [_max(a, b) for a, b in zip(t0, t1)]
-            t_near = _max(_max(near[0], near[1]), _max(near[2], 0.0))
-            t_far = _min(_min(far[0], far[1]), far[2])
-            hit = (t_near <= _min(t_far * _TFAR_SCALE, limit)) & (ref != layout.EMPTY)
-            keys.append(dr.select(hit, entry_of(ref, t_near), miss))
-        # A sorting network of four.
-        for i, j in ((0, 1), (2, 3), (0, 2), (1, 3), (1, 2)):
-            keys[i], keys[j] = _min(keys[i], keys[j]), _max(keys[i], keys[j])
-        return tuple(keys)
 
-    def no_children(rec, cur, t_best):
-        return tuple(dr.full(Entry, miss, n) for _ in range(layout.WIDTH))
+class _Stack:
+    """Short stack: ``REGISTERS`` entries in loop registers (top first), the rest in
+    local memory, touched only by a packet in which some lane pushes past the registers
+    or pops with none held (in a symbolic if)."""
 
-    # ---- Short stack: REGISTERS entries in registers (top first), the rest in local
-    # memory, touched only by a packet in which some lane pushes past the registers or
-    # pops with none held ----
-    memory = dr.alloc_local(Entry, STACK_SIZE)
+    def __init__(self, Entry, n: int):
+        self.Entry, self.n = Entry, n
+        self.memory = dr.alloc_local(Entry, STACK_SIZE)
 
-    def spill(held, depth, count, sp, spilled):
+    def _spill(self, held, depth, count, sp, spilled):
         """Move the ``spilled`` oldest register entries to local memory, oldest
         deepest, before ``count`` new entries push them out."""
-        for i in range(layout.WIDTH - 1):
+        for i in range(WIDTH - 1):
             oldest = _pick_entry(held, depth - 1 - i)
-            memory.write(oldest, sp + (spilled - 1 - i), active=spilled > i)
+            self.memory.write(oldest, sp + (spilled - 1 - i), active=spilled > i)
         return sp + spilled
 
-    def no_spill(held, depth, count, sp, spilled):
+    def _no_spill(self, held, depth, count, sp, spilled):
         return sp
 
-    def fill(sp, mask):
-        return memory.read(sp, active=mask)
+    def _fill(self, sp, mask):
+        return self.memory.read(sp, active=mask)
 
-    def no_fill(sp, mask):
-        return dr.zeros(Entry, n)
+    def _no_fill(self, sp, mask):
+        return dr.zeros(self.Entry, self.n)
 
-    def push(held, depth, sp, keys, count):
+    def push(self, held, depth, sp, keys, count):
         """Push ``keys[1..count]`` (the hit children after the nearest, nearest on
         top). Returns ``(held, depth, sp)``. The packer's depth limit bounds what a
         ray can push by ``STACK_SIZE``, so nothing here overflows."""
         spilled = dr.maximum(depth + count, REGISTERS) - REGISTERS
         sp = dr.if_stmt(args=(held, depth, count, sp, spilled), cond=spilled > 0,
-                        true_fn=spill, false_fn=no_spill, label="hlbvh_spill",
+                        true_fn=self._spill, false_fn=self._no_spill, label="hlbvh_spill",
                         mode="symbolic")
         new = []
         for j in range(REGISTERS):
             value = held[j]
-            for c in range(1, layout.WIDTH):
+            for c in range(1, WIDTH):
                 value = dr.select(count == c, keys[j + 1] if j < c else held[j - c], value)
             new.append(value)
         depth = dr.minimum(depth + count, REGISTERS)
         return new, depth, sp
 
-    def pop(held, depth, sp, mask):
+    def pop(self, held, depth, sp, mask):
         """Pop an entry on the lanes of ``mask`` (each holding one, in registers or in
         local memory). Returns ``(entry, held, depth, sp)``."""
         from_register = mask & (depth > 0)
         filling = mask & (depth == 0)
         sp = dr.select(filling, sp - 1, sp)
-        filled = dr.if_stmt(args=(sp, filling), cond=filling, true_fn=fill,
-                            false_fn=no_fill, label="hlbvh_fill", mode="symbolic")
+        filled = dr.if_stmt(args=(sp, filling), cond=filling, true_fn=self._fill,
+                            false_fn=self._no_fill, label="hlbvh_fill", mode="symbolic")
         entry = dr.select(from_register, held[0], filled)
         held = [dr.select(from_register, below, above)
                 for above, below in zip(held, held[1:] + held[-1:])]
         depth = dr.select(from_register, depth - 1, depth)
         return entry, held, depth, sp
 
-    # ---- Loop state (every variable at full width: a width-1 start value would make
-    # Dr.Jit share one local-memory slot between all lanes) ----
-    cur, end = layout.open_ref(dr.full(UInt32, root, n))  # slot to process; end of leaf
-    node_t = dr.zeros(Float, n)  # entry distance of the current node (or leaf)
-    entering = dr.full(Bool, True, n)  # first step at this node (or leaf)
-    held = [dr.zeros(Entry, n) for _ in range(REGISTERS)]  # stack registers, top first
-    depth = dr.zeros(UInt32, n)  # entries held in registers
-    sp = dr.zeros(UInt32, n)  # entries in local memory
-    t_best = dr.select(alive, maxt, dr.inf)  # closest hit so far (or maxt)
-    u_best = dr.zeros(Float, n)
-    v_best = dr.zeros(Float, n)
-    hit_slot = dr.zeros(UInt32, n)  # slot of the closest hit's triangle
-    found = dr.zeros(Bool, n)
-    counted = dr.zeros(UInt32, n)  # loop iterations (count_steps only)
-    state = (cur, end, node_t, entering, held, depth, sp, alive, t_best, u_best, v_best,
-             hit_slot, found) + ((counted,) if count_steps else ())
-    labels = ("cur", "end", "node_t", "entering", "held", "depth", "sp", "alive", "t_best",
-              "u_best", "v_best", "hit_slot", "found") + (("steps",) if count_steps else ())
 
-    def trace_cond(cur, end, node_t, entering, held, depth, sp, alive, *rest):
-        return alive
+# ---- The loop ----
 
-    def trace_body(cur, end, node_t, entering, held, depth, sp, alive, t_best, u_best,
-                   v_best, hit_slot, found, *counted):
-        rec = slot(cur)  # a triangle, or a wide node's first slot
-        in_leaf = cur < end
-        # A node (or leaf) popped from beyond the closest hit so far is skipped.
-        stale = dr.zeros(Bool, n) if any_hit else entering & (node_t > t_best * _TFAR_SCALE)
 
-        # ---- A lane in a leaf: test one triangle ----
-        at_triangle = in_leaf & ~stale
-        hit, t, u, v = dr.if_stmt(
-            args=(rec, t_best), cond=at_triangle, true_fn=woop, false_fn=no_triangle,
-            arg_labels=("rec", "t_best"), rv_labels=("hit", "t", "u", "v"),
-            label="hlbvh_triangle", mode="symbolic",
-        )
-        hit &= at_triangle
-        t_best = dr.select(hit, t, t_best)
-        u_best = dr.select(hit, u, u_best)
-        v_best = dr.select(hit, v, v_best)
-        hit_slot = dr.select(hit, cur, hit_slot)
-        found |= hit
+@dataclass
+class _TraceState:
+    """A ray's traversal state (every variable at full width: a width-1 start value
+    would make Dr.Jit share one local-memory slot between all lanes)."""
 
-        # ---- A lane at a wide node: test its children's boxes, go to the first ----
-        at_node = ~in_leaf & ~stale
-        keys = dr.if_stmt(
-            args=(rec, cur, t_best), cond=at_node, true_fn=children, false_fn=no_children,
-            arg_labels=("rec", "cur", "t_best"), rv_labels=tuple(f"key{k}" for k in range(4)),
-            label="hlbvh_boxes", mode="symbolic",
-        )
-        hits = [k != miss for k in keys]
-        count = UInt32(hits[1]) + UInt32(hits[2]) + UInt32(hits[3])
-        held, depth, sp = push(held, depth, sp, keys, count)
+    cur: Any  # UInt32: slot to process (a wide node's first slot, or a triangle's)
+    end: Any  # UInt32: one past the leaf's last triangle slot (0 at a wide node)
+    node_t: Any  # Float: entry distance of the current node (or leaf)
+    entering: Any  # Bool: first step at this node (or leaf)
+    held: list  # REGISTERS entries: the top of the stack, top first
+    depth: Any  # UInt32: entries held in registers
+    sp: Any  # UInt32: entries in local memory
+    alive: Any  # Bool: still traversing
+    t_best: Any  # Float: closest hit so far (or maxt)
+    u_best: Any  # Float: its barycentric u
+    v_best: Any  # Float: its barycentric v
+    hit_slot: Any  # UInt32: slot of the closest hit's triangle
+    found: Any  # Bool: a hit so far
+    steps: Any = None  # UInt32: loop iterations (count_steps only)
 
-        # ---- Next step: the leaf's next triangle, the first child, or a pop ----
-        more = in_leaf & ~stale & (cur + 1 < end)
-        if any_hit:
-            more &= ~hit
-            alive &= ~hit
-        descend = hits[0]
-        has = (depth > 0) | (sp > 0)
-        take = ~more & ~descend & has & alive
-        popped, held, depth, sp = pop(held, depth, sp, take)
-        alive &= more | descend | take
-        entry = dr.select(take, popped, keys[0])
-        next_cur, next_end = layout.open_ref(ref_of(entry))
-        cur = dr.select(more, cur + 1, next_cur)
-        end = dr.select(more, end, next_end)
-        node_t = dr.select(more, node_t, t_of(entry))
-        entering = ~more
-        return (cur, end, node_t, entering, held, depth, sp, alive, t_best, u_best, v_best,
-                hit_slot, found) + tuple(c + 1 for c in counted)
 
-    state = dr.while_loop(state=state, cond=trace_cond, body=trace_body, labels=labels,
-                          label="hlbvh_trace", mode="symbolic")
+def _start(ns, query: _Query, root: int, alive, maxt, count_steps: bool) -> _TraceState:
+    """The state of rays starting at reference ``root``."""
+    n = query.n
+    cur, end = open_ref(dr.full(ns.UInt32, root, n))
+    return _TraceState(
+        cur=cur, end=end, node_t=dr.zeros(ns.Float, n), entering=dr.full(ns.Bool, True, n),
+        held=[dr.zeros(query.Entry, n) for _ in range(REGISTERS)],
+        depth=dr.zeros(ns.UInt32, n), sp=dr.zeros(ns.UInt32, n), alive=alive,
+        t_best=dr.select(alive, maxt, dr.inf), u_best=dr.zeros(ns.Float, n),
+        v_best=dr.zeros(ns.Float, n), hit_slot=dr.zeros(ns.UInt32, n),
+        found=dr.zeros(ns.Bool, n),
+        steps=dr.zeros(ns.UInt32, n) if count_steps else None)
+
+
+def _step(query: _Query, ray: _Ray, stack: _Stack, s: _TraceState) -> _TraceState:
+    """One iteration: a lane in a leaf tests one triangle, a lane at a wide node its
+    children's boxes; then each goes to the leaf's next triangle, the nearest child hit,
+    or the entry it pops."""
+    ns = namespace_of(s.cur)
+    UInt32, Bool, Float, n = ns.UInt32, ns.Bool, ns.Float, query.n
+    rec = query.slot(s.cur)  # a triangle, or a wide node's first slot
+    in_leaf = s.cur < s.end
+    # A node (or leaf) popped from beyond the closest hit so far is skipped.
+    stale = dr.zeros(Bool, n) if query.any_hit else \
+        s.entering & (s.node_t > s.t_best * _TFAR_SCALE)
+
+    # ---- A lane in a leaf: test one triangle ----
+    at_triangle = in_leaf & ~stale
+    hit, t, u, v = dr.if_stmt(
+        args=(rec, s.t_best), cond=at_triangle,
+        true_fn=lambda rec, t_max: _triangle_test(ray, rec, t_max),
+        false_fn=lambda rec, t_max: (dr.zeros(Bool, n), dr.zeros(Float, n),
+                                     dr.zeros(Float, n), dr.zeros(Float, n)),
+        arg_labels=("rec", "t_best"), rv_labels=("hit", "t", "u", "v"),
+        label="hlbvh_triangle", mode="symbolic",
+    )
+    hit &= at_triangle
+    s.t_best = dr.select(hit, t, s.t_best)
+    s.u_best = dr.select(hit, u, s.u_best)
+    s.v_best = dr.select(hit, v, s.v_best)
+    s.hit_slot = dr.select(hit, s.cur, s.hit_slot)
+    s.found |= hit
+
+    # ---- A lane at a wide node: test its children's boxes, push all but the first ----
+    at_node = ~in_leaf & ~stale
+    keys = dr.if_stmt(
+        args=(rec, s.cur, s.t_best), cond=at_node,
+        true_fn=lambda rec, cur, t_best: _box_test(query, ray, rec, cur, t_best),
+        false_fn=lambda rec, cur, t_best: tuple(dr.full(query.Entry, query.miss, n)
+                                                for _ in range(WIDTH)),
+        arg_labels=("rec", "cur", "t_best"),
+        rv_labels=tuple(f"key{k}" for k in range(WIDTH)),
+        label="hlbvh_boxes", mode="symbolic",
+    )
+    hits = [k != query.miss for k in keys]
+    count = sum((UInt32(h) for h in hits[2:]), UInt32(hits[1]))
+    s.held, s.depth, s.sp = stack.push(s.held, s.depth, s.sp, keys, count)
+
+    # ---- Next step: the leaf's next triangle, the first child, or a pop ----
+    more = in_leaf & ~stale & (s.cur + 1 < s.end)
+    if query.any_hit:
+        more &= ~hit
+        s.alive &= ~hit
+    descend = hits[0]
+    has = (s.depth > 0) | (s.sp > 0)
+    take = ~more & ~descend & has & s.alive
+    popped, s.held, s.depth, s.sp = stack.pop(s.held, s.depth, s.sp, take)
+    s.alive &= more | descend | take
+    entry = dr.select(take, popped, keys[0])
+    next_cur, next_end = open_ref(query.ref_of(entry))
+    s.cur = dr.select(more, s.cur + 1, next_cur)
+    s.end = dr.select(more, s.end, next_end)
+    s.node_t = dr.select(more, s.node_t, query.t_of(entry))
+    s.entering = ~more
+    if s.steps is not None:
+        s.steps = s.steps + 1
+    return s
+
+
+def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False):
+    if not dr.is_array_v(o) or not dr.is_array_v(d):
+        raise TypeError("ray origin and direction must be Dr.Jit Array3f/Point3f/Vector3f")
+    ns = namespace_of(o)
+    Float, UInt32, Bool = ns.Float, ns.UInt32, ns.Bool
+    widths = {dr.width(x) for x in (o, d, maxt, active) if dr.is_array_v(x)} - {1}
+    if len(widths) > 1:
+        raise ValueError(f"ray arrays of different widths {sorted(widths)}: expected one")
+    n = widths.pop() if widths else 1
+    if n == 0:
+        return UInt32() if count_steps else Bool() if any_hit else \
+            (Float(), Float(), Float(), UInt32(), Bool())
+    if isinstance(bvh, Packed):
+        records, root = bvh.records, bvh.root
+    else:
+        records, root = packed_records(bvh)
+
+    o = _broadcast(o, "Array3f", ns, n)
+    d = _broadcast(d, "Array3f", ns, n)
+    maxt = _broadcast(maxt, "Float", ns, n)
+    active = _broadcast(active, "Bool", ns, n)
+
+    # ---- Per-ray set-up ----
+    finite = dr.all(dr.isfinite(o)) & dr.all(dr.isfinite(d))
+    alive = active & finite & dr.any(d != 0) & (maxt > 0)
+    ray = _ray_setup(o, d)
+    query = _Query(records=records, n=n, any_hit=any_hit, no_t=dr.zeros(Float, n))
+    stack = _Stack(query.Entry, n)
+
+    state = _start(ns, query, root, alive, maxt, count_steps)
+    state, = dr.while_loop(state=(state,), cond=lambda s: s.alive,
+                           body=lambda s: (_step(query, ray, stack, s),), labels=("ray",),
+                           label="hlbvh_trace", mode="symbolic")
     if count_steps:
-        return state[-1]
-    t_best, u_best, v_best, hit_slot, valid = state[8:13]
+        return state.steps
+    valid = state.found
     if any_hit:
         return valid
     prim = dr.reinterpret_array(UInt32, dr.gather(Float, records,
-                                                  hit_slot * layout.SLOT + layout.TRI_FACE, valid))
-    return (dr.select(valid, t_best, dr.inf), dr.select(valid, u_best, 0),
-            dr.select(valid, v_best, 0), dr.select(valid, prim, 0), valid)
+                                                  state.hit_slot * SLOT + TRI_FACE, valid))
+    return (dr.select(valid, state.t_best, dr.inf), dr.select(valid, state.u_best, 0),
+            dr.select(valid, state.v_best, 0), dr.select(valid, prim, 0), valid)
