@@ -187,21 +187,57 @@ def test08_overloads_bind_arguments_like_mi_scene(accel_name):
         ("ray_intersect_preliminary", (ray,), dict(coherent=True, reorder=False, active=mask)),
         ("ray_intersect", (ray,), dict(ray_flags=mi.RayFlags.All, coherent=False, active=mask)),
     ]
+    fields = {"ray_test": (), "ray_intersect": ("t", "prim_index", "p", "n", "uv"),
+              "ray_intersect_preliminary": ("t", "prim_index", "shape_index", "prim_uv")}
     for name, args, kwargs in calls:
         ours = getattr(accel, name)(*args, **kwargs)
         theirs = getattr(scene, name)(*args, **kwargs)
-        valid = (lambda r: r) if name == "ray_test" else (lambda r: r.is_valid())
-        np.testing.assert_array_equal(valid(ours), valid(theirs), err_msg=f"{name}{args[1:]}{kwargs}")
+        what = f"{name}{args[1:]}{kwargs}"
+        if name == "ray_test":
+            np.testing.assert_array_equal(ours, theirs, err_msg=what)
+            continue
+        valid = np.array(theirs.is_valid())
+        np.testing.assert_array_equal(np.array(ours.is_valid()), valid, err_msg=what)
+        assert np.array(ours.shape == theirs.shape)[valid].all(), what
+        for field in fields[name]:
+            np.testing.assert_array_equal(np.array(getattr(ours, field))[..., valid],
+                                          np.array(getattr(theirs, field))[..., valid],
+                                          err_msg=f"{what}: {field}")
 
 
-def test09_native_accel_is_the_scene_bit_for_bit():
-    scene = mi.load_dict(cornell_box())
+class _RecordingScene:
+    """Stands in for a mi.Scene: records the arguments each query receives."""
+
+    def __init__(self):
+        self.calls = []
+
+    def __getattr__(self, name):
+        return lambda *args: self.calls.append((name, args)) or name
+
+
+def test09_native_accel_hands_mitsuba_every_argument_in_its_order():
+    """NativeAccel forwards each query with Mitsuba's own positional order: (ray,
+    coherent, reorder, reorder_hint, reorder_hint_bits, active) for the preliminary
+    query, (ray, ray_flags, coherent, reorder..., active) for the full one, (ray,
+    coherent, active) for the shadow test, whatever spelling the caller used."""
+    scene = _RecordingScene()
     accel = hlbvh.NativeAccel(scene)
-    for coherent, ray in ((True, camera_rays(scene)), (False, bounce_rays(scene))):
-        ours = accel.ray_intersect(ray, mi.RayFlags.All, coherent)
-        theirs = scene.ray_intersect(ray, mi.RayFlags.All, coherent)
-        for field in ("t", "p", "n", "uv", "prim_index"):
-            np.testing.assert_array_equal(getattr(ours, field), getattr(theirs, field))
+    ray = mi.Ray3f(mi.Point3f(0, 0, 0), mi.Vector3f(0, 0, 1))
+    mask = mi.Bool(True)
+    accel.ray_intersect_preliminary(ray, True, mask, reorder=True, reorder_hint=7,
+                                    reorder_hint_bits=3)
+    accel.ray_intersect(ray, mi.RayFlags.Minimal, False, mask)
+    accel.ray_intersect(ray, mask)
+    accel.ray_test(ray, True, mask)
+    accel.ray_test(ray, active=mask)
+    assert [(name, args[1:]) for name, args in scene.calls] == [
+        ("ray_intersect_preliminary", (True, True, 7, 3, mask)),
+        ("ray_intersect", (mi.RayFlags.Minimal, False, False, 0, 0, mask)),
+        ("ray_intersect", (mi.RayFlags.All, False, False, 0, 0, mask)),
+        ("ray_test", (True, mask)),
+        ("ray_test", (False, mask)),
+    ]
+    assert all(args[0] is ray for _, args in scene.calls)
 
 
 # ---------------------------------------------------------------------------------------

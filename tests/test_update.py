@@ -12,6 +12,7 @@ import pytest
 from hlbvh import scenes
 from hlbvh.kernels.traversal import any_hit, closest_hit
 
+from reference import tree_sah_cost
 from test_accel import _compare_preliminary, bounce_rays, camera_rays
 
 #: Frames applied after frame 0 (of a 40-frame animation: poses far enough apart for
@@ -181,8 +182,17 @@ def test04_refit_hits_equal_rebuild_hits(name):
             np.testing.assert_allclose(t_a[~same], t_b[~same], rtol=1e-5)
             assert (~same).sum() <= 2
             np.testing.assert_array_equal(refit.ray_test(ray), rebuild.ray_test(ray))
+        assert_hits_equal_native(refit, scene)  # and both are right: native agrees
     assert refit.dynamic.builds == 1 and refit.dynamic.refits == len(FRAMES) - 1
     assert rebuild.dynamic.refits == 0
+
+
+def _reference_cost(group) -> float:
+    """tests/reference.py's SAH cost of a group's tree over its current triangles."""
+    bvh, geometry = group.bvh, group.geometry
+    return tree_sah_cost(np.array(geometry.vertices).reshape(-1, 3),
+                         np.array(geometry.faces).reshape(-1, 3), np.array(bvh.node_first),
+                         np.array(bvh.node_count), np.array(bvh.prim_ids))
 
 
 def test05_auto_rebuilds_when_the_refit_tree_drifts():
@@ -206,7 +216,9 @@ def test05_auto_rebuilds_when_the_refit_tree_drifts():
         if dynamic["drift"] is not None:
             tried.append(k)
             assert dynamic["drift"] > 1.3
-        assert dynamic["sah_cost"] == pytest.approx(auto.dynamic.built_sah)
+        # The cost reported is the tree's for this frame's triangles (a numpy reference
+        # recomputes every box from them), not a stale build's.
+        assert dynamic["sah_cost"] == pytest.approx(_reference_cost(auto.dynamic), rel=1e-5)
         assert lax.last_update["groups"]["dynamic"]["decision"] == "refit"
         assert lax.last_update["groups"]["dynamic"]["drift"] > 1.3
         if k in (1, 3, 9):
@@ -371,3 +383,29 @@ def test11_fresh_rebuilds_without_last_frames_order_and_hits_equal_native():
         assert accel.last_update["groups"]["dynamic"]["seeded"] is seeded
         assert accel.last_update["groups"]["dynamic"]["decision"] == "rebuild"
         assert_hits_equal_native(accel, scene)
+
+
+def test12_the_sah_cost_of_two_groups_weighs_each_by_its_share_of_their_box():
+    """With a static and a dynamic group, ``last_update["sah_cost"]`` is the cost of a
+    ray through the box around both: each group's own cost (the numpy reference's, from
+    its triangles) times its root box's area over that box's, boxes from the
+    triangles."""
+    animation, scene, params = load("cloth")
+    accel = hlbvh.SceneAccel(scene, static="hlbvh", moving="flag")
+    scenes.apply_frame(scene, params, animation.frame(8))
+    accel.update()
+
+    def half_area(lo, hi):
+        e = np.maximum(hi - lo, 0)
+        return e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
+
+    boxes, costs = [], []
+    for group in (accel.static, accel.dynamic):
+        v = np.array(group.geometry.vertices, np.float64).reshape(-1, 3)
+        used = v[np.array(group.geometry.faces).reshape(-1)]
+        boxes.append((used.min(axis=0), used.max(axis=0)))
+        costs.append(_reference_cost(group))
+    union = half_area(np.minimum(*[b[0] for b in boxes]), np.maximum(*[b[1] for b in boxes]))
+    expected = sum(half_area(*box) / union * cost for box, cost in zip(boxes, costs))
+    assert accel.last_update["sah_cost"] == pytest.approx(expected, rel=1e-4)
+    assert accel.last_update["sah_cost"] < max(costs)  # the small flag weighs less
