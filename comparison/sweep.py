@@ -281,7 +281,8 @@ def sweep(animation, frames, settings: list[Setting], base: RenderSettings, spp:
 
 def _frame(renderer: FrameRenderer, i: int, curve: list[int], spp: int) -> tuple[dict, object]:
     """Frame ``i`` applied, the accelerator updated and the frame rendered at every spp
-    of ``curve``: (its numbers, the image at ``spp`` as numpy)."""
+    of ``curve``: (its numbers, the image at ``spp`` as numpy). KeyboardInterrupt when
+    Ctrl-C came during one of the renders."""
     image, row = renderer.render(i, spp=curve[0])
     render_ms = {curve[0]: row["render_ms"]}
     kept = image
@@ -289,6 +290,10 @@ def _frame(renderer: FrameRenderer, i: int, curve: list[int], spp: int) -> tuple
         render_ms[samples], image = timed(_render, renderer.scene, row["seed"], samples)
         if samples == spp:
             kept = image
+    if renderer.integrator.should_stop():
+        # Ctrl-C inside mi.render: Mitsuba's handler only cancels the integrator, and a
+        # sweep writes nothing until it ends, so it stops here.
+        raise KeyboardInterrupt
     run = {"build_ms": row["build_ms"], "sah_cost": row["sah_cost"],
            "decision": row["decision"], "render_ms": render_ms, "seed": row["seed"]}
     return run, as_image(kept)[..., :3]

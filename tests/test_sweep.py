@@ -136,3 +136,28 @@ def test05_user_errors_exit_2_with_one_line(tmp_path, capsys, argv, message):
     assert status == 2
     assert len(errors) == 1 and message in errors[0] and errors[0].startswith("hlbvh sweep:")
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("command", ["sweep", "compare"])
+def test06_ctrl_c_inside_a_render_stops_the_command(tmp_path, capsys, monkeypatch, command):
+    """SIGINT inside ``mi.render`` (where Mitsuba's own handler only cancels the
+    integrator) stops a sweep or a comparison after that render, exit 130, one line."""
+    import signal
+
+    import mitsuba as mi
+
+    integrator = type(mi.load_dict({"type": "hlbvh_path"}))
+    real, calls = integrator.sample, []
+
+    def sample(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            signal.raise_signal(signal.SIGINT)
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(integrator, "sample", sample)
+    extra = ["--settings", "lbvh"] if command == "sweep" else []
+    args = [a for a in TINY if a not in ("--spp-curve", "1,4")] if command == "compare" else TINY
+    status, _, err = hlbvh(capsys, command, "cloth", *args, *extra, "--out", tmp_path / "x")
+    assert status == 130 and err == [f"hlbvh {command}: interrupted"], err
+    assert not (tmp_path / "x" / "report.html").exists()
