@@ -141,24 +141,21 @@ def apply_frame(
     params: mi.SceneParameters | None,
     frame_geometry: dict[str, FrameGeometry],
     deterministic_normals: bool = True,
-    rebuild_native: bool = True,
 ) -> list[str]:
     """Write one frame's geometry into a loaded scene and let Mitsuba refresh it.
 
     Sets ``params[f"{id}.vertex_positions"]`` (and ``params[f"{id}.faces"]`` when the
     frame gives faces) for every shape of ``frame_geometry``, and, for a mesh with
     vertex normals, ``params[f"{id}.vertex_normals"]``, then calls ``params.update()``
-    once, which recomputes bounds and rebuilds the native acceleration structure.
-
-    With ``rebuild_native=False`` each mesh is updated through its own parameters
-    (``mi.traverse(mesh)``): the meshes refresh their bounds and sampling tables, but
-    the scene is not told, so Mitsuba's own acceleration structure is *not* rebuilt
-    and goes stale. Use it only when every ray query goes through another intersector
-    (our integrators with ``accel="hlbvh"``): it saves the native rebuild each frame.
+    once: with ``mi.traverse(scene)``'s parameters it recomputes bounds and rebuilds
+    the native acceleration structure; with ``hlbvh.traverse(scene)``'s the meshes
+    refresh themselves and Mitsuba's accelerator is not rebuilt (for renders whose
+    every ray query goes through our accelerator).
 
     Args:
         scene: the scene loaded from the animated scene's ``scene_dict``.
-        params: ``mi.traverse(scene)``; ``None`` traverses the scene here.
+        params: ``mi.traverse(scene)`` or ``hlbvh.traverse(scene)``; ``None``
+            traverses the scene here (``mi.traverse``).
         frame_geometry: the result of ``AnimatedScene.frame(i)``.
         deterministic_normals: compute vertex normals with
             :func:`hlbvh.scenes.normals.vertex_normals` (Mitsuba's weighting, the same
@@ -200,21 +197,15 @@ def apply_frame(
         else:
             faces = _checked_faces(shape_id, geometry.faces, vertex_count)
         staged.append((shape_id, positions, faces))
-    meshes = {shape.id(): shape for shape in scene.shapes() if isinstance(shape, mi.Mesh)}
     for shape_id, positions, faces in staged:
-        # Scene parameters are named "<id>.<name>", a mesh's own ones "<name>".
-        target, prefix = (params, f"{shape_id}.") if rebuild_native else (mi.traverse(meshes[shape_id]), "")
-        target[prefix + "vertex_positions"] = positions
+        params[f"{shape_id}.vertex_positions"] = positions
         if faces is not None:
-            target[prefix + "faces"] = faces
-        normals_key = prefix + "vertex_normals"
-        if deterministic_normals and normals_key in target and dr.width(target[normals_key]):
-            triangles = faces if faces is not None else target[prefix + "faces"]
-            target[normals_key] = vertex_normals(positions, triangles)
-        if not rebuild_native:
-            target.update()
-    if rebuild_native:
-        params.update()
+            params[f"{shape_id}.faces"] = faces
+        normals_key = f"{shape_id}.vertex_normals"
+        if deterministic_normals and normals_key in params and dr.width(params[normals_key]):
+            triangles = faces if faces is not None else params[f"{shape_id}.faces"]
+            params[normals_key] = vertex_normals(positions, triangles)
+    params.update()
     return [shape_id for shape_id, _, _ in staged]
 
 
