@@ -57,8 +57,7 @@ from .arrays import namespace_of, plain
 # own choice in dr.argsort (8, shared memory is smaller).
 _RADIX_BITS = {dr.JitBackend.LLVM: 15, dr.JitBackend.CUDA: 8}
 # Below this many keys, keys wider than one pass are sorted 10 bits a pass on the CPU:
-# a pass's 2^15 buckets cost more than a third pass (AMD EPYC, 30-bit keys, 15 / 10
-# bits a pass: 100k keys 2.0 / 1.3 ms, 200k 3.4 / 3.2, 1M 14.0 / 20.4).
+# a pass's 2^15 buckets cost more than a third pass (docs/decisions.md).
 _WIDE_RADIX_FROM = 1 << 18
 
 
@@ -125,19 +124,12 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
     # ---- Compress: run-length encode the coarse keys in start order ----
     key = dr.gather(Key, keys, start)
     coarse = _coarse_keys(key, key_bits, coarse_bits)
-    Coarse = type(coarse)
-    slot = dr.arange(UInt32, n)
-    before = dr.maximum(slot, 1) - 1
-    run_head = (slot == 0) | (coarse != dr.gather(Coarse, coarse, before))
-    descent = (slot > 0) & (key < dr.gather(Key, key, before))
-    dr.eval(key, run_head, descent)
-    run_start = dr.compress(run_head)  # UInt32[R]
-    runs = dr.width(run_start)
-    inner_descents = dr.count(descent & ~run_head)
-    if not dr.any(descent)[0]:
+    runs = _compress(key, coarse)
+    if not dr.any(runs.descent)[0]:
         # Already sorted in start order: each run is a whole voxel, nothing moves.
-        return CsdResult(start, key, runs, coarse_clusters=runs, resorted=0, cluster_start=run_start)
-    if runs > n // 2 or inner_descents[0] >= runs:
+        return CsdResult(start, key, runs.count, coarse_clusters=runs.count, resorted=0,
+                         cluster_start=runs.start)
+    if runs.count > n // 2 or runs.inner_descents[0] >= runs.count:
         # Incoherent keys (a random soup): the runs are about as many as the keys, and
         # sorting and decoding them would cost more than sorting the keys themselves.
         # Or as many descents inside runs as there are runs (a mesh that moved by more
@@ -145,75 +137,155 @@ def csd_sort(keys, key_bits: int, coarse_bits: int, start_order=None) -> CsdResu
         # need its fine sort, so the keys are sorted whole at once.
         order, sorted_keys = _sorted_whole(key, key_bits, start)
         sorted_coarse = _coarse_keys(sorted_keys, key_bits, coarse_bits)
-        voxel_start = dr.compress(
-            (slot == 0) | (sorted_coarse != dr.gather(Coarse, sorted_coarse, before))
-        )
-        return CsdResult(order, sorted_keys, runs, coarse_clusters=dr.width(voxel_start),
+        voxel_start = dr.compress((runs.slot == 0) | (
+            sorted_coarse != dr.gather(type(coarse), sorted_coarse, runs.before)))
+        return CsdResult(order, sorted_keys, runs.count, coarse_clusters=dr.width(voxel_start),
                          resorted=n, cluster_start=voxel_start)
     # Sizes enter kernels as opaque values, so a new run count compiles nothing.
     end = dr.opaque(UInt32, n)
-    run_end = _next_or(run_start, end)
-    run_key = dr.gather(Coarse, coarse, run_start)
 
     # ---- Sort the runs by coarse key (stable: equal voxels keep start order) ----
+    moved = _sort_runs(runs, coarse, coarse_bits, end)
+
+    # ---- Which coarse voxels will not be in key order after decompression ----
+    voxels = _voxels_out_of_order(key, runs, moved, end)
+    if voxels.resorted > n // 2:
+        # Most voxels need their fine sort: sorting all keys in start order gives the
+        # same stable order, for less than decoding the runs and gathering those keys.
+        order, sorted_keys = _sorted_whole(key, key_bits, start)
+        return CsdResult(order, sorted_keys, runs.count, voxels.count, resorted=n,
+                         cluster_start=voxels.start)
+
+    # ---- Decompress: run-length decode the sorted runs into slots ----
+    source, slot_run = _decompress(runs, moved, n)
+    sorted_keys = dr.gather(Key, key, source)
+
+    # ---- Fine sort inside each coarse voxel that is not in key order ----
+    if voxels.resorted:
+        dr.eval(source, sorted_keys)
+        voxel_of_run = dr.cumsum(UInt32(moved.voxel_head)) - 1
+        in_unsorted = dr.gather(ns.Bool, dr.gather(ns.Bool, voxels.unsorted, voxel_of_run),
+                                slot_run)
+        fine, sorted_keys = _voxel_sort(sorted_keys, key_bits, in_unsorted)
+        source = dr.gather(UInt32, source, fine)
+    order = dr.gather(UInt32, start, source)
+    dr.eval(order, sorted_keys, voxels.start)
+    return CsdResult(order, sorted_keys, runs.count, voxels.count, voxels.resorted, voxels.start)
+
+
+@dataclass
+class _Runs:
+    """The runs of equal coarse keys in start order (the compressed keys). Per slot of
+    the start order (UInt32/Bool[N]): ``slot``, ``before`` (the slot before it, 0 for
+    0), ``descent`` (its key is below the one before); ``start``: UInt32[R] each run's
+    first slot; ``count``: R; ``inner_descents``: UInt32[1] descents inside runs."""
+
+    slot: Any
+    before: Any
+    descent: Any
+    start: Any
+    count: int
+    inner_descents: Any
+
+
+def _compress(key, coarse) -> _Runs:
+    """Run-length encode the coarse keys ``coarse`` of ``key`` (both in start order)."""
+    Key, Coarse = type(key), type(coarse)
+    UInt32 = dr.uint32_array_t(Key)
+    n = dr.width(key)
+    slot = dr.arange(UInt32, n)
+    before = dr.maximum(slot, 1) - 1
+    run_head = (slot == 0) | (coarse != dr.gather(Coarse, coarse, before))
+    descent = (slot > 0) & (key < dr.gather(Key, key, before))
+    dr.eval(key, run_head, descent)
+    run_start = dr.compress(run_head)  # UInt32[R]
+    return _Runs(slot=slot, before=before, descent=descent, start=run_start,
+                 count=dr.width(run_start), inner_descents=dr.count(descent & ~run_head))
+
+
+@dataclass
+class _SortedRuns:
+    """The runs in coarse-key order (UInt32/Bool[R]): ``src_start``/``src_end`` their
+    slots in start order, ``dst_start`` their first slot once decoded, ``voxel_head``
+    whether a run starts a coarse voxel, ``run`` 0..R-1."""
+
+    src_start: Any
+    src_end: Any
+    dst_start: Any
+    voxel_head: Any
+    run: Any
+
+
+def _sort_runs(runs: _Runs, coarse, coarse_bits: int, end) -> _SortedRuns:
+    """Sort the runs by coarse key, stably (equal voxels keep start order)."""
+    Coarse = type(coarse)
+    UInt32 = dr.uint32_array_t(Coarse)
+    run_end = _next_or(runs.start, end)
+    run_key = dr.gather(Coarse, coarse, runs.start)
     by_key, sorted_run_key = _radix_sort(run_key, coarse_bits)
-    src_start = dr.gather(UInt32, run_start, by_key)
+    src_start = dr.gather(UInt32, runs.start, by_key)
     src_end = dr.gather(UInt32, run_end, by_key)
     dst_start = dr.prefix_sum(src_end - src_start)
-    run = dr.arange(UInt32, runs)
+    run = dr.arange(UInt32, runs.count)
     voxel_head = (run == 0) | (
         sorted_run_key != dr.gather(Coarse, sorted_run_key, dr.maximum(run, 1) - 1)
     )
     dr.eval(src_start, src_end, dst_start, voxel_head)
+    return _SortedRuns(src_start, src_end, dst_start, voxel_head, run)
 
-    # ---- Which coarse voxels will not be in key order after decompression ----
-    # A voxel is out of order when one of its runs holds a descent, or when a run
-    # ends above the key its successor in the voxel starts with; both are read at the
-    # run ends, from a prefix count of the descents in start order.
-    descents = dr.cumsum(UInt32(descent))
+
+@dataclass
+class _Voxels:
+    """The coarse voxels after the runs' sort: ``start`` UInt32[C] each voxel's first
+    slot, ``count`` C, ``unsorted`` Bool[C] whether it is out of key order, and
+    ``resorted`` the keys in those voxels."""
+
+    start: Any
+    count: int
+    unsorted: Any
+    resorted: int
+
+
+def _voxels_out_of_order(key, runs: _Runs, moved: _SortedRuns, end) -> _Voxels:
+    """Which coarse voxels will not be in key order after decompression.
+
+    A voxel is out of order when one of its runs holds a descent, or when a run ends
+    above the key its successor in the voxel starts with; both are read at the run
+    ends, from a prefix count of the descents in start order."""
+    Key = type(key)
+    UInt32 = dr.uint32_array_t(Key)
+    src_start, src_end, run = moved.src_start, moved.src_end, moved.run
+    descents = dr.cumsum(UInt32(runs.descent))
     inner = dr.gather(UInt32, descents, src_end - 1) != dr.gather(UInt32, descents, src_start)
     prev_run = dr.maximum(run, 1) - 1
-    step_down = ~voxel_head & (
+    step_down = ~moved.voxel_head & (
         dr.gather(Key, key, dr.gather(UInt32, src_end, prev_run) - 1)
         > dr.gather(Key, key, src_start)
     )
     bad_run = UInt32(inner | step_down)  # over sorted runs
     bad_runs = dr.cumsum(bad_run)
-    voxel_first_run = dr.compress(voxel_head)  # UInt32[C]
-    coarse_clusters = dr.width(voxel_first_run)
-    voxel_last_run = _next_or(voxel_first_run, dr.opaque(UInt32, runs)) - 1
+    voxel_first_run = dr.compress(moved.voxel_head)  # UInt32[C]
+    voxel_last_run = _next_or(voxel_first_run, dr.opaque(UInt32, runs.count)) - 1
     # Bad runs of a voxel: the inclusive count at its last run minus that before its first.
     unsorted = dr.gather(UInt32, bad_runs, voxel_last_run) != (
         dr.gather(UInt32, bad_runs, voxel_first_run) - dr.gather(UInt32, bad_run, voxel_first_run)
     )
-    voxel_start = dr.gather(UInt32, dst_start, voxel_first_run)
+    voxel_start = dr.gather(UInt32, moved.dst_start, voxel_first_run)
     voxel_size = _next_or(voxel_start, end) - voxel_start
     resorted = int(dr.sum(dr.select(unsorted, voxel_size, 0))[0])
-    if resorted > n // 2:
-        # Most voxels need their fine sort: sorting all keys in start order gives the
-        # same stable order, for less than decoding the runs and gathering those keys.
-        order, sorted_keys = _sorted_whole(key, key_bits, start)
-        return CsdResult(order, sorted_keys, runs, coarse_clusters, resorted=n,
-                         cluster_start=voxel_start)
+    return _Voxels(voxel_start, dr.width(voxel_first_run), unsorted, resorted)
 
-    # ---- Decompress: run-length decode the sorted runs into slots ----
+
+def _decompress(runs: _Runs, moved: _SortedRuns, n: int):
+    """Run-length decode the sorted runs into slots: ``(source, slot_run)``, UInt32[N]
+    each slot's position in start order and the sorted run it belongs to."""
+    UInt32 = type(runs.slot)
     is_dst_start = dr.zeros(UInt32, n)
-    dr.scatter(is_dst_start, UInt32(1), dst_start)
+    dr.scatter(is_dst_start, UInt32(1), moved.dst_start)
     slot_run = dr.cumsum(is_dst_start) - 1
-    # source: slot -> position in start order
-    source = dr.gather(UInt32, src_start, slot_run) + slot - dr.gather(UInt32, dst_start, slot_run)
-    sorted_keys = dr.gather(Key, key, source)
-
-    # ---- Fine sort inside each coarse voxel that is not in key order ----
-    if resorted:
-        dr.eval(source, sorted_keys)
-        voxel_of_run = dr.cumsum(UInt32(voxel_head)) - 1
-        in_unsorted = dr.gather(ns.Bool, dr.gather(ns.Bool, unsorted, voxel_of_run), slot_run)
-        fine, sorted_keys = _voxel_sort(sorted_keys, key_bits, in_unsorted)
-        source = dr.gather(UInt32, source, fine)
-    order = dr.gather(UInt32, start, source)
-    dr.eval(order, sorted_keys, voxel_start)
-    return CsdResult(order, sorted_keys, runs, coarse_clusters, resorted, voxel_start)
+    source = (dr.gather(UInt32, moved.src_start, slot_run) + runs.slot
+              - dr.gather(UInt32, moved.dst_start, slot_run))
+    return source, slot_run
 
 
 #: Neighbouring pairs of the start order sampled by :func:`seed_pays`: one every so many.

@@ -138,8 +138,8 @@ def _wide_rows(bvh, first, ref, wide):
     Every node's box, reference and first child are staged first as one 32-byte record
     (one coherent pass over the nodes), so a wide node reads each of its binary and
     grandchildren with one packet gather: node numbers are far apart in a large tree,
-    and six box coordinates in six arrays were six cache misses a child (a 1M grid:
-    18.5 ms for the wide nodes, most of the packing)."""
+    and six box coordinates in six arrays were six cache misses a child (measured in
+    docs/decisions.md)."""
     ns = namespace_of(first)
     UInt32, Float = ns.UInt32, ns.Float
     n = dr.width(first)

@@ -59,8 +59,9 @@ import drjit as dr
 from .arrays import high_half, low_half, namespace_of, pack_halves, plain
 from .layout import Packed
 from .packing import packed_records  # noqa: F401  (what traversal reads, built on first use)
-from .slots import (EMPTY, LEAF_BIT, MAX_DEPTH, NODE_HI, NODE_LO, NODE_REF, SLOT, TRI_FACE,
-                    TRI_P, WIDTH, open_ref)
+from .ray_tests import (BARYCENTRIC_MARGIN, TFAR_SCALE, Ray, _max, _min,  # noqa: F401
+                        ray_setup, slab_test, triangle_test)
+from .slots import LEAF_BIT, MAX_DEPTH, SLOT, TRI_FACE, WIDTH, open_ref
 
 #: Entries of the per-lane traversal stack: a wide node pushes at most three, one wide
 #: level per two of the deepest tree that packs.
@@ -75,14 +76,6 @@ _SORTING_NETWORK = ((0, 1), (2, 3), (0, 2), (1, 3), (1, 2))
 assert WIDTH == 4, "the sorting network sorts four entries"
 _MISS = 0xFFFFFFFFFFFFFFFF  # the entry of a child the ray misses (sorts last)
 _MISS32 = 0xFFFFFFFF  # the same for any hit's 32-bit entries
-_FLT_MIN = 2.0**-126  # smallest normal float: 1 / _FLT_MIN is finite
-_EPS = 2.0**-24  # unit roundoff of float32
-_GAMMA3 = 3 * _EPS / (1 - 3 * _EPS)  # gamma(3) of Pharr et al., as in Ize 2013
-_TFAR_SCALE = 1 + 2 * _GAMMA3
-#: A hit is accepted with barycentrics down to ``-BARYCENTRIC_MARGIN``: this closes
-#: cracks of up to ~1e-6 of a triangle's size between separately modelled meshes that
-#: meet at a seam (the walls of Mitsuba's Cornell box do), where Embree reports a hit.
-BARYCENTRIC_MARGIN = 2.0**-20
 
 
 # ---------------------------------------------------------------------------------------
@@ -172,114 +165,7 @@ def _pick_entry(held, k):
     return value
 
 
-def _min(a, b):
-    """Minimum of two NaN-free arrays (one compare and blend; ``dr.minimum`` also
-    handles NaN and signed zeros at a few times the cost)."""
-    return dr.select(a < b, a, b)
-
-
-def _max(a, b):
-    """Maximum of two NaN-free arrays (see :func:`_min`)."""
-    return dr.select(a > b, a, b)
-
-
-def _pick(v, k0, k1):
-    """Per-lane component ``k`` of Array3f ``v``, with masks ``k0 = (k == 0)`` and
-    ``k1 = (k == 1)``."""
-    return dr.select(k0, v.x, dr.select(k1, v.y, v.z))
-
-
-def _ratios(ax, ay, az, bx, by, bz, cx, cy, cz, edges, det, t_scaled):
-    """Barycentrics (w, u, v) and distance t from float32 edge functions (Woop et al.:
-    ``b_i = edge_i / det``, ``t = T / det``); ``det != 0`` here."""
-    inv_det = dr.rcp(det)
-    return edges[0] * inv_det, edges[1] * inv_det, edges[2] * inv_det, t_scaled / det
-
-
-def _ratios_in_double(ax, ay, az, bx, by, bz, cx, cy, cz, edges, det, t_scaled):
-    """:func:`_ratios` with the edge functions and T recomputed in double precision
-    from the float32 sheared vertices (products of two floats are exact in double, so
-    the signs are exact too). A zero determinant (a triangle seen edge-on, or
-    degenerate) gives NaN: no hit."""
-    Float, F64 = type(ax), dr.float64_array_t(type(ax))
-    ax, ay, az, bx, by, bz, cx, cy, cz = (F64(x) for x in (ax, ay, az, bx, by, bz, cx, cy, cz))
-    e0, e1, e2 = cx * by - cy * bx, ax * cy - ay * cx, bx * ay - by * ax
-    det64 = e0 + e1 + e2
-    inv_det = dr.select(det64 != 0, 1.0 / det64, dr.nan)
-    t64 = (e0 * az + e1 * bz + e2 * cz) * inv_det
-    return Float(e0 * inv_det), Float(e1 * inv_det), Float(e2 * inv_det), Float(t64)
-
-
-@dataclass
-class _Ray:
-    """What a ray's tests read, fixed through the loop (one entry per ray)."""
-
-    o: Any  # Array3f origin
-    inv_d: Any  # Array3f reciprocal of the direction clamped away from zero (slab test)
-    perm: tuple  # masks (k == 0, k == 1) of kx, ky, kz: the watertight test's axes
-    o_p: list  # the origin's coordinates on kx, ky, kz
-    shear: tuple  # (d[kx] / d[kz], d[ky] / d[kz], 1 / d[kz])
-
-
-def _ray_setup(o, d) -> _Ray:
-    """The per-ray constants of the slab and watertight tests."""
-    Array3f, UInt32 = type(o), dr.uint32_array_t(type(o.x))
-    # Slab test: reciprocal of the direction clamped away from zero (sign kept).
-    d_safe = dr.select(dr.abs(d) < _FLT_MIN, dr.copysign(Array3f(_FLT_MIN), d), d)
-    inv_d = dr.rcp(d_safe)
-    # Watertight test: kz = dominant axis, (kx, ky) the others, swapped when d[kz] < 0
-    # to keep the winding (Woop et al. 2013, Fig. 1).
-    ad = dr.abs(d)
-    kz = dr.select((ad.x >= ad.y) & (ad.x >= ad.z), UInt32(0),
-                   dr.select(ad.y >= ad.z, UInt32(1), UInt32(2)))
-    kx = dr.select(kz == 2, 0, kz + 1)
-    ky = dr.select(kx == 2, 0, kx + 1)
-    dz = _pick(d, kz == 0, kz == 1)
-    kx, ky = dr.select(dz < 0, ky, kx), dr.select(dz < 0, kx, ky)
-    perm = ((kx == 0, kx == 1), (ky == 0, ky == 1), (kz == 0, kz == 1))
-    o_p = [_pick(o, *m) for m in perm]
-    shear = (_pick(d, *perm[0]) / dz, _pick(d, *perm[1]) / dz, dr.rcp(dz))
-    return _Ray(o=o, inv_d=inv_d, perm=perm, o_p=o_p, shear=shear)
-
-
-# ---- The triangle test ----
-
-
-def _vertex(ray: _Ray, rec, offset):
-    """A triangle vertex translated, permuted and sheared into ray space."""
-    p = [rec[offset + i] for i in range(3)]
-    a = [dr.select(m0, p[0], dr.select(m1, p[1], p[2])) - oc
-         for (m0, m1), oc in zip(ray.perm, ray.o_p)]
-    return a[0] - ray.shear[0] * a[2], a[1] - ray.shear[1] * a[2], ray.shear[2] * a[2]
-
-
-def _triangle_test(ray: _Ray, rec, t_max):
-    """Watertight intersection with the triangle in ``rec``: (hit, t, u, v)."""
-    ax, ay, az = _vertex(ray, rec, TRI_P[0])
-    bx, by, bz = _vertex(ray, rec, TRI_P[1])
-    cx, cy, cz = _vertex(ray, rec, TRI_P[2])
-    edges = (cx * by - cy * bx, ax * cy - ay * cx, bx * ay - by * ax)
-    det = edges[0] + edges[1] + edges[2]
-    t_scaled = dr.fma(edges[0], az, dr.fma(edges[1], bz, edges[2] * cz))
-    # Products of coordinates beyond ~1e19 overflow and below ~1e-19 underflow in
-    # float32: redo those triangles (and zero determinants) in double precision.
-    in_range = dr.isfinite(t_scaled) & dr.isfinite(det) & (det != 0)
-    b0, b1, b2, t = dr.if_stmt(
-        args=(ax, ay, az, bx, by, bz, cx, cy, cz, edges, det, t_scaled),
-        cond=in_range,
-        true_fn=_ratios,
-        false_fn=_ratios_in_double,
-        arg_labels=("ax", "ay", "az", "bx", "by", "bz", "cx", "cy", "cz", "edges",
-                    "det", "t_scaled"),
-        rv_labels=("b0", "b1", "b2", "t"),
-        label="hlbvh_woop_range", mode="symbolic",
-    )
-    inside = (b0 >= -BARYCENTRIC_MARGIN) & (b1 >= -BARYCENTRIC_MARGIN) \
-        & (b2 >= -BARYCENTRIC_MARGIN)
-    return inside & (t > 0) & (t <= t_max), t, b1, b2
-
-
-# ---- The box test and the stack entries ----
+# ---- The stack entries and the box test ----
 
 
 @dataclass
@@ -324,23 +210,15 @@ class _Query:
             dr.reinterpret_array(type(self.no_t), high_half(entry))
 
 
-def _box_test(query: _Query, ray: _Ray, rec, cur, t_best):
+def _box_test(query: _Query, ray: Ray, rec, cur, t_best):
     """The wide node whose first slot is ``rec`` (at slot ``cur``; its second slot
     is read here): entries of the children the ray enters before ``t_best``, sorted
     ascending, a missed or absent child as ``miss`` (so the hit ones come first)."""
-    UInt32 = dr.uint32_array_t(type(t_best))
     rec = [*rec, *query.slot(cur + 1)]
     keys = []
-    limit = t_best * _TFAR_SCALE
+    limit = t_best * TFAR_SCALE
     for k in range(WIDTH):
-        ref = dr.reinterpret_array(UInt32, rec[NODE_REF + k])
-        t0 = [(rec[NODE_LO[i] + k] - ray.o[i]) * ray.inv_d[i] for i in range(3)]
-        t1 = [(rec[NODE_HI[i] + k] - ray.o[i]) * ray.inv_d[i] for i in range(3)]
-        near = [_min(a, b) for a, b in zip(t0, t1)]
-        far = [_max(a, b) for a, b in zip(t0, t1)]
-        t_near = _max(_max(near[0], near[1]), _max(near[2], 0.0))
-        t_far = _min(_min(far[0], far[1]), far[2])
-        hit = (t_near <= _min(t_far * _TFAR_SCALE, limit)) & (ref != EMPTY)
+        ref, t_near, hit = slab_test(ray, rec, k, limit)
         keys.append(dr.select(hit, query.entry_of(ref, t_near), query.miss))
     for i, j in _SORTING_NETWORK:
         keys[i], keys[j] = _min(keys[i], keys[j]), _max(keys[i], keys[j])
@@ -446,7 +324,7 @@ def _start(ns, query: _Query, root: int, alive, maxt, count_steps: bool) -> _Tra
         steps=dr.zeros(ns.UInt32, n) if count_steps else None)
 
 
-def _step(query: _Query, ray: _Ray, stack: _Stack, s: _TraceState) -> _TraceState:
+def _step(query: _Query, ray: Ray, stack: _Stack, s: _TraceState) -> _TraceState:
     """One iteration: a lane in a leaf tests one triangle, a lane at a wide node its
     children's boxes; then each goes to the leaf's next triangle, the nearest child hit,
     or the entry it pops."""
@@ -456,13 +334,13 @@ def _step(query: _Query, ray: _Ray, stack: _Stack, s: _TraceState) -> _TraceStat
     in_leaf = s.cur < s.end
     # A node (or leaf) popped from beyond the closest hit so far is skipped.
     stale = dr.zeros(Bool, n) if query.any_hit else \
-        s.entering & (s.node_t > s.t_best * _TFAR_SCALE)
+        s.entering & (s.node_t > s.t_best * TFAR_SCALE)
 
     # ---- A lane in a leaf: test one triangle ----
     at_triangle = in_leaf & ~stale
     hit, t, u, v = dr.if_stmt(
         args=(rec, s.t_best), cond=at_triangle,
-        true_fn=lambda rec, t_max: _triangle_test(ray, rec, t_max),
+        true_fn=lambda rec, t_max: triangle_test(ray, rec, t_max),
         false_fn=lambda rec, t_max: (dr.zeros(Bool, n), dr.zeros(Float, n),
                                      dr.zeros(Float, n), dr.zeros(Float, n)),
         arg_labels=("rec", "t_best"), rv_labels=("hit", "t", "u", "v"),
@@ -536,7 +414,7 @@ def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False):
     # ---- Per-ray set-up ----
     finite = dr.all(dr.isfinite(o)) & dr.all(dr.isfinite(d))
     alive = active & finite & dr.any(d != 0) & (maxt > 0)
-    ray = _ray_setup(o, d)
+    ray = ray_setup(o, d)
     query = _Query(records=records, n=n, any_hit=any_hit, no_t=dr.zeros(Float, n))
     stack = _Stack(query.Entry, n)
 
