@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import json
 import shutil
+import signal
 
 from hlbvh import cli, scenes
 from hlbvh.scenes.procedural import mesh_object
@@ -17,6 +18,24 @@ def run_cli(capsys, *argv):
     status = cli.main([str(a) for a in argv])
     out, err = capsys.readouterr()
     return status, out, [line for line in err.splitlines() if line.strip()]
+
+
+def interrupt_second_render(monkeypatch):
+    """Raise SIGINT (Ctrl-C) inside the second ``sample`` call of ``hlbvh_path``, i.e.
+    inside ``mi.render``, where Mitsuba's own handler is installed."""
+    import mitsuba as mi
+
+    # The class registered now (registering again, as other tests do, makes a new one).
+    integrator = type(mi.load_dict({"type": "hlbvh_path"}))
+    real, calls = integrator.sample, []
+
+    def sample(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            signal.raise_signal(signal.SIGINT)
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(integrator, "sample", sample)
 
 
 def read_stats(directory) -> tuple[dict, list[dict]]:

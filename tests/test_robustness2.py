@@ -4,13 +4,10 @@ files, bad face indices, Ctrl-C while rendering, unbounded clusters, schedulers 
 never answer, and meshes, folders and files that used to end in a traceback. Every case
 ends in complete frames only and, for a user error, one line naming what is wrong."""
 
-import signal
-
 import numpy as np
-
 import pytest
 
-from cli_helpers import read_stats, run_cli, write_twist_scene
+from cli_helpers import interrupt_second_render, read_stats, run_cli, write_twist_scene
 from hlbvh.output import LOCK_NAME
 
 TINY = ["--triangles", "200", "--resolution", "16", "--spp", "1", "--quiet"]
@@ -34,20 +31,7 @@ def test_ctrl_c_inside_mitsubas_render_stops_after_the_frame_and_resumes(
         tmp_path, capsys, monkeypatch, accel):
     """SIGINT raised inside ``mi.render`` (while Mitsuba's own handler is installed)
     stops the loop after that frame, exit 130; the same command renders the rest."""
-    import mitsuba as mi
-
-    # The class registered now (registering again, as other tests do, makes a new one).
-    integrator = type(mi.load_dict({"type": "hlbvh_path"}))
-    real = integrator.sample
-    calls = []
-
-    def sample(self, *args, **kwargs):
-        calls.append(1)
-        if len(calls) == 2:
-            signal.raise_signal(signal.SIGINT)
-        return real(self, *args, **kwargs)
-
-    monkeypatch.setattr(integrator, "sample", sample)
+    interrupt_second_render(monkeypatch)
     out = tmp_path / "out"
     argv = ["render", "cloth", "--frames", "0:4", "--accel", accel, "--out", out, *TINY]
     status, _, err = run_cli(capsys, *argv)

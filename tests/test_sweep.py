@@ -9,7 +9,7 @@ import math
 import OpenImageIO as oiio
 import pytest
 
-from cli_helpers import run_cli
+from cli_helpers import interrupt_second_render, run_cli
 from hlbvh import cli
 from hlbvh.comparison import sweep
 from hlbvh.comparison.tables import column_title, format_value, read_results
@@ -142,20 +142,7 @@ def test05_user_errors_exit_2_with_one_line(tmp_path, capsys, argv, message):
 def test06_ctrl_c_inside_a_render_stops_the_command(tmp_path, capsys, monkeypatch, command):
     """SIGINT inside ``mi.render`` (where Mitsuba's own handler only cancels the
     integrator) stops a sweep or a comparison after that render, exit 130, one line."""
-    import signal
-
-    import mitsuba as mi
-
-    integrator = type(mi.load_dict({"type": "hlbvh_path"}))
-    real, calls = integrator.sample, []
-
-    def sample(self, *args, **kwargs):
-        calls.append(1)
-        if len(calls) == 2:
-            signal.raise_signal(signal.SIGINT)
-        return real(self, *args, **kwargs)
-
-    monkeypatch.setattr(integrator, "sample", sample)
+    interrupt_second_render(monkeypatch)
     extra = ["--settings", "lbvh"] if command == "sweep" else []
     args = [a for a in TINY if a not in ("--spp-curve", "1,4")] if command == "compare" else TINY
     status, _, err = hlbvh(capsys, command, "cloth", *args, *extra, "--out", tmp_path / "x")
