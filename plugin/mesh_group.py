@@ -4,9 +4,10 @@ last update did."""
 
 from __future__ import annotations
 
+from hlbvh.kernels.arrays import concat
 from hlbvh.kernels.build import build
 from hlbvh.policy import UpdatePolicy
-from hlbvh.scene_geometry import _concat, _named_error, collect_geometry
+from hlbvh.scene_geometry import _named_error, collect_geometry
 from hlbvh.timing import clock_ms
 
 
@@ -139,7 +140,7 @@ class MeshGroup:
 
     def _refit(self, shapes) -> float:
         """The same tree with boxes for the meshes' new positions; its SAH drift."""
-        vertices = _concat([shapes[i].vertex_positions_buffer() for i in self.indices])
+        vertices = concat([shapes[i].vertex_positions_buffer() for i in self.indices])
         try:
             self.bvh.refit(vertices)
         except ValueError as error:

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from hlbvh.kernels.arrays import concat
+
 #: Analytic shape types intersected by Mitsuba's own per-shape routine.
 _ANALYTIC = ("Sphere", "Disk", "Cylinder")
 
@@ -119,15 +121,10 @@ def collect_geometry(shapes, indices=None) -> SceneGeometry:
         vertex_base += mesh.vertex_count()
     if not indices:
         return SceneGeometry(mi.Float(), mi.UInt32(), mi.UInt32(), mi.UInt32())
-    geometry = SceneGeometry(_concat(vertices), _concat(faces), _concat(prim_shape),
-                             _concat(prim_local))
+    geometry = SceneGeometry(concat(vertices), concat(faces), concat(prim_shape),
+                             concat(prim_local))
     dr.eval(geometry.vertices, geometry.faces, geometry.prim_shape, geometry.prim_local)
     return geometry
-
-
-def _concat(arrays):
-    """The arrays end to end (one array is returned as it is: no copy)."""
-    return arrays[0] if len(arrays) == 1 else dr.concat(arrays)
 
 
 def check_finite(shapes, indices) -> None:
