@@ -28,7 +28,7 @@ import drjit as dr
 from .arrays import namespace_of
 from .bounds import internal_levels, leaf_histogram, node_bounds, sah_cost
 from .bvh import BVH, BuildConfig, BuildStats
-from .csd import csd_sort, seed_pays
+from .csd import CsdResult, csd_sort, seed_pays
 from .emission import NodeRecords, emit_hierarchy
 from .geometry import (checked_faces, checked_vertices, gather_triangles,
                        records_to_triangles, slot_triangles, triangle_boxes,
@@ -53,13 +53,15 @@ class _StageClock:
 
 
 @dataclass
-class _Topology:
-    """A tree without boxes: node records, each node's depth, and the primitives and
-    their triangles in slot order."""
+class _Tree:
+    """What a builder made: the node records and boxes, the internal nodes by depth, and
+    the primitives and their triangles in slot order."""
 
     node_first: Any
     node_count: Any
-    node_depth: Any
+    node_min: Any
+    node_max: Any
+    levels: list
     prim_ids: Any
     tri: Any  # Matrix3f, rows p0, p1, p2
 
@@ -96,56 +98,149 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
         raise TypeError(f"previous: expected an hlbvh BVH or None, got {type(previous).__name__}")
     clock = _StageClock()
     stats = BuildStats(builder=config.builder)
+
+    # ---- The triangles, checked ----
     with clock("triangles"):
         faces = checked_faces(faces)
         points = checked_vertices(vertices, faces)
     stats.prim_count = len(faces) // 3
 
+    # ---- The tree and its boxes ----
     if config.builder == "sah":
-        with clock("sah"):
-            tree = binned_sah(*triangle_boxes(_input_triangles(points, faces)),
-                              dr.full(namespace_of(faces).UInt32, 1, stats.prim_count),
-                              config.leaf_size, config.sah_bins)
-        with clock("triangles"):
-            tri = gather_triangles(points, faces, tree.item_order)
-            dr.eval(tri)
-        node_min, node_max, levels = tree.node_min, tree.node_max, tree.levels
-        for level in levels:  # one at a time: levels of one size in one kernel would
-            dr.eval(level)    # make a kernel for every count of such levels
-        topology = _Topology(tree.node_first, tree.node_count, tree.leaf_depth, tree.item_order, tri)
-        stats.morton_bits = 0
+        tree = _sah_tree(config, stats, clock, points, faces)
     else:
-        topology, slot_boxes = _morton_topology(config, stats, clock, points, faces, previous)
-        with clock("bounds"):
-            levels = internal_levels(topology.node_count, topology.node_depth)
-            node_min, node_max = node_bounds(topology.node_first, topology.node_count,
-                                             slot_boxes, levels, config.leaf_size)
-
+        tree = _morton_tree(config, stats, clock, points, faces, previous)
     stats.stage_ms = dict(clock.ms)
     stats.total_ms = sum(clock.ms.values())
+    return _bvh(tree, faces, config, stats)
 
+
+def _sah_tree(config: BuildConfig, stats: BuildStats, clock, points, faces) -> _Tree:
+    """The "sah" builder (Wald 2007): a binned SAH over all triangles, which also gives
+    the node boxes."""
+    with clock("sah"):
+        tree = binned_sah(*triangle_boxes(_input_triangles(points, faces)),
+                          dr.full(namespace_of(faces).UInt32, 1, stats.prim_count),
+                          config.leaf_size, config.sah_bins)
+    with clock("triangles"):
+        tri = gather_triangles(points, faces, tree.item_order)
+        dr.eval(tri)
+    for level in tree.levels:  # one at a time: levels of one size in one kernel would
+        dr.eval(level)         # make a kernel for every count of such levels
+    stats.morton_bits = 0
+    return _Tree(tree.node_first, tree.node_count, tree.node_min, tree.node_max, tree.levels,
+                 tree.item_order, tri)
+
+
+def _input_triangles(points, faces):
+    """Matrix3f[F]: the triangles in input order."""
+    return gather_triangles(points, faces, dr.arange(namespace_of(faces).UInt32, len(faces) // 3))
+
+
+def _morton_tree(config: BuildConfig, stats: BuildStats, clock, points, faces, previous) -> _Tree:
+    """The "lbvh" and "hlbvh" builders (pbrt-v4's buildHLBVH: Morton codes, the sort,
+    the upper tree, emitLBVH below): Morton keys, the CSD sort, the triangles in slot
+    order, the SAH top level over the coarse clusters ("hlbvh"), the hierarchy emission
+    below it, then the node boxes bottom-up."""
+    UInt32 = namespace_of(faces).UInt32
+    prim_count = len(faces) // 3
+
+    # ---- Morton keys of the triangles' centroids ----
+    with clock("triangles"):
+        centroid, tri_records = triangle_records(points, faces)
+    with clock("morton"):
+        keys, bits = _morton_keys(config, stats, centroid, tri_records, prim_count)
+
+    # ---- The CSD sort, seeded with last frame's order where that pays ----
+    with clock("csd"):
+        csd = _sorted(keys, bits, config.coarse_bits, previous, prim_count, stats)
+    with clock("triangles"):
+        tri, slot_boxes = slot_triangles(records_to_triangles(tri_records, csd.order))
+    del tri_records  # 64 bytes a triangle, no longer needed
+
+    # ---- The upper tree: the SAH top level over the coarse clusters ("hlbvh") ----
+    # Not cleared: the top level and the emission write each node's record once.
+    records = NodeRecords(*(dr.empty(UInt32, 2 * prim_count - 1) for _ in range(3)),
+                          total=dr.opaque(UInt32, 1))
+    if config.builder == "lbvh" or config.coarse_bits == 0 or csd.coarse_clusters == 1:
+        level = 0 if config.builder == "lbvh" else config.coarse_bits
+        roots = (UInt32(0), UInt32(prim_count), UInt32(0), UInt32(0))
+    else:
+        with clock("sah_top"):
+            top = top_level(csd.cluster_start, slot_boxes, config.sah_bins)
+            top.write_internal(records)
+        level = config.coarse_bits
+        roots = top.roots
+
+    # ---- The emission: each cluster's sub-tree from bit plane `level` down ----
+    with clock("emission"):
+        emit_hierarchy(csd.sorted_keys, bits, level, roots, records, config.leaf_size, config.p)
+        used = dr.arange(UInt32, int(records.total[0]))
+        node_first, node_count, node_depth = (
+            dr.gather(UInt32, a, used) for a in (records.first, records.count, records.depth))
+        dr.eval(node_first, node_count, node_depth)
+
+    # ---- The node boxes, bottom-up ----
+    with clock("bounds"):
+        levels = internal_levels(node_count, node_depth)
+        node_min, node_max = node_bounds(node_first, node_count, slot_boxes, levels,
+                                         config.leaf_size)
+    return _Tree(node_first, node_count, node_min, node_max, levels, csd.order, tri)
+
+
+def _morton_keys(config: BuildConfig, stats: BuildStats, centroid, tri_records, prim_count):
+    """``(keys, bits)``: the centroids' Morton keys, of the width and quantisation the
+    config asks for (or ``"auto"`` chooses, from the triangles' boxes)."""
+    lo, hi = point_bounds(centroid)
+    bits, quantization = config.morton_bits, config.quantization
+    if bits == "auto":
+        UInt32 = namespace_of(tri_records).UInt32
+        bits, quantization = choose_key(
+            *triangle_boxes(records_to_triangles(tri_records, dr.arange(UInt32, prim_count))),
+            lo, hi, quantization)
+    keys = morton_codes(centroid, lo, hi, bits, quantization)
+    stats.morton_bits, stats.quantization = bits, quantization
+    return keys, bits
+
+
+def _sorted(keys, bits: int, coarse_bits: int, previous, prim_count: int,
+            stats: BuildStats) -> CsdResult:
+    """The CSD sort of ``keys``, seeded with ``previous``'s order when it has as many
+    primitives and a sample says the seed pays."""
+    seed = previous.prim_ids if previous is not None and previous.prim_count == prim_count else None
+    if seed is not None and not seed_pays(keys, bits, coarse_bits, seed):
+        seed = None  # it would sort every key anyway: the gathers through it cost
+    csd = csd_sort(keys, bits, coarse_bits, seed)
+    stats.csd_seeded = seed is not None
+    stats.csd_runs, stats.csd_resorted, stats.coarse_clusters = csd.runs, csd.resorted, csd.coarse_clusters
+    return csd
+
+
+def _bvh(tree: _Tree, faces, config: BuildConfig, stats: BuildStats) -> BVH:
+    """The :class:`BVH` of ``tree``, with the statistics that need no host read (the
+    others computed when first read)."""
     # ---- Statistics (not part of the build time, but paid every frame) ----
     root = dr.zeros(namespace_of(faces).UInt32, 1)
-    warn_if_out_of_range(dr.gather(type(node_min), node_min, root),
-                         dr.gather(type(node_max), node_max, root))
+    warn_if_out_of_range(dr.gather(type(tree.node_min), tree.node_min, root),
+                         dr.gather(type(tree.node_max), tree.node_max, root), stacklevel=4)
     # Every internal node has two children: a binary tree of N nodes has (N + 1) / 2
     # leaves, and its deepest nodes are leaves, one level below the deepest internal one.
-    stats.node_count = len(topology.node_count)
+    stats.node_count = len(tree.node_count)
     stats.leaf_count = (stats.node_count + 1) // 2
-    stats.depth = len(levels) + 1
-    stats.leaf_histogram = functools.partial(leaf_histogram, topology.node_count, config.leaf_size)
-    stats.sah_cost = functools.partial(sah_cost, node_min, node_max, topology.node_count)
+    stats.depth = len(tree.levels) + 1
+    stats.leaf_histogram = functools.partial(leaf_histogram, tree.node_count, config.leaf_size)
+    stats.sah_cost = functools.partial(sah_cost, tree.node_min, tree.node_max, tree.node_count)
     bvh = BVH(
-        node_min=node_min,
-        node_max=node_max,
-        node_first=topology.node_first,
-        node_count=topology.node_count,
-        prim_ids=topology.prim_ids,
-        tri_p0=topology.tri[0],
-        tri_p1=topology.tri[1],
-        tri_p2=topology.tri[2],
+        node_min=tree.node_min,
+        node_max=tree.node_max,
+        node_first=tree.node_first,
+        node_count=tree.node_count,
+        prim_ids=tree.prim_ids,
+        tri_p0=tree.tri[0],
+        tri_p1=tree.tri[1],
+        tri_p2=tree.tri[2],
         faces=faces,
-        levels=levels,
+        levels=tree.levels,
         config=config,
         stats=stats,
     )
@@ -154,64 +249,3 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
     dr.make_opaque(bvh.node_first, bvh.node_count, bvh.prim_ids, *bvh.levels)
     bvh.built_topology = bvh.topology_key()
     return bvh
-
-
-def _input_triangles(points, faces):
-    """Matrix3f[F]: the triangles in input order."""
-    return gather_triangles(points, faces, dr.arange(namespace_of(faces).UInt32, len(faces) // 3))
-
-
-def _morton_topology(config: BuildConfig, stats: BuildStats, clock, points, faces, previous):
-    """The "lbvh" and "hlbvh" builders up to the node records: Morton keys, the CSD
-    sort, the triangles in slot order, the SAH top level ("hlbvh"), the emission.
-
-    Returns (:class:`_Topology`, the slot triangles' packed boxes)."""
-    ns = namespace_of(faces)
-    UInt32 = ns.UInt32
-    prim_count = len(faces) // 3
-
-    with clock("triangles"):
-        centroid, tri_records = triangle_records(points, faces)
-    with clock("morton"):
-        lo, hi = point_bounds(centroid)
-        bits, quantization = config.morton_bits, config.quantization
-        if bits == "auto":
-            bits, quantization = choose_key(
-                *triangle_boxes(records_to_triangles(tri_records, dr.arange(UInt32, prim_count))),
-                lo, hi, quantization)
-        keys = morton_codes(centroid, lo, hi, bits, quantization)
-    stats.morton_bits, stats.quantization = bits, quantization
-    coarse_bits = config.coarse_bits  # the same coarse voxels for 30- and 60-bit keys
-
-    with clock("csd"):
-        seed = previous.prim_ids if previous is not None and previous.prim_count == prim_count else None
-        if seed is not None and not seed_pays(keys, bits, coarse_bits, seed):
-            seed = None  # it would sort every key anyway: the gathers through it cost
-        csd = csd_sort(keys, bits, coarse_bits, seed)
-    stats.csd_seeded = seed is not None
-    stats.csd_runs, stats.csd_resorted, stats.coarse_clusters = csd.runs, csd.resorted, csd.coarse_clusters
-
-    with clock("triangles"):
-        tri, slot_boxes = slot_triangles(records_to_triangles(tri_records, csd.order))
-
-    del tri_records  # 64 bytes a triangle, no longer needed
-    # Not cleared: the top level and the emission write each node's record once.
-    records = NodeRecords(*(dr.empty(UInt32, 2 * prim_count - 1) for _ in range(3)),
-                          total=dr.opaque(UInt32, 1))
-    if config.builder == "lbvh" or coarse_bits == 0 or csd.coarse_clusters == 1:
-        level = 0 if config.builder == "lbvh" else coarse_bits
-        roots = (UInt32(0), UInt32(prim_count), UInt32(0), UInt32(0))
-    else:
-        with clock("sah_top"):
-            top = top_level(csd.cluster_start, slot_boxes, config.sah_bins)
-            top.write_internal(records)
-        level = coarse_bits
-        roots = top.roots
-
-    with clock("emission"):
-        emit_hierarchy(csd.sorted_keys, bits, level, roots, records, config.leaf_size, config.p)
-        used = dr.arange(UInt32, int(records.total[0]))
-        node_first, node_count, node_depth = (
-            dr.gather(UInt32, a, used) for a in (records.first, records.count, records.depth))
-        dr.eval(node_first, node_count, node_depth)
-    return _Topology(node_first, node_count, node_depth, csd.order, tri), slot_boxes
