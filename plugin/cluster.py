@@ -102,7 +102,7 @@ class SceneSpec:
         """The spec of the command line's ``SCENE --frames-dir --triangles --topology``
         and the frame range, files made absolute (a worker's working directory is its
         own)."""
-        if Path(scene).suffix.lower() == ".xml":
+        if Path(scene).suffix.lower() in (".xml", ".usd", ".usda", ".usdc", ".usdz"):
             scene = str(Path(scene).resolve())
         if frames_dir is not None:
             frames_dir = str(Path(frames_dir).resolve())

@@ -27,8 +27,9 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
     ``spp`` are the defaults the help states (``None``: every frame, the scene's spp);
     the caller applies them."""
     add = parser.add_argument
-    add("scene", help=f"a procedural scene ({', '.join(scenes.names())}) or a Mitsuba XML "
-                      "file (with --frames-dir)")
+    add("scene", help=f"a procedural scene ({', '.join(scenes.names())}), a Mitsuba XML "
+                      "file (with --frames-dir) or an animated USD stage (.usd, .usda, .usdc, "
+                      ".usdz; pip install 'hlbvh[usd]')")
     add("--frames-dir", help="directory of per-frame meshes <dir>/<shape id>/frame_0001.ply "
                              "(with an XML scene)")
     add("--topology", help="of the meshes of --frames-dir: fixed (default: only positions "
@@ -187,6 +188,9 @@ def open_animation(scene: str, frames_dir, triangles, frames, topology=None) -> 
         stop = default if stop is None else stop
         animation = scenes.get(scene, **options, frames=max(default, stop))
         source = {"scene": scene, "triangles": animation.triangles}
+    elif Path(scene).suffix.lower() in USD_SUFFIXES:
+        animation, source = _open_usd(scene, frames_dir, triangles, topology)
+        stop = animation.frame_count if stop is None else stop
     else:
         path = Path(scene)
         if path.suffix.lower() != ".xml" or not path.is_file():
@@ -211,6 +215,27 @@ def open_animation(scene: str, frames_dir, triangles, frames, topology=None) -> 
     if start >= stop:
         raise UserError(f"--frames {frames}: the range is empty (expected A < B)")
     return animation, source, range(start, stop)
+
+
+#: Suffixes of the USD stages :func:`open_animation` opens as :class:`hlbvh.scenes.usd.UsdScene`.
+USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+
+
+def _open_usd(scene: str, frames_dir, triangles, topology) -> tuple:
+    """``(animation, source)`` of a USD stage: a :class:`hlbvh.scenes.usd.UsdScene`
+    (imported here, ``pxr`` being an optional extra) and what identifies it."""
+    for flag, value in (("--frames-dir", frames_dir), ("--triangles", triangles),
+                        ("--topology", topology)):
+        if value is not None:
+            raise UserError(f"{flag} is not for USD stages; {scene!r} brings its own "
+                            f"animation")
+    try:
+        from hlbvh.scenes.usd import UsdScene
+    except ImportError as error:
+        raise UserError(f"scene {scene!r}: {error}") from None
+    animation = UsdScene(scene)
+    return animation, {"scene": str(Path(scene).resolve()),
+                       "scene_sha256": animation.source_digest()}
 
 
 def parse_frames(text) -> tuple[int, int | None]:
