@@ -130,6 +130,8 @@ def _write_records(bvh, placed: Placement, face_base, front):
 
 #: Floats per node in the packing's staging records: lo.xyz, hi.xyz, reference, first.
 _NODE_RECORD = 8
+#: Offsets of a staged record's fields.
+_STAGED_LO, _STAGED_HI, _STAGED_REF, _STAGED_FIRST = 0, 3, 6, 7
 
 
 def _wide_rows(bvh, first, ref, wide):
@@ -152,8 +154,9 @@ def _wide_rows(bvh, first, ref, wide):
     def node_at(node, active=True):
         """(lo, hi, reference, first) of the staged records ``node``."""
         r = dr.gather(ns.ArrayXf, staged, node, active, shape=(_NODE_RECORD, dr.width(node)))
-        return (ns.Array3f(r[0], r[1], r[2]), ns.Array3f(r[3], r[4], r[5]),
-                dr.reinterpret_array(UInt32, r[6]), dr.reinterpret_array(UInt32, r[7]))
+        lo, hi = (ns.Array3f(*(r[at + a] for a in range(3))) for at in (_STAGED_LO, _STAGED_HI))
+        return (lo, hi, dr.reinterpret_array(UInt32, r[_STAGED_REF]),
+                dr.reinterpret_array(UInt32, r[_STAGED_FIRST]))
 
     children = []
     left = dr.gather(UInt32, first, wide)

@@ -15,7 +15,8 @@ import drjit as dr
 
 from .arrays import namespace_of
 from .bounds import node_bounds, sah_cost
-from .geometry import BOX_RECORD, checked_vertices, slot_triangles, triangles_of
+from .geometry import (BOX_RECORD, box_records, checked_vertices, slot_triangles,
+                       triangles_of)
 from .packing import arrays_key, is_built
 from .placement import Placement
 from .slots import SLOT, TRI_HI, TRI_LO, box_rows, node_rows, triangle_rows
@@ -115,7 +116,7 @@ def _write_packed(bvh, place, plan, points, slot_faces):
     slot_base, face_base, front = place
     total = plan[1].total
     ns = namespace_of(bvh.node_count)
-    UInt32, Float, Array3f, ArrayXf = ns.UInt32, ns.Float, ns.Array3f, ns.ArrayXf
+    UInt32, Float, ArrayXf = ns.UInt32, ns.Float, ns.ArrayXf
     refit = _refit_plan(bvh, plan)
     records = dr.empty(Float, SLOT * (front + total))
     front_o = dr.opaque(UInt32, front)
@@ -144,10 +145,9 @@ def _write_packed(bvh, place, plan, points, slot_faces):
     # own) is the union of its two children, the others their own record ----
     node = dr.arange(UInt32, bvh.size)
     left = dr.select(refit.odd, bvh.node_first, node)
-    a, b = (dr.gather(ArrayXf, boxes, c, shape=(BOX_RECORD, bvh.size))
-            for c in (left, left + UInt32(refit.odd)))
-    bvh.node_min = dr.minimum(Array3f(*a[0:3]), Array3f(*b[0:3]))
-    bvh.node_max = dr.maximum(Array3f(*a[3:6]), Array3f(*b[3:6]))
+    (a_lo, a_hi), (b_lo, b_hi) = (box_records(boxes, c) for c in (left, left + UInt32(refit.odd)))
+    bvh.node_min = dr.minimum(a_lo, b_lo)
+    bvh.node_max = dr.maximum(a_hi, b_hi)
     dr.eval(bvh.node_min, bvh.node_max)
     bvh.cache.ready_records = ((arrays_key(bvh), slot_base, face_base, front), records)
 
@@ -185,14 +185,11 @@ def _leaf_triangles(records, points, slot_faces, prim_ids, face_base, first_slot
 def _wide_level_rows(boxes, nodes, children):
     """The 32 floats of the wide ``nodes`` and their own box rows, from their
     ``children`` ``(node, present, reference)`` whose box records are in ``boxes``."""
-    ns = namespace_of(nodes)
-    Array3f = ns.Array3f
     rows_of = []
     for child, present, child_ref in children:
         # An absent child reads child 0's box, then dropped: an unmasked packet gather
         # costs far less than a masked one.
-        r = dr.gather(ns.ArrayXf, boxes, child, shape=(BOX_RECORD, dr.width(nodes)))
-        rows_of.append((Array3f(*r[0:3]), Array3f(*r[3:6]), present, child_ref))
+        rows_of.append((*box_records(boxes, child), present, child_ref))
     # Child 0 is always there; the others only widen the box where present.
     lo, hi = rows_of[0][0], rows_of[0][1]
     for c_lo, c_hi, present, _ in rows_of[1:]:
