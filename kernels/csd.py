@@ -25,12 +25,8 @@ sorted whole: same stable order, less work than decoding the runs and gathering 
 keys. Whether a voxel needs its fine sort is read off the runs before decoding them:
 a run holding a descent, or a run starting below where the voxel's previous run ended.
 
-Cost, measured on the CPU at 1M keys (issue 2's report; single-thread CPU time): the
-run bookkeeping costs 6–10 ms, against 30 ms (30-bit) or 95 ms (60-bit) for
-``dr.argsort``. Starting from last frame's order, unchanged keys sort in 5–10 ms and a
-mesh of which 10% moved in 17 ms (30-bit) or 24 ms (60-bit); a first frame or a motion
-that perturbs every voxel costs the whole sort plus the bookkeeping (1.1–1.4 times
-``dr.argsort``).
+What the run bookkeeping costs against a plain sort, from last frame's order and
+without it, is in docs/decisions.md.
 
 Whether last frame's order is worth starting from at all is estimated first
 (:func:`seed_pays`) from a sample of neighbouring pairs in that order: where the sample

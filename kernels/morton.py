@@ -58,7 +58,7 @@ def point_bounds(points):
     if dr.width(points) == 0:
         raise ValueError("point_bounds: points is empty; pass at least one point")
     # Float min/max reductions propagate NaN and run several times slower than integer
-    # ones on the CPU (1.8 against 0.2 ms per 1M floats here), so reduce the floats'
+    # ones on the CPU (docs/decisions.md), so reduce the floats'
     # bit patterns, mapped to Int32 values that order like the floats.
     ns = namespace_of(points)
     ordered = ns.Array3i(*(_ordered_bits(ns, points[k]) for k in range(3)))
@@ -183,12 +183,8 @@ def choose_key(prim_lo, prim_hi, lo, hi, quantization: str = "cube") -> tuple[in
     against a 30-bit cell, then 60), and, when 1% of the primitives are small even
     against a 60-bit cell (cells 2^20 times smaller than the scene: a 1e-3 object with
     100k triangles on a ground 1e4 wide), ``"rank"`` quantisation with 60-bit keys:
-    the object then gets the cells it needs wherever it is. Measured on that scene
-    (tests/test_extremes.py): the SAH cost of the object's sub-tree, relative to the
-    object's box, was 597 with 30- and with 60-bit cube keys (the object's 100k
-    triangles in one cell, split by index), 47 with rank keys, 42 with the full SAH
-    builder; the whole tree's cost moved from 17.3 to 18.3 (sah: 17.4). Rank keys are
-    not chosen otherwise: on a regular grid they cost ~10% more SAH than cube keys.
+    the object then gets the cells it needs wherever it is (what that gains, and why rank
+    keys are not chosen otherwise: docs/decisions.md).
 
     Args:
         prim_lo, prim_hi: Array3f[N], each primitive's bounding box.
@@ -228,22 +224,8 @@ def choose_morton_bits(prim_lo, prim_hi, lo, hi) -> int:
     when at least 1% of the primitives are small. A share, not the median or the mean:
     a small detailed object on a huge, finely tessellated ground holds few of the
     primitives but all of the collisions, and the median and mean extent are those of
-    the ground. Measured on displaced grids and UV spheres (issue 2's report;
-    ``tests/test_morton.py`` checks the first and fourth kind of scene), where
-    "shared" is the share of primitives whose 30-bit key more than 4 primitives have:
-
-    =======================================  =====  ===========  ============  ====
-    scene (triangles)                        small  shared, 30b  most per key  auto
-    =======================================  =====  ===========  ============  ====
-    regular grid, 1M                         0      0            2             30
-    regular grid, 4M                         0      24%          8             30
-    sphere 200k on a 1M ground 500x larger   17%    17%          23970         60
-    sphere 20k on a 1M ground 500x larger    2%     2%           2448          60
-    sphere 200k on a 2-triangle ground       0      3.7%         57            30
-    =======================================  =====  ===========  ============  ====
-
-    (A 2-triangle ground adds nothing to the centroid bounds, so the object keeps the
-    whole grid.) Thin slivers fanning around one point (a UV sphere's poles) collide
+    the ground (measured in docs/decisions.md; ``tests/test_morton.py`` checks such
+    scenes). Thin slivers fanning around one point (a UV sphere's poles) collide
     without being small; a criterion on extents cannot see them. All centroids equal
     (zero extent) gives 30: finer cells would not separate them either.
 
