@@ -291,9 +291,9 @@ class UsdScene(AnimatedScene):
         stats = _Stats()
         time = Usd.TimeCode(self._start)
         cache = UsdGeom.XformCache(time)
-        for path in _unresolved_arcs(self.stage):
-            self._warn(f"{self._where}: {path}: a reference or payload does not resolve; "
-                       f"what it would bring is not rendered")
+        for path, said in _unresolved_arcs(self.stage):
+            self._warn(f"{self._where}: {path}: a reference or payload does not resolve "
+                       f"({said}); what it would bring is not rendered")
         predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
         prims = iter(Usd.PrimRange(self.stage.GetPseudoRoot(), predicate))
         for prim in prims:
@@ -674,14 +674,16 @@ def _open(path: Path, where: str):
     return stage
 
 
-def _unresolved_arcs(stage) -> list[str]:
-    """Prim paths whose reference or payload USD could not resolve."""
-    paths = []
+def _unresolved_arcs(stage) -> list[tuple[str, str]]:
+    """``(prim path, what USD said)`` for each reference or payload USD could not
+    resolve, once per prim."""
+    found = {}
     for error in stage.GetCompositionErrors():
-        site = error.GetRootSite() if hasattr(error, "GetRootSite") else None
-        path = str(getattr(site, "path", "")) if site is not None else ""
-        paths.append(path or " ".join(str(error).split())[:160])
-    return list(dict.fromkeys(paths))
+        site = getattr(error, "rootSite", None)
+        path = str(getattr(site, "path", "") or "") or "?"
+        text = " ".join(str(error).split())
+        found.setdefault(path, text.split(" for ")[0][:200])
+    return list(found.items())
 
 
 def _root_transform(stage) -> np.ndarray:

@@ -1,0 +1,491 @@
+"""Animated USD stages as input (:mod:`hlbvh.scenes.usd`): stages authored here with
+``pxr`` give per-frame geometry equal to what ``pxr`` itself computes (world space,
+triangulated, Mitsuba's Y-up metres), render with ``accel="hlbvh"`` within the
+plugin's tolerance of ``accel="native"`` frame by frame, map their cameras, lights and
+materials as documented, and each bad input is one line."""
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+pxr = pytest.importorskip("pxr")
+
+import mitsuba as mi  # noqa: E402
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade  # noqa: E402
+
+from cli_helpers import read_stats, run_cli  # noqa: E402
+from hlbvh import cluster, images, scenes  # noqa: E402
+from hlbvh.errors import UserError  # noqa: E402
+from hlbvh.options import open_animation  # noqa: E402
+from hlbvh.scenes.usd import UsdScene  # noqa: E402
+from test_render import assert_close_to_native  # noqa: E402
+
+TINY = ["--resolution", "24", "--spp", "2", "--quiet"]
+
+
+# ---- Stages authored for the tests ----------------------------------------------------
+
+
+def _quad(stage, path, corners, counts=(4,), indices=(0, 1, 2, 3), **attributes):
+    """A mesh prim of ``corners`` with subdivision ``none`` unless told otherwise."""
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    mesh.CreatePointsAttr([Gf.Vec3f(*c) for c in corners])
+    mesh.CreateFaceVertexCountsAttr(list(counts))
+    mesh.CreateFaceVertexIndicesAttr(list(indices))
+    mesh.CreateSubdivisionSchemeAttr(attributes.pop("scheme", "none"))
+    if attributes.pop("double_sided", False):
+        mesh.CreateDoubleSidedAttr(True)
+    return mesh
+
+
+def _preview(stage, path, **inputs):
+    """A UsdPreviewSurface material at ``path`` with ``inputs`` (colours as tuples)."""
+    material = UsdShade.Material.Define(stage, path)
+    shader = UsdShade.Shader.Define(stage, f"{path}/Surface")
+    shader.CreateIdAttr("UsdPreviewSurface")
+    for name, value in inputs.items():
+        kind = Sdf.ValueTypeNames.Color3f if isinstance(value, tuple) else Sdf.ValueTypeNames.Float
+        shader.CreateInput(name, kind).Set(value)
+    material.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
+    return material
+
+
+def _bind(prim, material):
+    UsdShade.MaterialBindingAPI.Apply(prim.GetPrim()).Bind(material)
+
+
+def write_shot(path):
+    """A Y-up stage in metres, time codes 1..3: a ground (static, grey default), a
+    flag whose points are time-sampled (principled), a pentagon and a quad under a
+    parent whose translation is time-sampled (rigid; displayColor, emissive), a
+    prototype instanced twice (a mask material), a time-sampled camera, and every
+    UsdLux light kind (the dome untextured). Returns the path."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetStartTimeCode(1)
+    stage.SetEndTimeCode(3)
+    stage.SetTimeCodesPerSecond(24)
+    UsdGeom.Xform.Define(stage, "/World")
+    _quad(stage, "/World/Ground", [(-3, 0, -3), (3, 0, -3), (3, 0, 3), (-3, 0, 3)],
+          indices=(0, 3, 2, 1))
+    flag = _quad(stage, "/World/Flag", [(0, 0, 0)] * 6, counts=(4, 4),
+                 indices=(0, 1, 4, 3, 1, 2, 5, 4), scheme="catmullClark", double_sided=True)
+    for t in (1, 2, 3):
+        flag.GetPointsAttr().Set([Gf.Vec3f(-1, 0.5, 0), Gf.Vec3f(0, 0.5, 0.15 * t),
+                                  Gf.Vec3f(1, 0.5, 0), Gf.Vec3f(-1, 1.5, 0),
+                                  Gf.Vec3f(0, 1.5, 0.15 * t), Gf.Vec3f(1, 1.5, -0.1 * t)], t)
+    _bind(flag, _preview(stage, "/World/Looks/Cloth", diffuseColor=(0.2, 0.4, 0.8),
+                         roughness=0.3, metallic=0.2))
+    mover = UsdGeom.Xform.Define(stage, "/World/Mover")
+    mover.AddRotateYOp().Set(20.0)
+    translate = mover.AddTranslateOp()
+    for t in (1, 2, 3):
+        translate.Set(Gf.Vec3d(-1.5 + 0.3 * t, 0.0, 1.0), t)
+    pentagon = _quad(stage, "/World/Mover/Pentagon",
+                     [(0, 0, 0), (0.5, 0, 0), (0.6, 0.4, 0), (0.25, 0.7, 0), (-0.1, 0.4, 0)],
+                     counts=(5,), indices=(0, 1, 2, 3, 4))
+    pentagon.CreateDisplayColorPrimvar().Set([(0.8, 0.2, 0.1)])
+    lamp = _quad(stage, "/World/Mover/Lamp", [(0.7, 0, 0), (0.9, 0, 0), (0.9, 0.2, 0),
+                                              (0.7, 0.2, 0)])
+    _bind(lamp, _preview(stage, "/World/Looks/Glow", emissiveColor=(2.0, 1.5, 1.0)))
+    stage.CreateClassPrim("/Prototypes")  # abstract: renders only through its instances
+    prototype = stage.DefinePrim("/Prototypes/Tile", "Xform")
+    tile = _quad(stage, "/Prototypes/Tile/Geom", [(0, 0, 0), (0.4, 0, 0), (0.4, 0.4, 0),
+                                                  (0, 0.4, 0)])
+    _bind(tile, _preview(stage, "/Prototypes/Tile/Veil", diffuseColor=(0.1, 0.7, 0.2),
+                         opacity=0.6))
+    for k, x in enumerate((1.2, 1.8)):
+        instance = UsdGeom.Xform.Define(stage, f"/World/Tile_{k}")
+        instance.AddTranslateOp().Set(Gf.Vec3d(x, 0.1, 0.8))
+        instance.GetPrim().GetReferences().AddInternalReference(prototype.GetPath())
+        instance.GetPrim().SetInstanceable(True)
+    camera = UsdGeom.Camera.Define(stage, "/World/Cam")
+    move = camera.AddTranslateOp()
+    move.Set(Gf.Vec3d(0, 1.2, 6), 1)
+    move.Set(Gf.Vec3d(0.5, 1.2, 6), 3)
+    camera.CreateFocalLengthAttr(30.0)
+    sun = UsdLux.DistantLight.Define(stage, "/World/Lights/Sun")
+    sun.CreateIntensityAttr(1.5)
+    sun.CreateExposureAttr(1.0)
+    sun.CreateColorAttr(Gf.Vec3f(1.0, 0.9, 0.8))
+    sun.AddRotateXOp().Set(-50.0)
+    UsdLux.DomeLight.Define(stage, "/World/Lights/Sky").CreateIntensityAttr(0.2)
+    sphere = UsdLux.SphereLight.Define(stage, "/World/Lights/Bulb")
+    sphere.CreateRadiusAttr(0.2)
+    sphere.CreateIntensityAttr(3.0)
+    sphere.AddTranslateOp().Set(Gf.Vec3d(-2, 2, 1))
+    point = UsdLux.SphereLight.Define(stage, "/World/Lights/Spark")
+    point.CreateTreatAsPointAttr(True)
+    point.CreateIntensityAttr(4.0)
+    point.AddTranslateOp().Set(Gf.Vec3d(2, 2, 2))
+    rect = UsdLux.RectLight.Define(stage, "/World/Lights/Panel")
+    rect.CreateWidthAttr(1.0)
+    rect.CreateHeightAttr(0.5)
+    rect.CreateIntensityAttr(2.0)
+    rect.AddTranslateOp().Set(Gf.Vec3d(0, 3, 0))
+    rect.AddRotateXOp().Set(-90.0)  # -Z (its emitting side) turned to face down
+    disk = UsdLux.DiskLight.Define(stage, "/World/Lights/Disk")
+    disk.CreateRadiusAttr(0.3)
+    disk.CreateIntensityAttr(2.0)
+    disk.AddTranslateOp().Set(Gf.Vec3d(0, 1, 4))
+    stage.GetRootLayer().Save()
+    return path
+
+
+def write_z_up(path, texture=None):
+    """A Z-up stage in centimetres, time codes 0..1: a ground, a post 150 cm tall
+    whose top point moves, a dome (textured when ``texture`` is a file), no camera."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(1)
+    _quad(stage, "/Ground", [(-200, -200, 0), (200, -200, 0), (200, 200, 0), (-200, 200, 0)])
+    post = _quad(stage, "/Post", [(0, 0, 0)] * 3, counts=(3,), indices=(0, 1, 2),
+                 double_sided=True)
+    for t in (0, 1):
+        post.GetPointsAttr().Set([Gf.Vec3f(-30, 0, 0), Gf.Vec3f(30, 0, 0),
+                                  Gf.Vec3f(10 * t, 0, 150)], t)
+    dome = UsdLux.DomeLight.Define(stage, "/Sky")
+    dome.CreateIntensityAttr(0.8)
+    if texture is not None:
+        dome.CreateTextureFileAttr(Sdf.AssetPath(str(texture)))
+    stage.GetRootLayer().Save()
+    return path
+
+
+# ---- What pxr says, computed here independently -------------------------------------
+
+
+def pxr_triangles(stage_path, time):
+    """Every rendered mesh's triangles at ``time`` per prim path, ``(F, 3, 3)`` corners
+    in the stage's own units and axes: points through ``ComputeLocalToWorldTransform``,
+    polygons cut into fans one by one."""
+    stage = Usd.Stage.Open(str(stage_path))
+    result = {}
+    predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
+    for prim in Usd.PrimRange(stage.GetPseudoRoot(), predicate):
+        if not prim.IsA(UsdGeom.Mesh):
+            continue
+        mesh = UsdGeom.Mesh(prim)
+        matrix = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time)
+        points = [matrix.Transform(Gf.Vec3d(p)) for p in mesh.GetPointsAttr().Get(time)]
+        triangles, offset = [], 0
+        indices = list(mesh.GetFaceVertexIndicesAttr().Get(time))
+        for count in mesh.GetFaceVertexCountsAttr().Get(time):
+            face = indices[offset:offset + count]
+            offset += count
+            for k in range(1, count - 1):
+                triangles.append([list(points[face[0]]), list(points[face[k]]),
+                                  list(points[face[k + 1]])])
+        result[str(prim.GetPath())] = np.array(triangles)
+    return result
+
+
+def mitsuba_triangles(scene):
+    """Every triangle mesh of a loaded Mitsuba scene (not the analytic shapes of area
+    lights) as ``(F, 3, 3)`` corners, by id."""
+    params = mi.traverse(scene)
+    result = {}
+    for shape in scene.shapes():
+        if f"{shape.id()}.vertex_positions" in params:
+            points = np.array(params[f"{shape.id()}.vertex_positions"]).reshape(-1, 3)
+            faces = np.array(params[f"{shape.id()}.faces"]).reshape(-1, 3)
+            result[shape.id()] = points[faces]
+    return result
+
+
+@pytest.fixture(scope="module")
+def shot(tmp_path_factory):
+    return write_shot(tmp_path_factory.mktemp("usd") / "shot.usda")
+
+
+def lines():
+    """A warning sink: the list it fills and the callable."""
+    said = []
+    return said, said.append
+
+
+# ---- Geometry and motion ----------------------------------------------------------------
+
+
+def test01_each_frame_holds_what_pxr_computes_world_space_and_triangulated(shot):
+    said, warn = lines()
+    animation = UsdScene(shot, warn=warn)
+    assert animation.frame_count == 3 and animation.frames_per_second == 24
+    assert animation.motions() == {
+        "World_Ground": "static", "World_Flag": "deforming",
+        "World_Mover_Pentagon": "rigid", "World_Mover_Lamp": "rigid",
+        "World_Tile_0_Geom": "static", "World_Tile_1_Geom": "static"}
+    assert animation.animated_ids() == ["World_Flag", "World_Mover_Pentagon",
+                                        "World_Mover_Lamp"]
+    assert sorted(animation.static_ids()) == ["World_Ground", "World_Tile_0_Geom",
+                                              "World_Tile_1_Geom"]
+    assert animation.triangle_counts()["World_Mover_Pentagon"] == 3
+    assert animation.prim_paths()["World_Tile_1_Geom"] == "/World/Tile_1/Geom"
+    scene = mi.load_dict(animation.scene_dict(resolution=(8, 8), spp=1))
+    params = mi.traverse(scene)
+    paths = animation.prim_paths()
+    for i in range(animation.frame_count):
+        changed = scenes.apply_frame(scene, params, animation.frame(i))
+        assert changed == animation.animated_ids()
+        expected = pxr_triangles(shot, Usd.TimeCode(1 + i))
+        ours = mitsuba_triangles(scene)
+        assert set(ours) == set(paths)
+        for shape_id, triangles in ours.items():
+            np.testing.assert_allclose(triangles, expected[paths[shape_id]], atol=1e-5,
+                                       err_msg=f"{shape_id} at frame {i}")
+        for shape_id, triangles in animation.world_triangles(i).items():
+            np.testing.assert_allclose(triangles, expected[paths[shape_id]], atol=1e-9)
+    # The two instances are one prototype, each in its own place.
+    tiles = mitsuba_triangles(scene)
+    np.testing.assert_allclose(tiles["World_Tile_1_Geom"] - tiles["World_Tile_0_Geom"],
+                               np.broadcast_to([0.6, 0, 0], (2, 3, 3)), atol=1e-6)
+    # Said once each: the control cage, the camera's first pose.
+    assert sum("subdivision scheme" in line and "/World/Flag" in line for line in said) == 1
+
+
+def test02_z_up_centimetres_are_y_up_metres_and_upright(tmp_path):
+    path = write_z_up(tmp_path / "z.usda")
+    said, warn = lines()
+    animation = UsdScene(path, warn=warn)
+    assert [line for line in said if "default camera" in line]
+    for i in range(2):
+        triangles = animation.world_triangles(i)
+        stage_units = pxr_triangles(path, Usd.TimeCode(i))
+        for shape_id, prim in animation.prim_paths().items():
+            x, y, z = np.moveaxis(stage_units[prim], -1, 0)
+            np.testing.assert_allclose(triangles[shape_id],
+                                       np.stack([x, z, -y], axis=-1) * 0.01, atol=1e-9)
+    top = animation.frame(1)["Post"].positions.reshape(-1, 3)[2]
+    np.testing.assert_allclose(top, [0.1, 1.5, 0.0], atol=1e-6)  # 150 cm up is +y
+    camera = animation.scene_dict(resolution=(16, 16), spp=1)["camera"]
+    up = np.array(camera["to_world"].matrix)[:3, 1]
+    assert up[1] > 0.8  # the framing camera stands upright
+
+
+# ---- Renders equal native's ------------------------------------------------------------
+
+
+def render_both(capsys, stage, root, frames="0:2"):
+    """``hlbvh render STAGE`` with each accelerator: their output folders."""
+    folders = {}
+    for accel in ("hlbvh", "native"):
+        status, _, err = run_cli(capsys, "render", stage, "--frames", frames,
+                                 "--accel", accel, "--out", root / accel, *TINY)
+        assert status == 0, err
+        folders[accel] = root / accel
+    return folders
+
+
+def assert_frames_agree(folders, frames):
+    for i in frames:
+        ours = images.read_exr(folders["hlbvh"] / f"frame_{i:04d}.exr", ["R", "G", "B"])
+        native = images.read_exr(folders["native"] / f"frame_{i:04d}.exr", ["R", "G", "B"])
+        assert np.isfinite(ours).all() and ours.mean() > 0.01
+        assert_close_to_native(ours, native)
+
+
+def test03_shot_renders_with_hlbvh_as_native_frame_by_frame_and_resumes(shot, tmp_path,
+                                                                       capsys):
+    folders = render_both(capsys, shot, tmp_path)
+    assert_frames_agree(folders, range(2))
+    document, _ = read_stats(folders["hlbvh"])
+    assert document["settings"]["scene"] == str(shot.resolve())
+    assert len(document["settings"]["scene_sha256"]) == 64
+    first = images.read_exr(folders["hlbvh"] / "frame_0000.exr", ["R", "G", "B"])
+    second = images.read_exr(folders["hlbvh"] / "frame_0001.exr", ["R", "G", "B"])
+    assert not np.array_equal(first, second)  # the flag and the mover moved
+    status, summary, _ = run_cli(capsys, "render", shot, "--frames", "0:2", "--accel",
+                                 "hlbvh", "--out", folders["hlbvh"], *TINY)
+    assert status == 0 and "0 rendered, 2 already complete" in summary
+
+
+def test04_z_up_stage_with_a_textured_dome_renders_as_native(tmp_path, capsys):
+    texture = tmp_path / "sky.exr"
+    sky = (np.ones((8, 16, 3)) * np.linspace(0.2, 1.0, 8)[:, None, None]).astype(np.float32)
+    mi.Bitmap(sky).write(str(texture))
+    path = write_z_up(tmp_path / "z.usda", texture=texture)
+    description = UsdScene(path, warn=lambda line: None).scene_dict(spp=1)
+    assert description["Sky"]["type"] == "envmap"
+    assert description["Sky"]["filename"] == str(texture)
+    assert description["Sky"]["scale"] == pytest.approx(0.8)
+    folders = render_both(capsys, path, tmp_path / "out")
+    assert_frames_agree(folders, range(2))
+
+
+# ---- Cameras, lights, materials ------------------------------------------------------
+
+
+def test05_camera_fov_clipping_and_first_pose_said_once(shot):
+    said, warn = lines()
+    animation = UsdScene(shot, warn=warn)
+    camera = animation.scene_dict(resolution=(40, 20), spp=1)["camera"]
+    gf_camera = UsdGeom.Camera(animation.stage.GetPrimAtPath("/World/Cam")).GetCamera(1)
+    # A film wider than the aperture (2:1 > 20.955:15.29) fits the aperture's height.
+    assert camera["fov_axis"] == "y"
+    assert camera["fov"] == pytest.approx(
+        2 * math.degrees(math.atan(gf_camera.verticalAperture / 2 / 30.0)))
+    assert (camera["near_clip"], camera["far_clip"]) == pytest.approx(
+        (gf_camera.clippingRange.min, gf_camera.clippingRange.max))
+    matrix = np.array(camera["to_world"].matrix)
+    np.testing.assert_allclose(matrix[:3, 3], [0, 1.2, 6], atol=1e-6)   # time code 1
+    np.testing.assert_allclose(matrix[:3, 2], [0, 0, -1], atol=1e-6)    # looks down -Z
+    narrow = animation.scene_dict(resolution=(10, 20), spp=1)["camera"]
+    assert narrow["fov_axis"] == "x" and narrow["fov"] == pytest.approx(
+        2 * math.degrees(math.atan(gf_camera.horizontalAperture / 2 / 30.0)))
+    assert sum("time-sampled" in line and "/World/Cam" in line for line in said) == 1
+    other = write_shot_camera(shot.parent / "two_cameras.usda")
+    chosen = UsdScene(other, camera="/Other", warn=warn).scene_dict(spp=1)["camera"]
+    np.testing.assert_allclose(np.array(chosen["to_world"].matrix)[:3, 3], [3, 1, 3],
+                               atol=1e-6)
+    with pytest.raises(ValueError, match="camera '/Nope'.*its cameras"):
+        UsdScene(other, camera="/Nope", warn=warn)
+
+
+def write_shot_camera(path):
+    """A small stage with two cameras, the second at (3, 1, 3)."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    _quad(stage, "/Q", [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)])
+    UsdGeom.Camera.Define(stage, "/First").AddTranslateOp().Set(Gf.Vec3d(0, 0, 5))
+    UsdGeom.Camera.Define(stage, "/Other").AddTranslateOp().Set(Gf.Vec3d(3, 1, 3))
+    stage.GetRootLayer().Save()
+    return path
+
+
+def test06_lights_map_to_mitsuba_emitters(shot):
+    description = UsdScene(shot, warn=lambda line: None).scene_dict(spp=1)
+    sun = description["World_Lights_Sun"]
+    assert sun["type"] == "directional"
+    np.testing.assert_allclose(sun["irradiance"]["value"], [3.0, 2.7, 2.4], rtol=1e-6)
+    np.testing.assert_allclose(sun["direction"], [0, -math.sin(math.radians(50)),
+                                                  -math.cos(math.radians(50))], atol=1e-9)
+    assert description["World_Lights_Sky"]["type"] == "constant"
+    bulb = description["World_Lights_Bulb"]
+    assert bulb["type"] == "sphere" and bulb["radius"] == pytest.approx(0.2)
+    assert bulb["center"] == pytest.approx([-2, 2, 1])
+    assert description["World_Lights_Spark"]["type"] == "point"
+    panel, disk = description["World_Lights_Panel"], description["World_Lights_Disk"]
+    assert (panel["type"], disk["type"]) == ("rectangle", "disk")
+    loaded = mi.load_dict({"type": "scene", "panel": panel, "disk": disk})
+    shapes = {s.id(): s for s in loaded.shapes()}
+    # The panel emits downwards (UsdLux: along -Z, turned by its rotateX -90).
+    normal = np.array(panel["to_world"] @ mi.ScalarNormal3f(0, 0, 1))
+    np.testing.assert_allclose(normal / np.linalg.norm(normal), [0, -1, 0], atol=1e-6)
+    assert shapes["panel"].surface_area()[0] == pytest.approx(0.5, rel=1e-5)
+    assert shapes["disk"].surface_area()[0] == pytest.approx(math.pi * 0.09, rel=1e-5)
+
+
+def test07_materials_map_to_mitsuba_bsdfs(shot):
+    animation = UsdScene(shot, warn=lambda line: None)
+    meshes = {m.id: m for m in animation._meshes}
+    flag = meshes["World_Flag"].bsdf
+    assert flag["type"] == "twosided" and flag["material"]["type"] == "principled"
+    assert flag["material"]["base_color"]["value"] == pytest.approx([0.2, 0.4, 0.8])
+    assert flag["material"]["roughness"] == pytest.approx(0.3)
+    assert flag["material"]["metallic"] == pytest.approx(0.2)
+    tile = meshes["World_Tile_0_Geom"].bsdf
+    assert tile["type"] == "mask" and tile["opacity"] == pytest.approx(0.6)
+    assert meshes["World_Mover_Lamp"].emission == pytest.approx((2.0, 1.5, 1.0))
+    assert meshes["World_Mover_Pentagon"].bsdf["reflectance"]["value"] == pytest.approx(
+        [0.8, 0.2, 0.1])
+    assert meshes["World_Ground"].bsdf["reflectance"]["value"] == [0.5, 0.5, 0.5]
+    scene = mi.load_dict(animation.scene_dict(resolution=(8, 8), spp=1))
+    emitting = [s.id() for s in scene.shapes() if s.emitter() is not None]
+    assert "World_Mover_Lamp" in emitting
+
+
+# ---- What is not supported, and bad input: one line each ------------------------------
+
+
+def test08_unsupported_prims_and_broken_references_are_named_once(tmp_path):
+    path = tmp_path / "mixed.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    _quad(stage, "/Q", [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)])
+    UsdGeom.BasisCurves.Define(stage, "/Hair")
+    UsdGeom.Points.Define(stage, "/Dust")
+    hidden = _quad(stage, "/Hidden", [(0, 0, 0), (1, 0, 0), (1, 1, 0)], counts=(3,),
+                   indices=(0, 1, 2))
+    hidden.CreateVisibilityAttr(UsdGeom.Tokens.invisible)
+    guide = _quad(stage, "/Guide", [(0, 0, 0), (1, 0, 0), (1, 1, 0)], counts=(3,),
+                  indices=(0, 1, 2))
+    guide.CreatePurposeAttr(UsdGeom.Tokens.guide)
+    stage.DefinePrim("/Ref").GetReferences().AddReference(str(tmp_path / "missing.usda"))
+    stage.GetRootLayer().Save()
+    said, warn = lines()
+    animation = UsdScene(path, warn=warn)
+    assert animation.static_ids() == ["Q"]  # hidden and guide prims do not render
+    for prim in ("/Hair", "/Dust", "/Ref"):
+        assert sum(prim in line for line in said) == 1, (prim, said)
+    assert all(line.startswith(f"stage {str(path)!r}: ") for line in said)
+    assert not any("/Hidden" in line or "/Guide" in line for line in said)
+
+
+def write_empty(path):
+    stage = Usd.Stage.CreateNew(str(path))
+    stage.GetRootLayer().Save()
+    return path
+
+
+@pytest.mark.parametrize("case, message", [
+    ("not_usd", "USD cannot open it"),
+    ("empty", "nothing renderable"),
+    ("reversed", "endTimeCode 1 is before startTimeCode 5"),
+    ("out_of_range", "has frames 0:3"),
+    ("missing", "no such file"),
+])
+def test09_bad_stages_are_one_line_through_the_cli(tmp_path, capsys, shot, case, message):
+    if case == "not_usd":
+        stage = tmp_path / "fake.usd"
+        stage.write_bytes(b"PK\x03\x04 this is a zip, not a stage")
+    elif case == "empty":
+        stage = write_empty(tmp_path / "empty.usda")
+    elif case == "reversed":
+        stage = tmp_path / "reversed.usda"
+        created = Usd.Stage.CreateNew(str(stage))
+        _quad(created, "/Q", [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)])
+        created.SetStartTimeCode(5)
+        created.SetEndTimeCode(1)
+        created.GetRootLayer().Save()
+    elif case == "missing":
+        stage = tmp_path / "gone.usdc"
+    else:
+        stage = shot
+    frames = "0:9" if case == "out_of_range" else "0:1"
+    status, _, err = run_cli(capsys, "render", stage, "--frames", frames,
+                             "--out", tmp_path / "out", *TINY)
+    errors = [line for line in err if not line.startswith("hlbvh: stage")]
+    assert status == 2 and len(errors) == 1 and message in errors[0], err
+    assert "Traceback" not in "".join(err)
+
+
+def test10_usd_options_that_do_not_apply_are_refused(shot):
+    with pytest.raises(UserError, match="--frames-dir is not for USD stages"):
+        open_animation(str(shot), "frames", None, None)
+    with pytest.raises(UserError, match="--triangles is not for USD stages"):
+        open_animation(str(shot), None, "100", None)
+
+
+def test11_a_cluster_worker_reopens_the_stage_from_its_spec(shot, monkeypatch):
+    monkeypatch.chdir(shot.parent)
+    spec = cluster.SceneSpec.of(shot.name, None, None, range(0, 2))
+    assert spec.scene == str(shot.resolve())
+    animation, _, frames = open_animation(spec.scene, spec.frames_dir, spec.triangles,
+                                          spec.frames, spec.topology)
+    assert isinstance(animation, UsdScene) and frames == range(0, 2)
+
+
+def test12_console_script_reports_a_bad_stage_without_traceback(tmp_path):
+    fake = tmp_path / "fake.usda"
+    fake.write_text("#usda 1.0\n( this is not a layer\n")
+    result = subprocess.run([sys.executable, "-m", "hlbvh.cli", "render", str(fake),
+                             "--out", str(tmp_path / "out")],
+                            capture_output=True, text=True, timeout=120)
+    lines_out = [line for line in result.stderr.splitlines() if line.strip()]
+    assert result.returncode == 2 and len(lines_out) == 1, result.stderr
+    assert str(fake) in lines_out[0] and "USD cannot open it" in lines_out[0]
