@@ -133,6 +133,7 @@ class _Stats:
 
     subdivided: list = field(default_factory=list)
     moving_normals: list = field(default_factory=list)
+    face_varying: list = field(default_factory=list)
 
 
 class UsdScene(AnimatedScene):
@@ -318,6 +319,10 @@ class UsdScene(AnimatedScene):
             self._warn(f"{self._where}: {len(stats.subdivided)} mesh(es) with a subdivision "
                        f"scheme ({stats.subdivided[0]}, ...) render their control cage, "
                        f"with smooth normals")
+        if stats.face_varying:
+            self._warn(f"{self._where}: {len(stats.face_varying)} mesh(es) with normals "
+                       f"that are not per vertex ({stats.face_varying[0]}, ...): vertex "
+                       f"normals are computed from the points instead")
         if stats.moving_normals:
             self._warn(f"{self._where}: {len(stats.moving_normals)} moving mesh(es) with "
                        f"authored normals ({stats.moving_normals[0]}, ...): their normals "
@@ -362,8 +367,17 @@ class UsdScene(AnimatedScene):
             self._warn(f"{self._where}: {path}: a mesh without points or faces; it is not "
                        f"rendered")
             return
+        counts = np.array(mesh.GetFaceVertexCountsAttr().Get(time) or [], dtype=np.int64)
+        if (counts < 3).any():
+            self._warn(f"{self._where}: {path}: {int((counts < 3).sum())} face(s) of fewer "
+                       f"than 3 vertices are left out")
+        if _visibility_varies(prim):
+            self._warn(f"{self._where}: {path}: its visibility is time-sampled; its value "
+                       f"at the first frame holds for every frame")
         scheme = mesh.GetSubdivisionSchemeAttr().Get()
         normals = _vertex_normals(mesh, time, len(points))
+        if normals is None and _has_normals(mesh):
+            stats.face_varying.append(str(path))
         if scheme not in (None, UsdGeom.Tokens.none):
             stats.subdivided.append(str(path))
         if normals is not None and motion != "static":
@@ -761,6 +775,22 @@ def _vertex_normals(mesh, time, point_count: int) -> np.ndarray | None:
         return None
     normals = _array(value, 3)
     return normals if len(normals) == point_count else None
+
+
+def _visibility_varies(prim) -> bool:
+    """Whether the visibility of the prim or of an ancestor is time-sampled."""
+    while prim and not prim.IsPseudoRoot():
+        attribute = UsdGeom.Imageable(prim).GetVisibilityAttr()
+        if attribute and attribute.GetNumTimeSamples() > 1:
+            return True
+        prim = prim.GetParent()
+    return False
+
+
+def _has_normals(mesh) -> bool:
+    """Whether a mesh authors normals at all (attribute or primvar)."""
+    primvar = UsdGeom.PrimvarsAPI(mesh).GetPrimvar("normals")
+    return bool(primvar and primvar.HasAuthoredValue()) or mesh.GetNormalsAttr().HasAuthoredValue()
 
 
 def _skel_binding():

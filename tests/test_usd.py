@@ -131,7 +131,8 @@ def write_shot(path):
     disk = UsdLux.DiskLight.Define(stage, "/World/Lights/Disk")
     disk.CreateRadiusAttr(0.3)
     disk.CreateIntensityAttr(2.0)
-    disk.AddTranslateOp().Set(Gf.Vec3d(0, 1, 4))
+    disk.AddTranslateOp().Set(Gf.Vec3d(2.5, 2.5, 0))
+    disk.AddRotateXOp().Set(-90.0)
     stage.GetRootLayer().Save()
     return path
 
@@ -489,3 +490,67 @@ def test12_console_script_reports_a_bad_stage_without_traceback(tmp_path):
     lines_out = [line for line in result.stderr.splitlines() if line.strip()]
     assert result.returncode == 2 and len(lines_out) == 1, result.stderr
     assert str(fake) in lines_out[0] and "USD cannot open it" in lines_out[0]
+
+
+def test13_render_settings_name_the_camera_and_resolution(tmp_path):
+    path = write_shot_camera(tmp_path / "settings.usda")
+    stage = Usd.Stage.Open(str(path))
+    from pxr import UsdRender
+    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
+    settings.CreateCameraRel().SetTargets([Sdf.Path("/Other")])
+    settings.CreateResolutionAttr(Gf.Vec2i(30, 20))
+    stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
+    stage.GetRootLayer().Save()
+    description = UsdScene(path, warn=lambda line: None).scene_dict(spp=1)
+    camera = description["camera"]
+    np.testing.assert_allclose(np.array(camera["to_world"].matrix)[:3, 3], [3, 1, 3],
+                               atol=1e-6)
+    assert (camera["film"]["width"], camera["film"]["height"]) == (30, 20)
+
+
+def test14_authored_vertex_normals_are_kept_and_face_varying_ones_said(tmp_path):
+    path = tmp_path / "normals.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    parent = UsdGeom.Xform.Define(stage, "/Turned")
+    parent.AddRotateZOp().Set(90.0)
+    parent.AddScaleOp().Set(Gf.Vec3f(2, 1, 1))
+    tilted = _quad(stage, "/Turned/Tilted", [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)])
+    tilted.CreateNormalsAttr([Gf.Vec3f(0, 0, 1), Gf.Vec3f(1, 0, 1), Gf.Vec3f(0, 1, 1),
+                              Gf.Vec3f(0, 0, 1)])
+    tilted.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+    faceted = _quad(stage, "/Faceted", [(0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)])
+    faceted.CreateNormalsAttr([Gf.Vec3f(0, 0, 1)] * 4)
+    faceted.SetNormalsInterpolation(UsdGeom.Tokens.faceVarying)
+    stage.GetRootLayer().Save()
+    said, warn = lines()
+    scene = mi.load_dict(UsdScene(path, warn=warn).scene_dict(resolution=(8, 8), spp=1))
+    normals = np.array(mi.traverse(scene)["Turned_Tilted.vertex_normals"]).reshape(-1, 3)
+    matrix = np.array(UsdGeom.Xformable(stage.GetPrimAtPath("/Turned/Tilted"))
+                      .ComputeLocalToWorldTransform(0)).T[:3, :3]
+    authored = np.array(tilted.GetNormalsAttr().Get()) @ np.linalg.inv(matrix)
+    np.testing.assert_allclose(normals, authored / np.linalg.norm(authored, axis=1)[:, None],
+                               atol=1e-6)
+    assert sum("not per vertex" in line and "/Faceted" in line for line in said) == 1
+
+
+def test15_compare_on_a_stage_reports_native_and_hlbvh_equal(shot, tmp_path, capsys):
+    status, summary, _ = run_cli(capsys, "compare", shot, "--frames", "0:2",
+                                 "--out", tmp_path / "compare", *TINY)
+    assert status == 0 and "every pixel of every frame equals native's" in summary
+    assert (tmp_path / "compare" / "report.html").is_file()
+
+
+def test16_a_local_cluster_renders_a_stage_as_one_process(shot, tmp_path, capsys):
+    pytest.importorskip("distributed")
+    argv = [shot, "--frames", "0:2", "--accel", "hlbvh", *TINY]
+    assert run_cli(capsys, "render", *argv, "--out", tmp_path / "one")[0] == 0
+    status, _, err = run_cli(capsys, "render", *argv, "--cluster", "local:2",
+                             "--chunk-size", "1", "--out", tmp_path / "cluster")
+    assert status == 0, err
+    for i in range(2):
+        ours = images.read_exr(tmp_path / "cluster" / f"frame_{i:04d}.exr").view(np.uint32)
+        alone = images.read_exr(tmp_path / "one" / f"frame_{i:04d}.exr").view(np.uint32)
+        assert np.array_equal(ours, alone), f"frame {i}"
+    _, table = read_stats(tmp_path / "cluster")
+    assert [int(row["frame"]) for row in table] == [0, 1] and all(row["worker"] for row in table)
