@@ -245,6 +245,17 @@ def _read_cell(ns, mem, cell):
     return ns.Array3f(r[0], r[1], r[2]), -ns.Array3f(r[3], r[4], r[5]), mem[1].read(cell)
 
 
+@dataclass
+class _Side:
+    """One side of the planes on one axis, grown a bin at a time (a sweep's loop state)."""
+
+    lo: Any  # Array3f: the union of its bins' boxes
+    hi: Any
+    w: Any  # UInt32: their summed weight
+    items: Any = None  # UInt32: their item count (forward sweep only)
+    last: Any = None  # UInt32: the last occupied bin (forward sweep only)
+
+
 def _sweep_bins(ns, mem, active, s, zeros, empty, bins):
     """The plane sweep over a lane's bins on all three axes: ``(best, mem)``, the least
     :func:`~hlbvh.kernels.sah_planes.plane_key` (all ones when no plane qualifies) and
@@ -252,47 +263,60 @@ def _sweep_bins(ns, mem, active, s, zeros, empty, bins):
     UInt32, Float = ns.UInt32, ns.Float
 
     # ---- Forward: the left side of the plane after bin p is bins 0..p ----
-    def forward(p, mem, *acc):
+    def forward(p, mem, sides):
         left_cost, left_weight, left_items, left_bin = mem[3:]
-        acc = list(acc)
-        for a in range(3):
-            a_lo, a_hi, w, k, last = acc[5 * a: 5 * a + 5]
+        for a, side in enumerate(sides):
             cell = a * bins + p
-            a_lo, a_hi, w = grow(a_lo, a_hi, w, *_read_cell(ns, mem, cell))
+            side.lo, side.hi, side.w = grow(side.lo, side.hi, side.w, *_read_cell(ns, mem, cell))
             items = mem[2].read(cell)
-            k, last = k + items, dr.select(items > 0, p, last)
-            left_cost.write(side_cost(Float, a_lo, a_hi, w, s), cell)
-            left_weight.write(w, cell)
-            left_items.write(k, cell)
-            left_bin.write(last, cell)
-            acc[5 * a: 5 * a + 5] = a_lo, a_hi, w, k, last
-        return (p + 1, mem, *acc)
+            side.items, side.last = side.items + items, dr.select(items > 0, p, side.last)
+            left_cost.write(side_cost(Float, side.lo, side.hi, side.w, s), cell)
+            left_weight.write(side.w, cell)
+            left_items.write(side.items, cell)
+            left_bin.write(side.last, cell)
+        return p + 1, mem, sides
 
-    p, mem, *_ = dr.while_loop(mode="symbolic",
-                               state=(zeros, mem, *(*empty, zeros, zeros, zeros) * 3),
-                               cond=lambda p, *_: active & (p + 1 < bins), body=forward)
+    p, mem, _ = dr.while_loop(
+        mode="symbolic", state=(zeros, mem, [_Side(*empty, zeros, zeros, zeros) for _ in range(3)]),
+        cond=lambda p, mem, sides: active & (p + 1 < bins), body=forward,
+        labels=("p", "mem", "left"))
 
     # ---- Backward: the plane before bin p, its right side bins p..bins-1 ----
-    def backward(p, best, mem, *acc):
+    def backward(p, best, mem, sides):
         left_cost, left_weight, _, left_bin = mem[3:]
-        acc = list(acc)
-        for a in range(3):
-            a_lo, a_hi, w = acc[3 * a: 3 * a + 3]
+        for a, side in enumerate(sides):
             cell = a * bins + p
-            a_lo, a_hi, w = grow(a_lo, a_hi, w, *_read_cell(ns, mem, cell))
+            side.lo, side.hi, side.w = grow(side.lo, side.hi, side.w, *_read_cell(ns, mem, cell))
             before = cell - 1
-            cost = plane_cost(Float, a_lo, a_hi, w, s, left_cost.read(before))
+            cost = plane_cost(Float, side.lo, side.hi, side.w, s, left_cost.read(before))
             best = cheaper(best, plane_key(UInt32, cost, a * bins + left_bin.read(before)),
-                           cost, left_weight.read(before), w)
-            acc[3 * a: 3 * a + 3] = a_lo, a_hi, w
-        return (p - 1, best, mem, *acc)
+                           cost, left_weight.read(before), side.w)
+        return p - 1, best, mem, sides
 
     # (p is bins - 1 in the active lanes: where the forward pass stopped)
     never = ns.UInt64(zeros) | NO_PLANE
-    _, best, mem, *_ = dr.while_loop(mode="symbolic",
-                                     state=(p, never, mem, *(*empty, zeros) * 3),
-                                     cond=lambda p, *_: active & (p > 0), body=backward)
+    _, best, mem, _ = dr.while_loop(
+        mode="symbolic", state=(p, never, mem, [_Side(*empty, zeros) for _ in range(3)]),
+        cond=lambda p, best, mem, sides: active & (p > 0), body=backward,
+        labels=("p", "best", "mem", "right"))
     return best, mem
+
+
+@dataclass
+class _Bounds:
+    """A child's bounds, grown an item at a time (the partition's loop state)."""
+
+    box_lo: Any  # Array3f: the union of its items' boxes
+    box_hi: Any
+    cmin: Any  # Array3f: the bounds of its items' centroids
+    cmax: Any
+
+    def grown(self, mine, i_lo, i_hi, c):
+        """Grown by the item of box ``(i_lo, i_hi)``, centroid ``c`` where ``mine``."""
+        return _Bounds(dr.select(mine, dr.minimum(self.box_lo, i_lo), self.box_lo),
+                       dr.select(mine, dr.maximum(self.box_hi, i_hi), self.box_hi),
+                       dr.select(mine, dr.minimum(self.cmin, c), self.cmin),
+                       dr.select(mine, dr.maximum(self.cmax, c), self.cmax))
 
 
 def _partition(ns, item_at, slots_out, item_order, node: _Node, end, plane, n_left, leaf_items,
@@ -306,7 +330,7 @@ def _partition(ns, item_at, slots_out, item_order, node: _Node, end, plane, n_le
     middle, axis, split_bin = plane
     to_leaf = (n_left <= leaf_items, count - n_left <= leaf_items)
 
-    def partition(q, n_l, n_r, *bounds):
+    def partition(q, n_l, n_r, children):
         item, i_lo, i_hi, c, b = item_at(q)
         goes_left = dr.select(middle, q - first < count // 2,
                               dr.select(axis == 0, b[0], dr.select(axis == 1, b[1], b[2])) <= split_bin)
@@ -314,18 +338,13 @@ def _partition(ns, item_at, slots_out, item_order, node: _Node, end, plane, n_le
         leafward = dr.select(goes_left, to_leaf[0], to_leaf[1])
         dr.scatter(item_order, item, to, leafward)
         dr.scatter(slots_out, item, to, ~leafward)
-        bounds = list(bounds)
-        for side, mine in ((0, goes_left), (1, ~goes_left)):
-            b_lo, b_hi, c_lo, c_hi = bounds[4 * side: 4 * side + 4]
-            bounds[4 * side: 4 * side + 4] = (
-                dr.select(mine, dr.minimum(b_lo, i_lo), b_lo),
-                dr.select(mine, dr.maximum(b_hi, i_hi), b_hi),
-                dr.select(mine, dr.minimum(c_lo, c), c_lo),
-                dr.select(mine, dr.maximum(c_hi, c), c_hi))
-        return (q + 1, n_l + UInt32(goes_left), n_r + UInt32(~goes_left), *bounds)
+        children = [child.grown(mine, i_lo, i_hi, c)
+                    for child, mine in zip(children, (goes_left, ~goes_left))]
+        return q + 1, n_l + UInt32(goes_left), n_r + UInt32(~goes_left), children
 
-    _, _, _, *bounds = dr.while_loop(
+    *_, children = dr.while_loop(
         mode="symbolic",
-        state=(UInt32(first), zeros, zeros, *(*empty, *empty) * 2),
-        cond=lambda q, *_: q < end, body=partition)
-    return bounds[:4], bounds[4:]
+        state=(UInt32(first), zeros, zeros, [_Bounds(*empty, *empty) for _ in range(2)]),
+        cond=lambda q, n_l, n_r, children: q < end, body=partition,
+        labels=("q", "n_l", "n_r", "children"))
+    return [[b.box_lo, b.box_hi, b.cmin, b.cmax] for b in children]
