@@ -96,17 +96,20 @@ class SceneSpec:
     triangles: str | None
     frames: str
     topology: str | None = None
+    camera: str | None = None
 
     @classmethod
     def of(cls, scene, frames_dir, triangles, frames: range, topology=None) -> SceneSpec:
         """The spec of the command line's ``SCENE --frames-dir --triangles --topology``
-        and the frame range, files made absolute (a worker's working directory is its
-        own)."""
+        (and ``--camera``, which a :class:`hlbvh.options.SceneArgument` carries) and the
+        frame range, files made absolute (a worker's working directory is its own)."""
+        camera = getattr(scene, "camera", None)
         if Path(scene).suffix.lower() in (".xml", ".usd", ".usda", ".usdc", ".usdz"):
             scene = str(Path(scene).resolve())
         if frames_dir is not None:
             frames_dir = str(Path(frames_dir).resolve())
-        return cls(scene, frames_dir, triangles, f"{frames.start}:{frames.stop}", topology)
+        return cls(str(scene), frames_dir, triangles, f"{frames.start}:{frames.stop}",
+                   topology, camera)
 
 
 @dataclass(frozen=True)
@@ -165,7 +168,7 @@ def _animation(spec: SceneSpec, worker: str):
     """The spec's animation, opened once per worker process."""
     try:
         return open_animation(spec.scene, spec.frames_dir, spec.triangles, spec.frames,
-                              spec.topology)[0]
+                              spec.topology, spec.camera)[0]
     except (UserError, ValueError) as error:
         raise UserError(f"worker {worker}: {error} (every worker needs the scene's files at "
                         f"the same path)") from None

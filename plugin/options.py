@@ -5,6 +5,7 @@ one line."""
 
 from __future__ import annotations
 
+import argparse
 import re
 from dataclasses import replace
 from pathlib import Path
@@ -27,9 +28,13 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
     ``spp`` are the defaults the help states (``None``: every frame, the scene's spp);
     the caller applies them."""
     add = parser.add_argument
-    add("scene", help=f"a procedural scene ({', '.join(scenes.names())}), a Mitsuba XML "
-                      "file (with --frames-dir) or an animated USD stage (.usd, .usda, .usdc, "
-                      ".usdz; pip install 'hlbvh[usd]')")
+    add("scene", action=_SceneAction,
+        help=f"a procedural scene ({', '.join(scenes.names())}), a Mitsuba XML "
+             "file (with --frames-dir) or an animated USD stage (.usd, .usda, .usdc, "
+             ".usdz; pip install 'hlbvh[usd]')")
+    add("--camera", action=_CameraAction,
+        help="of a USD stage: the prim path of the camera to render through (default: "
+             "the stage's render settings' camera, else its first camera)")
     add("--frames-dir", help="directory of per-frame meshes <dir>/<shape id>/frame_0001.ply "
                              "(with an XML scene)")
     add("--topology", help="of the meshes of --frames-dir: fixed (default: only positions "
@@ -54,6 +59,37 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
     add("--seed", default="0", help="frame i is rendered with seed SEED + i (default 0)")
     add("--out", help=f"output directory (default {out})")
     add("--quiet", action="store_true", help="no progress bars")
+
+
+class SceneArgument(str):
+    """The SCENE string, carrying ``camera`` (``--camera``): the options that qualify
+    SCENE travel with it to :func:`open_animation` and to the cluster's
+    :class:`hlbvh.cluster.SceneSpec`, whichever command parsed them."""
+
+    camera: str | None = None
+
+    @classmethod
+    def of(cls, scene: str, camera: str | None) -> SceneArgument:
+        argument = cls(scene)
+        argument.camera = camera
+        return argument
+
+
+class _SceneAction(argparse.Action):
+    """SCENE as a :class:`SceneArgument` with the ``--camera`` parsed before it."""
+
+    def __call__(self, parser, namespace, value, option_string=None):
+        setattr(namespace, self.dest, SceneArgument.of(value, getattr(namespace, "camera", None)))
+
+
+class _CameraAction(argparse.Action):
+    """``--camera``, also set on a SCENE parsed before it."""
+
+    def __call__(self, parser, namespace, value, option_string=None):
+        setattr(namespace, self.dest, value)
+        scene = getattr(namespace, "scene", None)
+        if isinstance(scene, str):
+            namespace.scene = SceneArgument.of(scene, value)
 
 
 def out_flag(text: str | None, default: Path) -> Path:
@@ -162,9 +198,12 @@ def seed_flag(text: str) -> int:
     return int_flag("--seed", text, least=0, most=MAX_SEED)
 
 
-def open_animation(scene: str, frames_dir, triangles, frames, topology=None) -> tuple:
+def open_animation(scene: str, frames_dir, triangles, frames, topology=None,
+                   camera: str | None = None) -> tuple:
     """The animated scene, what identifies it, and the frame range, from the command
-    line's strings (``topology``: ``--topology``, see :func:`parse_topology`).
+    line's strings (``topology``: ``--topology``, see :func:`parse_topology`;
+    ``camera``: ``--camera``, of a USD stage, else the one a :class:`SceneArgument`
+    carries).
 
     Returns:
         ``(animation, source, range)``.
@@ -173,6 +212,9 @@ def open_animation(scene: str, frames_dir, triangles, frames, topology=None) -> 
             of scene, a bad frame range.
     """
     start, stop = parse_frames(frames)
+    camera = camera if camera is not None else getattr(scene, "camera", None)
+    if camera is not None and Path(scene).suffix.lower() not in USD_SUFFIXES:
+        raise UserError(f"--camera picks a camera of a USD stage; {str(scene)!r} is not one")
     if scene in scenes.names():
         if frames_dir is not None:
             raise UserError(f"--frames-dir is for XML scenes; {scene!r} is procedural")
@@ -189,7 +231,7 @@ def open_animation(scene: str, frames_dir, triangles, frames, topology=None) -> 
         animation = scenes.get(scene, **options, frames=max(default, stop))
         source = {"scene": scene, "triangles": animation.triangles}
     elif Path(scene).suffix.lower() in USD_SUFFIXES:
-        animation, source = _open_usd(scene, frames_dir, triangles, topology)
+        animation, source = _open_usd(scene, frames_dir, triangles, topology, camera)
         stop = animation.frame_count if stop is None else stop
     else:
         path = Path(scene)
@@ -221,9 +263,10 @@ def open_animation(scene: str, frames_dir, triangles, frames, topology=None) -> 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 
 
-def _open_usd(scene: str, frames_dir, triangles, topology) -> tuple:
+def _open_usd(scene: str, frames_dir, triangles, topology, camera) -> tuple:
     """``(animation, source)`` of a USD stage: a :class:`hlbvh.scenes.usd.UsdScene`
-    (imported here, ``pxr`` being an optional extra) and what identifies it."""
+    (imported here, ``pxr`` being an optional extra) and what identifies it (with the
+    camera when ``--camera`` names one, so a resume through another is refused)."""
     for flag, value in (("--frames-dir", frames_dir), ("--triangles", triangles),
                         ("--topology", topology)):
         if value is not None:
@@ -233,9 +276,14 @@ def _open_usd(scene: str, frames_dir, triangles, topology) -> tuple:
         from hlbvh.scenes.usd import UsdScene
     except ImportError as error:
         raise UserError(f"scene {scene!r}: {error}") from None
-    animation = UsdScene(scene)
-    return animation, {"scene": str(Path(scene).resolve()),
-                       "scene_sha256": animation.source_digest()}
+    try:
+        animation = UsdScene(str(scene), camera=camera)
+    except ValueError as error:
+        raise UserError(str(error)) from None
+    source = {"scene": str(Path(scene).resolve()), "scene_sha256": animation.source_digest()}
+    if camera is not None:
+        source["camera"] = camera
+    return animation, source
 
 
 def parse_frames(text) -> tuple[int, int | None]:

@@ -554,3 +554,29 @@ def test16_a_local_cluster_renders_a_stage_as_one_process(shot, tmp_path, capsys
         assert np.array_equal(ours, alone), f"frame {i}"
     _, table = read_stats(tmp_path / "cluster")
     assert [int(row["frame"]) for row in table] == [0, 1] and all(row["worker"] for row in table)
+
+
+@pytest.mark.parametrize("before", [True, False])
+def test17_camera_flag_picks_the_camera_and_travels_to_cluster_specs(tmp_path, capsys,
+                                                                     before):
+    from hlbvh import render
+    import argparse
+    path = write_shot_camera(tmp_path / "cams.usda")
+    parser = argparse.ArgumentParser()
+    render.configure(parser)
+    argv = ["--camera", "/Other", str(path)] if before else [str(path), "--camera", "/Other"]
+    args = parser.parse_args(argv)
+    animation, source, _ = open_animation(args.scene, None, None, None)
+    assert source["camera"] == "/Other"
+    camera = animation.scene_dict(spp=1)["camera"]
+    np.testing.assert_allclose(np.array(camera["to_world"].matrix)[:3, 3], [3, 1, 3],
+                               atol=1e-6)
+    spec = cluster.SceneSpec.of(args.scene, None, None, range(0, 1))
+    assert spec.camera == "/Other" and type(spec.scene) is str
+    status, _, err = run_cli(capsys, "render", path, "--camera", "/Nope", "--out",
+                             tmp_path / "x", *TINY)
+    assert status == 2 and len(err) == 1 and "camera '/Nope'" in err[0]
+    status, _, err = run_cli(capsys, "render", "cloth", "--camera", "/Cam", "--out",
+                             tmp_path / "y", *TINY)
+    assert status == 2 and err == ["hlbvh render: --camera picks a camera of a USD stage; "
+                                   "'cloth' is not one"]
