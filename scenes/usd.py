@@ -53,7 +53,9 @@ Materials
     (``opacityThreshold`` makes it a cutout); emissiveColor to an ``area`` emitter on
     the mesh. Textured inputs keep their authored value (textures are not read, said
     once per material). Without a material the ``displayColor`` primvar gives a
-    diffuse colour (its mean when it varies over the mesh, said once), else grey.
+    diffuse colour: per point or per face as a Mitsuba mesh attribute
+    (``vertex_color``, ``face_color``), its mean for other interpolations (said),
+    else grey.
 Not supported
     Curves, points, volumes, implicit shapes (Sphere, Cube, ...), point instancers,
     NURBS, UsdSkel skinning that is not baked (the rest points render), references and
@@ -125,6 +127,7 @@ class _Mesh:
     emission: tuple | None
     local_points: np.ndarray | None = None     # (V, 3) float64, rigid meshes
     normals: np.ndarray | None = None           # (V, 3) authored world-space normals
+    colors: tuple | None = None                 # ("vertex_color" | "face_color", (N, 3))
 
 
 @dataclass
@@ -362,7 +365,8 @@ class UsdScene(AnimatedScene):
         rigid = not deforming and _transform_varies(prim)
         motion = "deforming" if deforming or topology_varies else "rigid" if rigid else "static"
         points = _array(points_attr.Get(time), 3)
-        faces = _triangulate(mesh, time, len(points), path, self._where)
+        faces, source_faces = _triangulate(mesh, time, len(points), path, self._where,
+                                           with_faces=True)
         if len(points) == 0 or len(faces) == 0:
             self._warn(f"{self._where}: {path}: a mesh without points or faces; it is not "
                        f"rendered")
@@ -391,12 +395,14 @@ class UsdScene(AnimatedScene):
             length = np.linalg.norm(normals, axis=1, keepdims=True)
             normals = normals / np.where(length > 0, length, 1)
         double_sided = bool(mesh.GetDoubleSidedAttr().Get())
-        bsdf, emission = self._material(prim, mesh, double_sided, time)
+        bsdf, emission, colors = self._material(prim, mesh, double_sided, time,
+                                                len(points), None if topology_varies
+                                                else source_faces)
         entry = _Mesh(
             id=self._new_id(path), path=path, motion=motion, faces=faces,
             topology_varies=topology_varies,
             smooth=normals is not None or scheme not in (None, UsdGeom.Tokens.none),
-            bsdf=bsdf, emission=emission, normals=normals,
+            bsdf=bsdf, emission=emission, normals=normals, colors=colors,
             local_points=points if motion == "rigid" else None)
         self._meshes.append(entry)
 
@@ -418,8 +424,10 @@ class UsdScene(AnimatedScene):
                 faces = faces[:, ::-1].copy()
         return points, faces
 
-    def _material(self, prim, mesh, double_sided: bool, time) -> tuple[dict, tuple | None]:
-        """The mesh's BSDF dict and emitted radiance (``None``: none)."""
+    def _material(self, prim, mesh, double_sided: bool, time, point_count: int,
+                  source_faces) -> tuple[dict, tuple | None, tuple | None]:
+        """The mesh's BSDF dict, emitted radiance (``None``: none) and the colour
+        attribute its BSDF reads (``None``: none; see :meth:`_display_color`)."""
         material, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
         shader = None
         if material:
@@ -431,9 +439,14 @@ class UsdScene(AnimatedScene):
                            f"{prim.GetPath()} renders grey")
                 shader = None
         if shader is None:
-            color = self._display_color(prim, mesh, time)
-            bsdf = {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(color)}}
-            return (_two_sided(bsdf) if double_sided else bsdf), None
+            color = self._display_color(prim, mesh, time, point_count, source_faces)
+            if isinstance(color, tuple) and isinstance(color[0], str):
+                reflectance = {"type": "mesh_attribute", "name": color[0]}
+                colors = color
+            else:
+                reflectance, colors = {"type": "rgb", "value": list(color)}, None
+            bsdf = {"type": "diffuse", "reflectance": reflectance}
+            return (_two_sided(bsdf) if double_sided else bsdf), None, colors
         values, textured = {}, []
         for name, default in PREVIEW_DEFAULTS.items():
             shader_input = shader.GetInput(name)
@@ -458,19 +471,31 @@ class UsdScene(AnimatedScene):
         if opacity < 1:
             bsdf = {"type": "mask", "opacity": opacity, "bsdf": bsdf}
         emission = values["emissiveColor"]
-        return bsdf, (emission if any(c > 0 for c in emission) else None)
+        return bsdf, (emission if any(c > 0 for c in emission) else None), None
 
-    def _display_color(self, prim, mesh, time) -> tuple:
-        """The ``displayColor`` primvar as one colour (its mean when it varies), or
-        grey without one."""
+    def _display_color(self, prim, mesh, time, point_count: int, source_faces):
+        """The ``displayColor`` primvar: one colour ``(r, g, b)`` when it is constant
+        (grey without one); per point (``vertex``/``varying``) or per face
+        (``uniform``) as a Mitsuba mesh attribute ``("vertex_color", (V, 3))`` or
+        ``("face_color", (F, 3))`` (per triangle); other interpolations, or a mesh whose
+        topology is time-sampled (``source_faces`` ``None``), get the mean colour
+        (said)."""
         primvar = mesh.GetDisplayColorPrimvar()
         value = primvar.ComputeFlattened(time) if primvar and primvar.HasValue() else None
         if value is None or len(value) == 0:
             return GREY
         colors = _array(value, 3)
-        if len(colors) > 1 and not np.all(colors == colors[0]):
-            self._warn(f"{self._where}: {prim.GetPath()}: displayColor varies over the mesh; "
-                       f"its mean colour is used")
+        if len(colors) == 1 or np.all(colors == colors[0]):
+            return tuple(float(c) for c in colors[0])
+        interpolation = primvar.GetInterpolation()
+        if interpolation in (UsdGeom.Tokens.vertex, UsdGeom.Tokens.varying) \
+                and len(colors) == point_count:
+            return ("vertex_color", colors)
+        if interpolation == UsdGeom.Tokens.uniform and source_faces is not None \
+                and len(source_faces) and len(colors) > int(source_faces.max()):
+            return ("face_color", colors[source_faces])
+        self._warn(f"{self._where}: {prim.GetPath()}: displayColor of interpolation "
+                   f"{interpolation!r} varies over the mesh; its mean colour is used")
         return tuple(float(c) for c in colors.mean(axis=0))
 
     def _warn_once(self, line: str) -> None:
@@ -731,9 +756,10 @@ def _transform_varies(prim) -> bool:
     return False
 
 
-def _triangulate(mesh, time, point_count: int, path, where: str) -> np.ndarray:
+def _triangulate(mesh, time, point_count: int, path, where: str, with_faces: bool = False):
     """Fan triangulation of a mesh's polygons at ``time``: ``(F, 3)`` uint32, holes
-    left out, winding flipped for ``orientation = leftHanded``.
+    left out, winding flipped for ``orientation = leftHanded``; with ``with_faces``
+    also each triangle's polygon index (``(F,)``).
 
     Raises:
         ValueError: indices that do not add up to the face counts, or that point past
@@ -760,7 +786,7 @@ def _triangulate(mesh, time, point_count: int, path, where: str) -> np.ndarray:
     triangles = indices[corners].astype(np.uint32).reshape(-1, 3)
     if mesh.GetOrientationAttr().Get(time) == UsdGeom.Tokens.leftHanded:
         triangles = triangles[:, ::-1].copy()
-    return triangles
+    return (triangles, face) if with_faces else triangles
 
 
 def _vertex_normals(mesh, time, point_count: int) -> np.ndarray | None:
@@ -828,5 +854,9 @@ def _mitsuba_mesh(mesh: _Mesh, points: np.ndarray, faces: np.ndarray) -> mi.Mesh
         else:
             params["vertex_normals"] = vertex_normals(params["vertex_positions"],
                                                       params["faces"])
+    if mesh.colors is not None:
+        name, values = mesh.colors
+        shape.add_attribute(name, 3, mi.Float(np.ascontiguousarray(values, np.float32)
+                                              .reshape(-1)))
     params.update()
     return shape

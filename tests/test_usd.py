@@ -151,6 +151,13 @@ def write_z_up(path, texture=None):
     for t in (0, 1):
         post.GetPointsAttr().Set([Gf.Vec3f(-30, 0, 0), Gf.Vec3f(30, 0, 0),
                                   Gf.Vec3f(10 * t, 0, 150)], t)
+    painted = _quad(stage, "/Painted", [(60, 0, 0), (120, 0, 0), (120, 0, 60), (60, 0, 60)])
+    painted.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex).Set(
+        [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0)])
+    banner = _quad(stage, "/Banner", [(-120, 0, 0), (-60, 0, 0), (-60, 0, 60), (-120, 0, 60),
+                                      (-90, 0, 90)], counts=(4, 3), indices=(0, 1, 2, 3, 3, 2, 4))
+    banner.CreateDisplayColorPrimvar(UsdGeom.Tokens.uniform).Set([(0.9, 0.5, 0.1),
+                                                                  (0.1, 0.3, 0.9)])
     dome = UsdLux.DomeLight.Define(stage, "/Sky")
     dome.CreateIntensityAttr(0.8)
     if texture is not None:
@@ -262,6 +269,13 @@ def test02_z_up_centimetres_are_y_up_metres_and_upright(tmp_path):
             x, y, z = np.moveaxis(stage_units[prim], -1, 0)
             np.testing.assert_allclose(triangles[shape_id],
                                        np.stack([x, z, -y], axis=-1) * 0.01, atol=1e-9)
+    meshes = {m.id: m for m in animation._meshes}
+    assert meshes["Painted"].colors[0] == "vertex_color"
+    np.testing.assert_allclose(meshes["Painted"].colors[1][2], [0, 0, 1])
+    name, per_triangle = meshes["Banner"].colors
+    assert name == "face_color"
+    np.testing.assert_allclose(per_triangle, [[0.9, 0.5, 0.1]] * 2 + [[0.1, 0.3, 0.9]],
+                               rtol=1e-6)
     top = animation.frame(1)["Post"].positions.reshape(-1, 3)[2]
     np.testing.assert_allclose(top, [0.1, 1.5, 0.0], atol=1e-6)  # 150 cm up is +y
     camera = animation.scene_dict(resolution=(16, 16), spp=1)["camera"]
