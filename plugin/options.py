@@ -233,6 +233,11 @@ def open_animation(scene: str, frames_dir, triangles, frames, topology=None,
     elif Path(scene).suffix.lower() in USD_SUFFIXES:
         animation, source = _open_usd(scene, frames_dir, triangles, topology, camera)
         stop = animation.frame_count if stop is None else stop
+        if stop > animation.frame_count:
+            last = animation.frame_count - 1
+            raise UserError(f"--frames {frames}: {scene!r} has frames 0:{animation.frame_count} "
+                            f"(time codes {animation.time_code(0):g}..{animation.time_code(last):g},"
+                            f" startTimeCode..endTimeCode)")
     else:
         path = Path(scene)
         if path.suffix.lower() != ".xml" or not path.is_file():

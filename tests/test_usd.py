@@ -451,7 +451,7 @@ def write_empty(path):
     ("not_usd", "USD cannot open it"),
     ("empty", "nothing renderable"),
     ("reversed", "endTimeCode 1 is before startTimeCode 5"),
-    ("out_of_range", "has frames 0:3"),
+    ("out_of_range", "has frames 0:3 (time codes 1..3, startTimeCode..endTimeCode)"),
     ("missing", "no such file"),
 ])
 def test09_bad_stages_are_one_line_through_the_cli(tmp_path, capsys, shot, case, message):
