@@ -251,7 +251,9 @@ class UsdScene(AnimatedScene):
     def source_digest(self) -> str:
         """SHA-256 (hex) of every layer the stage uses and the light textures it
         names, so a render folder can tell that the stage changed between two runs."""
-        files = [Path(layer.realPath) for layer in self.stage.GetUsedLayers()
+        # A layer inside a .usdz package is "package.usdz[layer.usdc]": the package is
+        # the file that changes.
+        files = [Path(layer.realPath.split("[")[0]) for layer in self.stage.GetUsedLayers()
                  if layer.realPath]
         files += [Path(light["filename"]) for light in self._lights.values()
                   if "filename" in light]

@@ -594,3 +594,28 @@ def test17_camera_flag_picks_the_camera_and_travels_to_cluster_specs(tmp_path, c
                              tmp_path / "y", *TINY)
     assert status == 2 and err == ["hlbvh render: --camera picks a camera of a USD stage; "
                                    "'cloth' is not one"]
+
+
+def test18_crate_and_package_stages_open_and_skinned_meshes_are_said(tmp_path):
+    from pxr import UsdSkel, UsdUtils
+    crate = tmp_path / "shot.usdc"
+    stage = Usd.Stage.CreateNew(str(crate))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    mesh = _quad(stage, "/Body", [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)])
+    UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    stage.GetRootLayer().Save()
+    package = tmp_path / "shot.usdz"
+    assert UsdUtils.CreateNewUsdzPackage(str(crate), str(package))
+    digests = []
+    for path in (crate, package):
+        said, warn = lines()
+        animation = UsdScene(path, warn=warn)
+        assert animation.static_ids() == ["Body"]
+        assert sum("/Body" in line and "UsdSkel" in line for line in said) == 1
+        digests.append(animation.source_digest())
+    mesh.GetPointsAttr().Set([Gf.Vec3f(0, 0, 0), Gf.Vec3f(2, 0, 0), Gf.Vec3f(2, 1, 0),
+                              Gf.Vec3f(0, 1, 0)])
+    stage.GetRootLayer().Save()
+    assert UsdUtils.CreateNewUsdzPackage(str(crate), str(package))
+    # The package's digest follows its bytes (its layers are inside it).
+    assert UsdScene(package, warn=lambda line: None).source_digest() != digests[1]
