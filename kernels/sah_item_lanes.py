@@ -25,6 +25,9 @@ from .sah_planes import (MIDDLE, NO_PLANE, RECORD, SahTree, bin_index, box_centr
 #: new input size would compile new kernels.
 _MODE = dr.ReduceMode.Local
 
+#: Bits of an item's bin on one axis in its packed bins (bins <= 64 fit).
+_BIN_BITS = 8
+
 
 def build_by_item_lanes(ns, lo, hi, weight, leaf_items: int, bins: int) -> SahTree:
     """:func:`hlbvh.kernels.sah.binned_sah` one lane per item, a level at a time.
@@ -113,46 +116,111 @@ class _Cells:
     weight: Any
 
 
-
 def _split_level(ns, level: _Level, records, item_order, block_start, leaf_items: int,
                  bins: int) -> _Level:
     """Split every open node of ``level``: write the children's node records and the
     slots of the items that reached a leaf; return the next level's open nodes."""
     K = level.size
-    m = dr.width(level.item)
     # first node index of the children's and of the grandchildren's blocks (opaque)
     starts = ns.UInt32(block_start[-1], block_start[-1] + 2 * K)
     child_start, grandchild_start = (dr.gather(ns.UInt32, starts, i) for i in range(2))
     block_start.append(block_start[-1] + 2 * K)
 
     # ---- Bin and sweep: the split of every node ----
-    item_lo, item_hi = level.item_lo, level.item_hi
-    centroid = box_centroid(item_lo, item_hi)
-    packed_bins, cells = _bin(ns, level, item_lo, item_hi, centroid, level.item_weight, bins)
+    centroid = box_centroid(level.item_lo, level.item_hi)
+    packed_bins, cells = _bin(ns, level, level.item_lo, level.item_hi, centroid,
+                              level.item_weight, bins)
     split_key = _sweep(ns, cells, level, bins)
 
     # ---- Left/right decision of every item; ranks by a prefix sum ----
-    position = dr.arange(ns.UInt32, m)
+    items = _decide(ns, level, packed_bins, split_key, bins)
+
+    # ---- Children: counts, slot ranges, open or leaf, next-level positions ----
+    children = _children(ns, level, items, leaf_items)
+
+    # ---- Partition: move every item to its child, reduce the children's bounds ----
+    bounds, next_items = _partition(ns, level, items, children, centroid, item_order)
+
+    # ---- Emit the children's node records and the next level's open nodes ----
+    return _emit(ns, children, bounds, next_items, records, child_start, grandchild_start)
+
+
+def _pack_bins(item_bin):
+    """UInt32: an item's bins on the three axes, axis ``a``'s in bits ``8a .. 8a+7``."""
+    return item_bin[0] | (item_bin[1] << _BIN_BITS) | (item_bin[2] << (2 * _BIN_BITS))
+
+
+def _bin_on(packed_bins, axis):
+    """The bin on ``axis`` (an int or a UInt32 in 0..2) of :func:`_pack_bins`' words."""
+    return (packed_bins >> (_BIN_BITS * axis)) & ((1 << _BIN_BITS) - 1)
+
+
+@dataclass
+class _Items:
+    """The left/right decision of a level's active items (UInt32/Bool[m]): ``left``,
+    ``goes_left`` (as 0/1), ``left_before`` (an exclusive prefix sum of it), each item's
+    ``position`` and its node's first position ``act_first``."""
+
+    left: Any
+    goes_left: Any
+    left_before: Any
+    position: Any
+    act_first: Any
+
+
+def _decide(ns, level: _Level, packed_bins, split_key, bins: int) -> _Items:
+    """Which child every active item goes to: by its bin on the split's axis, or by its
+    position for a middle split."""
+    position = dr.arange(ns.UInt32, dr.width(level.item))
     split = low_half(dr.gather(ns.UInt64, split_key, level.node))
     act_first = dr.gather(ns.UInt32, level.act_first, level.node)
     count = dr.gather(ns.UInt32, level.count, level.node)
-    split_bin = (packed_bins >> (8 * dr.minimum(split // bins, 2))) & 0xFF
+    split_bin = _bin_on(packed_bins, dr.minimum(split // bins, 2))
     left = dr.select(split == MIDDLE,
                      (position - act_first) < count // 2,
                      split_bin <= split % bins)
     goes_left = ns.UInt32(left)
     left_before = dr.prefix_sum(goes_left)
     dr.eval(goes_left, left_before)
+    return _Items(left, goes_left, left_before, position, act_first)
 
-    # ---- Children: counts, slot ranges, open or leaf, next-level positions ----
+
+@dataclass
+class _Children:
+    """The ``2K`` children of a level's nodes (UInt32/Bool[2K], left then right of each
+    node): ``child`` 0..2K-1, their item counts, first slots and whether they are open
+    (more than ``leaf_items`` items); ``open_and_items`` and its inclusive prefix sum
+    ``through`` (open children in the high half, their items in the low one), and the
+    next level's node and item counts ``K_next``, ``m_next``."""
+
+    child: Any
+    count: Any
+    slot: Any
+    open: Any
+    open_and_items: Any
+    through: Any
+    K_next: int
+    m_next: int
+
+    def next_position(self, c):
+        """(next-level index, first active position) of the open children ``c``."""
+        UInt64 = type(self.through)
+        before = dr.gather(UInt64, self.through, c) - dr.gather(UInt64, self.open_and_items, c)
+        return high_half(before), low_half(before)
+
+
+def _children(ns, level: _Level, items: _Items, leaf_items: int) -> _Children:
+    """Counts, slot ranges, open or leaf, and next-level positions of the children."""
+    K = level.size
     child = dr.arange(ns.UInt32, 2 * K)
     parent = child >> 1
     is_right = (child & 1) == 1
     p_first = dr.gather(ns.UInt32, level.act_first, parent)
     p_count = dr.gather(ns.UInt32, level.count, parent)
     p_last = p_first + p_count - 1
-    n_left = (dr.gather(ns.UInt32, left_before, p_last) + dr.gather(ns.UInt32, goes_left, p_last)
-              - dr.gather(ns.UInt32, left_before, p_first))
+    n_left = (dr.gather(ns.UInt32, items.left_before, p_last)
+              + dr.gather(ns.UInt32, items.goes_left, p_last)
+              - dr.gather(ns.UInt32, items.left_before, p_first))
     c_count = dr.select(is_right, p_count - n_left, n_left)
     c_slot = dr.gather(ns.UInt32, level.slot_first, parent) + dr.select(is_right, n_left, 0)
     c_open = c_count > leaf_items
@@ -161,50 +229,61 @@ def _split_level(ns, level: _Level, records, item_order, block_start, leaf_items
     dr.eval(c_count, c_slot, c_open, open_and_items)
     through = dr.cumsum(open_and_items)
     total = through[2 * K - 1]
-    K_next, m_next = high_half(total), low_half(total)
+    return _Children(child, c_count, c_slot, c_open, open_and_items, through,
+                     high_half(total), low_half(total))
 
-    def next_position(c):
-        """(next-level index, first active position) of the open children ``c``."""
-        before = dr.gather(ns.UInt64, through, c) - dr.gather(ns.UInt64, open_and_items, c)
-        return high_half(before), low_half(before)
 
-    # ---- Partition: move every item to its child, reduce the children's bounds ----
+def _partition(ns, level: _Level, items: _Items, children: _Children, centroid, item_order):
+    """Move every item to its child (its final slot in ``item_order`` when the child is
+    a leaf, the next level's active arrays otherwise) and reduce the children's boxes
+    and centroid bounds. Returns ``(bounds, next_items)``: Float[12·2K] (per child a box
+    record then a centroid-bounds record, :func:`_reduce_box`) and the next level's
+    ``(item, node, item_lo, item_hi, item_weight)`` (None when no child is open)."""
+    left, left_before, position, act_first = (items.left, items.left_before, items.position,
+                                              items.act_first)
     left_rank = left_before - dr.gather(ns.UInt32, left_before, act_first)
     rank = dr.select(left, left_rank, (position - act_first) - left_rank)
     c = level.node * 2 + dr.select(left, 0, 1)
-    to_open = dr.gather(ns.Bool, c_open, c)
-    dr.scatter(item_order, level.item, dr.gather(ns.UInt32, c_slot, c) + rank, ~to_open)
-    bounds = dr.full(ns.Float, dr.inf, 12 * 2 * K)  # per child: box, centroid bounds
-    _reduce_box(bounds, item_lo, item_hi, 2 * c)
+    to_open = dr.gather(ns.Bool, children.open, c)
+    dr.scatter(item_order, level.item, dr.gather(ns.UInt32, children.slot, c) + rank, ~to_open)
+    bounds = dr.full(ns.Float, dr.inf, 12 * dr.width(children.child))
+    _reduce_box(bounds, level.item_lo, level.item_hi, 2 * c)
     _reduce_box(bounds, centroid, centroid, 2 * c + 1, to_open)
-    if K_next:
-        index, first = next_position(c)
-        moved = (level.item, index, item_lo, item_hi, level.item_weight)
-        next_items = tuple(dr.empty(type(x), m_next) for x in moved)
+    next_items = None
+    if children.K_next:
+        index, first = children.next_position(c)
+        moved = (level.item, index, level.item_lo, level.item_hi, level.item_weight)
+        next_items = tuple(dr.empty(type(x), children.m_next) for x in moved)
         for target, value in zip(next_items, moved):
             dr.scatter(target, value, first + rank, to_open)
     dr.eval()
+    return bounds, next_items
 
-    # ---- Emit the children's node records and the next level's open nodes ----
+
+def _emit(ns, children: _Children, bounds, next_items, records, child_start,
+          grandchild_start) -> _Level:
+    """Write the children's node records (at ``child_start`` on; an open child's
+    children at ``grandchild_start`` on) and return the next level's open nodes."""
+    child, c_open = children.child, children.open
     box_lo, box_hi = _read_box(ns, bounds, 2 * child)
-    next_index = next_position(child)[0]
+    next_index = children.next_position(child)[0]
     write_records(ns, records, child_start + child, box_lo, box_hi,
-                  dr.select(c_open, grandchild_start + 2 * next_index, c_slot),
-                  dr.select(c_open, 0, c_count))
-    if not K_next:
+                  dr.select(c_open, grandchild_start + 2 * next_index, children.slot),
+                  dr.select(c_open, 0, children.count))
+    if not children.K_next:
         dr.eval()
         return _Level(size=0)
-    next_child = dr.empty(ns.UInt32, K_next)
+    next_child = dr.empty(ns.UInt32, children.K_next)
     dr.scatter(next_child, child, next_index, c_open)
     dr.eval()
     box_lo, box_hi = _read_box(ns, bounds, 2 * next_child)
     cmin, cmax = _read_box(ns, bounds, 2 * next_child + 1)
     nxt = _Level(
-        size=K_next,
+        size=children.K_next,
         node_id=child_start + next_child,
-        slot_first=dr.gather(ns.UInt32, c_slot, next_child),
-        act_first=next_position(next_child)[1],
-        count=dr.gather(ns.UInt32, c_count, next_child),
+        slot_first=dr.gather(ns.UInt32, children.slot, next_child),
+        act_first=children.next_position(next_child)[1],
+        count=dr.gather(ns.UInt32, children.count, next_child),
         box_lo=box_lo, box_hi=box_hi, cmin=cmin, cmax=cmax,
     )
     nxt.item, nxt.node, nxt.item_lo, nxt.item_hi, nxt.item_weight = next_items
@@ -224,7 +303,7 @@ def _bin(ns, level: _Level, item_lo, item_hi, centroid, item_weight, bins: int):
     cmin = dr.gather(ns.Array3f, level.cmin, level.node)
     cmax = dr.gather(ns.Array3f, level.cmax, level.node)
     item_bin = [bin_index(ns, centroid[a], cmin[a], cmax[a], bins) for a in range(3)]
-    packed_bins = item_bin[0] | (item_bin[1] << 8) | (item_bin[2] << 16)
+    packed_bins = _pack_bins(item_bin)
 
     # ---- Occupied bins of the nodes of fewer than `bins` items (others: all bins) ----
     occupied = dr.zeros(ns.UInt64, 3 * K)
@@ -233,7 +312,7 @@ def _bin(ns, level: _Level, item_lo, item_hi, centroid, item_weight, bins: int):
         dr.scatter_reduce(dr.ReduceOp.Or, occupied, ns.UInt64(1) << ns.UInt64(item_bin[a]),
                           level.node * 3 + a, small, mode=_MODE)
     dr.eval(packed_bins)
-    item_bin = [(packed_bins >> (8 * a)) & 0xFF for a in range(3)]
+    item_bin = [_bin_on(packed_bins, a) for a in range(3)]
     big = dr.gather(ns.UInt32, level.count, dr.arange(ns.UInt32, 3 * K) // 3) >= bins
     occupied = dr.select(big, (1 << bins) - 1, occupied)
     n_cells = ns.UInt32(dr.popcnt(occupied))
