@@ -43,7 +43,8 @@ Cameras (``UsdGeom.Camera``)
 Lights (``UsdLux``)
     ``intensity * 2**exposure * color`` (divided by the light's area with
     ``normalize``): DistantLight -> ``directional`` (that irradiance), DomeLight ->
-    ``constant``, or ``envmap`` with its ``texture:file`` (the colour then ignored,
+    ``constant``, or ``envmap`` with its latlong ``texture:file`` (OpenEXR's layout,
+    as Mitsuba's; the pole +Y, or DomeLight_1's ``poleAxis``; the colour then ignored,
     said), SphereLight -> a ``sphere`` area light (``point`` with ``treatAsPoint``),
     RectLight -> a ``rectangle``, DiskLight -> a ``disk`` area light, each emitting
     along the light's -Z as UsdLux does; time-sampled lights keep their first frame.
@@ -534,21 +535,29 @@ class UsdScene(AnimatedScene):
             direction = rotation @ np.array([0.0, 0.0, -1.0])
             self._lights[key] = {"type": "directional", "direction": direction.tolist(),
                                  "irradiance": rgb(radiance)}
-        elif kind == "DomeLight":
-            texture = UsdLux.DomeLight(prim).GetTextureFileAttr().Get(time)
-            if texture is not None and texture.resolvedPath:
+        elif kind in ("DomeLight", "DomeLight_1"):
+            dome = UsdLux.DomeLight(prim) if kind == "DomeLight" else UsdLux.DomeLight_1(prim)
+            texture = dome.GetTextureFileAttr().Get(time)
+            layout = dome.GetTextureFormatAttr().Get(time)
+            if texture is not None and texture.resolvedPath and layout in (
+                    None, UsdLux.Tokens.automatic, UsdLux.Tokens.latlong):
                 if not np.allclose(color, 1.0):
                     self._warn(f"{self._where}: {path}: a textured dome's colour is "
                                f"ignored (Mitsuba's envmap takes a scale only)")
+                # Mitsuba's envmap and UsdLux's dome both follow OpenEXR's latlong
+                # layout (longitude 0 along +Z, +pi/2 along +X, the top pole +Y): only the
+                # pole differs, for DomeLight_1 whose poleAxis is the stage's Z up axis.
                 to_world = np.eye(4)
-                to_world[:3, :3] = rotation
+                to_world[:3, :3] = rotation @ _dome_pole(dome, kind, self.stage)
                 self._lights[key] = {"type": "envmap", "filename": texture.resolvedPath,
                                      "scale": intensity * 2.0 ** exposure,
                                      "to_world": mi.ScalarTransform4f(to_world.tolist())}
             else:
                 if texture is not None and texture.path:
-                    self._warn(f"{self._where}: {path}: texture {texture.path!r} does not "
-                               f"resolve; the dome is a constant colour")
+                    why = (f"is in the {layout} layout, not latlong" if texture.resolvedPath
+                           else "does not resolve")
+                    self._warn(f"{self._where}: {path}: texture {texture.path!r} {why}; "
+                               f"the dome is a constant colour")
                 self._lights[key] = {"type": "constant", "radiance": rgb(radiance)}
         elif kind == "SphereLight":
             sphere = UsdLux.SphereLight(prim)
@@ -829,6 +838,19 @@ def _skel_binding():
     except ImportError:  # pragma: no cover
         return "SkelBindingAPI"
     return UsdSkel.BindingAPI
+
+
+def _dome_pole(dome, kind: str, stage) -> np.ndarray:
+    """The rotation (3x3, in the dome's space) that takes a latlong map's +Y pole to the
+    dome's pole: none for a ``DomeLight`` (its pole is +Y whatever the up axis),
+    a ``DomeLight_1``'s ``poleAxis`` (``scene``: the stage's up axis) otherwise."""
+    pole = "Y"
+    if kind == "DomeLight_1":
+        axis = dome.GetPoleAxisAttr().Get() or "scene"
+        pole = str(UsdGeom.GetStageUpAxis(stage)) if axis == "scene" else str(axis)
+    if pole == "Z":
+        return np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # rotateX(90): +Y -> +Z
+    return np.eye(3)
 
 
 def _two_sided(bsdf: dict) -> dict:

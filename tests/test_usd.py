@@ -619,3 +619,23 @@ def test18_crate_and_package_stages_open_and_skinned_meshes_are_said(tmp_path):
     assert UsdUtils.CreateNewUsdzPackage(str(crate), str(package))
     # The package's digest follows its bytes (its layers are inside it).
     assert UsdScene(package, warn=lambda line: None).source_digest() != digests[1]
+
+
+def test19_dome_poles_follow_usdlux(tmp_path):
+    texture = tmp_path / "sky.exr"
+    mi.Bitmap(np.ones((4, 8, 3), dtype=np.float32)).write(str(texture))
+    path = tmp_path / "domes.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    _quad(stage, "/Q", [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)])
+    for kind, name in ((UsdLux.DomeLight, "/Old"), (UsdLux.DomeLight_1, "/New")):
+        kind.Define(stage, name).CreateTextureFileAttr(Sdf.AssetPath(str(texture)))
+    stage.GetRootLayer().Save()
+    description = UsdScene(path, warn=lambda line: None).scene_dict(spp=1)
+    pole = {name: np.array(description[name]["to_world"].matrix)[:3, :3] @ [0, 1, 0]
+            for name in ("Old", "New")}
+    # DomeLight: the pole is the stage's +Y (Mitsuba's -Z after Z-up -> Y-up);
+    # DomeLight_1 with poleAxis "scene": the stage's up axis, Mitsuba's +Y.
+    np.testing.assert_allclose(pole["Old"], [0, 0, -1], atol=1e-9)
+    np.testing.assert_allclose(pole["New"], [0, 1, 0], atol=1e-9)
