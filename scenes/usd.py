@@ -59,7 +59,8 @@ Materials
     else grey.
 Not supported
     Curves, points, volumes, implicit shapes (Sphere, Cube, ...), point instancers,
-    NURBS, UsdSkel skinning that is not baked (the rest points render), references and
+    NURBS, UsdSkel skinning that is not baked (the rest points render), per-face
+    materials of GeomSubsets (the mesh's own material covers it), references and
     payloads that do not resolve: one warning line each on stderr, with the prim's path.
 
 A stage that cannot be opened, has nothing renderable or a bad time range is one
@@ -129,6 +130,7 @@ class _Mesh:
     local_points: np.ndarray | None = None     # (V, 3) float64, rigid meshes
     normals: np.ndarray | None = None           # (V, 3) authored world-space normals
     colors: tuple | None = None                 # ("vertex_color" | "face_color", (N, 3))
+    point_count: int = 0                        # V of the first frame
 
 
 @dataclass
@@ -179,7 +181,6 @@ class UsdScene(AnimatedScene):
         self._ids: set[str] = set(_RESERVED)
         self._meshes: list[_Mesh] = []
         self._lights: dict = {}
-        self._sensor_prim = None
         self._collect()
         if not self._meshes:
             raise ValueError(f"{self._where}: nothing renderable (no visible UsdGeom.Mesh "
@@ -232,6 +233,8 @@ class UsdScene(AnimatedScene):
             if faces is None and len(points) <= int(mesh.faces.max(initial=0)):
                 raise ValueError(f"{self._where}: mesh {mesh.path} has {len(points)} points "
                                  f"at time code {time.GetValue():g}, too few for its faces")
+            if faces is None and len(points) != mesh.point_count:
+                faces = mesh.faces  # more points than the first frame's: new vertex count
             frame[mesh.id] = FrameGeometry(
                 np.ascontiguousarray(points, dtype=np.float32).reshape(-1),
                 None if faces is None else faces.reshape(-1))
@@ -245,7 +248,7 @@ class UsdScene(AnimatedScene):
         cache = UsdGeom.XformCache(time)
         result = {}
         for mesh in self._meshes:
-            points, faces = self._geometry(mesh, time, cache, force=True)
+            points, faces = self._geometry(mesh, time, cache)
             result[mesh.id] = points[faces if faces is not None else mesh.faces]
         return result
 
@@ -284,7 +287,7 @@ class UsdScene(AnimatedScene):
         time = Usd.TimeCode(self._start)
         cache = UsdGeom.XformCache(time)
         for mesh in self._meshes:
-            points, faces = self._geometry(mesh, time, cache, force=True)
+            points, faces = self._geometry(mesh, time, cache)
             description[mesh.id] = _mitsuba_mesh(
                 mesh, points, mesh.faces if faces is None else faces)
         description.update(self._lights)
@@ -398,6 +401,11 @@ class UsdScene(AnimatedScene):
             length = np.linalg.norm(normals, axis=1, keepdims=True)
             normals = normals / np.where(length > 0, length, 1)
         double_sided = bool(mesh.GetDoubleSidedAttr().Get())
+        subsets = [subset for subset in UsdGeom.Subset.GetAllGeomSubsets(mesh)
+                   if subset.GetFamilyNameAttr().Get() == "materialBind"]
+        if subsets:
+            self._warn(f"{self._where}: {path}: per-face materials ({len(subsets)} GeomSubsets) "
+                       f"are not split out; the whole mesh takes the mesh's own material")
         bsdf, emission, colors = self._material(prim, mesh, double_sided, time,
                                                 len(points), None if topology_varies
                                                 else source_faces)
@@ -406,13 +414,13 @@ class UsdScene(AnimatedScene):
             topology_varies=topology_varies,
             smooth=normals is not None or scheme not in (None, UsdGeom.Tokens.none),
             bsdf=bsdf, emission=emission, normals=normals, colors=colors,
+            point_count=len(points),
             local_points=points if motion == "rigid" else None)
         self._meshes.append(entry)
 
-    def _geometry(self, mesh: _Mesh, time, cache, force: bool = False):
+    def _geometry(self, mesh: _Mesh, time, cache):
         """``(points (V, 3) float64 world space, faces (F, 3) or None)`` of a mesh at
-        ``time``: faces only when its topology is time-sampled (or with ``force``, when
-        a static mesh's are needed too)."""
+        ``time``: faces only when its topology is time-sampled."""
         prim = self.stage.GetPrimAtPath(mesh.path)
         if mesh.local_points is not None:
             local = mesh.local_points

@@ -13,6 +13,7 @@ import pytest
 
 pxr = pytest.importorskip("pxr")
 
+import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade  # noqa: E402
 
@@ -639,3 +640,37 @@ def test19_dome_poles_follow_usdlux(tmp_path):
     # DomeLight_1 with poleAxis "scene": the stage's up axis, Mitsuba's +Y.
     np.testing.assert_allclose(pole["Old"], [0, 0, -1], atol=1e-9)
     np.testing.assert_allclose(pole["New"], [0, 1, 0], atol=1e-9)
+
+
+def test20_holes_left_handed_faces_subsets_and_growing_point_counts(tmp_path):
+    path = tmp_path / "odd.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(1)
+    corners = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (2, 0, 0), (2, 1, 0)]
+    left = _quad(stage, "/Left", corners, counts=(4, 4, 2), indices=(0, 1, 2, 3, 1, 4, 5, 2,
+                                                                      0, 1))
+    left.CreateOrientationAttr(UsdGeom.Tokens.leftHanded)
+    left.CreateHoleIndicesAttr([1])
+    UsdGeom.Subset.CreateGeomSubset(left, "red", UsdGeom.Tokens.face, [0],
+                                    familyName="materialBind")
+    growing = _quad(stage, "/Growing", [(0, 0, 0)] * 3, counts=(3,), indices=(0, 1, 2))
+    growing.GetPointsAttr().Set([Gf.Vec3f(0, 0, 1), Gf.Vec3f(1, 0, 1), Gf.Vec3f(0, 1, 1)], 0)
+    growing.GetPointsAttr().Set([Gf.Vec3f(0, 0, 1), Gf.Vec3f(1, 0, 1), Gf.Vec3f(0, 1, 1),
+                                 Gf.Vec3f(5, 5, 5)], 1)
+    stage.GetRootLayer().Save()
+    said, warn = lines()
+    animation = UsdScene(path, warn=warn)
+    meshes = {m.id: m for m in animation._meshes}
+    # The hole (face 1) and the 2-vertex face are left out; left-handed faces reversed.
+    np.testing.assert_array_equal(meshes["Left"].faces, [[2, 1, 0], [3, 2, 0]])
+    assert sum("/Left" in line and "fewer than 3" in line for line in said) == 1
+    assert sum("/Left" in line and "GeomSubsets" in line for line in said) == 1
+    scene = mi.load_dict(animation.scene_dict(resolution=(8, 8), spp=1))
+    params = mi.traverse(scene)
+    for i in range(2):
+        scenes.apply_frame(scene, params, animation.frame(i))
+        assert dr.width(params["Growing.vertex_positions"]) == 3 * (3 + i)
+    np.testing.assert_allclose(mitsuba_triangles(scene)["Growing"],
+                               pxr_triangles(path, Usd.TimeCode(1))["/Growing"], atol=1e-6)
