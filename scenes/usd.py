@@ -311,6 +311,10 @@ class UsdScene(AnimatedScene):
                 continue
             imageable = UsdGeom.Imageable(prim)
             if imageable and not self._renders(prim, imageable, time):
+                if _visibility_varies(prim):
+                    self._warn(f"{self._where}: {prim.GetPath()}: invisible at the first "
+                               f"frame, and its time-sampled visibility is not followed: "
+                               f"it is not rendered")
                 prims.PruneChildren()
                 continue
             kind = prim.GetTypeName()
@@ -321,6 +325,7 @@ class UsdScene(AnimatedScene):
             elif kind in UNSUPPORTED or (kind and prim.IsA(UsdGeom.Gprim)):
                 self._warn(f"{self._where}: {prim.GetPath()}: a {kind} is not supported; "
                            f"it is not rendered")
+                prims.PruneChildren()  # a point instancer's prototypes render through it
             elif kind == "Skeleton":
                 self._warn(f"{self._where}: {prim.GetPath()}: UsdSkel skinning is not "
                            f"applied (bake it into points); its meshes render at rest")

@@ -425,6 +425,13 @@ def test08_unsupported_prims_and_broken_references_are_named_once(tmp_path):
     _quad(stage, "/Q", [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)])
     UsdGeom.BasisCurves.Define(stage, "/Hair")
     UsdGeom.Points.Define(stage, "/Dust")
+    UsdGeom.PointInstancer.Define(stage, "/Scatter")
+    _quad(stage, "/Scatter/Prototypes/Pebble", [(0, 0, 0), (1, 0, 0), (1, 1, 0)],
+          counts=(3,), indices=(0, 1, 2))
+    blinking = _quad(stage, "/Blinking", [(0, 0, 0), (1, 0, 0), (1, 1, 0)], counts=(3,),
+                     indices=(0, 1, 2))
+    blinking.CreateVisibilityAttr().Set(UsdGeom.Tokens.invisible, 0)
+    blinking.GetVisibilityAttr().Set(UsdGeom.Tokens.inherited, 1)
     hidden = _quad(stage, "/Hidden", [(0, 0, 0), (1, 0, 0), (1, 1, 0)], counts=(3,),
                    indices=(0, 1, 2))
     hidden.CreateVisibilityAttr(UsdGeom.Tokens.invisible)
@@ -435,8 +442,9 @@ def test08_unsupported_prims_and_broken_references_are_named_once(tmp_path):
     stage.GetRootLayer().Save()
     said, warn = lines()
     animation = UsdScene(path, warn=warn)
-    assert animation.static_ids() == ["Q"]  # hidden and guide prims do not render
-    for prim in ("/Hair", "/Dust", "/Ref"):
+    # Hidden and guide prims do not render, nor a point instancer's prototypes.
+    assert animation.static_ids() == ["Q"]
+    for prim in ("/Hair", "/Dust", "/Ref", "/Scatter", "/Blinking"):
         assert sum(prim in line for line in said) == 1, (prim, said)
     assert all(line.startswith(f"stage {str(path)!r}: ") for line in said)
     assert not any("/Hidden" in line or "/Guide" in line for line in said)
