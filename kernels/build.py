@@ -66,7 +66,8 @@ class _Tree:
     tri: Any  # Matrix3f, rows p0, p1, p2
 
 
-def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
+def build(vertices, faces, previous: BVH | None = None, config: BuildConfig | None = None,
+          **options) -> BVH:
     """Build a BVH over a triangle mesh.
 
     Args:
@@ -80,8 +81,10 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
             ``stats.csd_seeded`` says whether it was used). The tree has the same
             shape as without it; only primitives with equal Morton keys may keep last
             frame's relative order (and so change leaf boxes).
+        config: a validated :class:`BuildConfig` (what callers that parsed their
+            options once pass down), or None to make one from ``options``.
         **options: fields of :class:`BuildConfig` (builder, leaf_size, morton_bits,
-            quantization, coarse_bits, p, sah_bins).
+            quantization, coarse_bits, p, sah_bins); not with ``config``.
     Returns:
         A :class:`BVH` whose ``stats`` say what the build measured.
     Warns:
@@ -93,7 +96,10 @@ def build(vertices, faces, previous: BVH | None = None, **options) -> BVH:
             faces indexing missing vertices.
         TypeError: inputs that are not Dr.Jit arrays of the expected kinds.
     """
-    config = BuildConfig.from_options(**options)
+    if config is None:
+        config = BuildConfig.from_options(**options)
+    elif options or not isinstance(config, BuildConfig):
+        raise TypeError("build: pass a BuildConfig as config, or options, not both")
     if previous is not None and not isinstance(previous, BVH):
         raise TypeError(f"previous: expected an hlbvh BVH or None, got {type(previous).__name__}")
     clock = _StageClock()

@@ -71,7 +71,7 @@ from hlbvh.kernels.traversal import any_hit, closest_hit
 from hlbvh.mesh_group import MeshGroup
 from hlbvh.motion import MeshState, shape_states
 from hlbvh.native_group import NativeGroup, shape_groups
-from hlbvh.policy import ACCELS, DECISIONS, split_options
+from hlbvh.policy import ACCELS, DECISIONS, UpdatePolicy, split_options
 from hlbvh.queries import NativeAccel, _Accel, _checked_scene
 from hlbvh.scene_geometry import _describe, scene_shapes, unmovable_error
 from hlbvh.timing import clock_ms
@@ -83,6 +83,9 @@ class SceneAccel(_Accel):
 
     Args:
         scene: the ``mi.Scene`` (JIT variant: LLVM or CUDA).
+        policy, config: the :class:`UpdatePolicy` and :class:`hlbvh.BuildConfig`, for
+            a caller that parsed its options already (:func:`split_options`);
+            otherwise from ``options``.
         **options: options of :func:`hlbvh.build` (``builder``, ``leaf_size``,
             ``morton_bits``, ``quantization``, ``coarse_bits``, ``p``, ``sah_bins``) and
             of the :class:`UpdatePolicy` (``static``, ``moving``, ``update``,
@@ -117,10 +120,14 @@ class SceneAccel(_Accel):
 
     name = "hlbvh"
 
-    def __init__(self, scene, **options):
+    def __init__(self, scene, *, policy: UpdatePolicy | None = None,
+                 config: BuildConfig | None = None, **options):
         _checked_scene(scene)
-        self.policy, self._build_options = split_options(options)
-        self.config = BuildConfig.from_options(**self._build_options)
+        if policy is None or config is None:
+            policy, config = split_options(options)
+        elif options:
+            raise TypeError("SceneAccel: pass policy and config, or options, not both")
+        self.policy, self.config = policy, config
         self.shapes = list(scene.shapes())
         self.shapes_dr = scene.shapes_dr()
         native = self.policy.static == "native"
@@ -183,7 +190,7 @@ class SceneAccel(_Accel):
         if (first and self.dynamic.indices) or dynamic_changed or self.dynamic.stale:
             reshaped = first or any(
                 states[i].reshaped(self._states[i]) for i in dynamic_changed)
-            self.dynamic.update(self.shapes, self._build_options, self.policy, reshaped,
+            self.dynamic.update(self.shapes, self.config, self.policy, reshaped,
                                 decision="build" if first else "rebuild")
         else:
             self.dynamic.keep()
@@ -223,9 +230,9 @@ class SceneAccel(_Accel):
         if first or self.static.stale:
             # Built once for every frame to come: with the static builder, unless no
             # shape was declared moving (the accelerator's first tree over everything).
-            options = (self._build_options if first and not self.moving
-                       else self.policy.static_options(self._build_options))
-            self.static.update(self.shapes, options, self.policy, reshaped=True,
+            config = (self.config if first and not self.moving
+                      else self.policy.static_config(self.config))
+            self.static.update(self.shapes, config, self.policy, reshaped=True,
                                decision="build" if first else "rebuild")
         else:
             self.static.keep()
@@ -382,9 +389,9 @@ def make_accel(scene, accel: str = "hlbvh", **options):
         ValueError: for any other ``accel``, or an unknown or invalid option.
     """
     _checked_scene(scene)
+    if accel not in ACCELS:
+        raise ValueError(f"accel={accel!r}: expected one of {ACCELS}")
+    policy, config = split_options(options)
     if accel == "hlbvh":
-        return SceneAccel(scene, **options)
-    if accel == "native":
-        split_options(options)
-        return NativeAccel(scene)
-    raise ValueError(f"accel={accel!r}: expected one of {ACCELS}")
+        return SceneAccel(scene, policy=policy, config=config)
+    return NativeAccel(scene)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from hlbvh.kernels.arrays import concat
 from hlbvh.kernels.build import build
+from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.policy import UpdatePolicy
 from hlbvh.scene_geometry import _named_error, collect_geometry
 from hlbvh.timing import clock_ms
@@ -61,13 +62,13 @@ class MeshGroup:
         changed, and the build that followed failed or has not run yet)."""
         return self.indices != self._built_indices
 
-    def update(self, shapes, build_options: dict, policy: UpdatePolicy, reshaped: bool,
+    def update(self, shapes, config: BuildConfig, policy: UpdatePolicy, reshaped: bool,
                decision: str = "rebuild"):
         """Bring the BVH up to date with the meshes' current buffers.
 
         Args:
             shapes: ``scene.shapes()``.
-            build_options: options of :func:`hlbvh.build`.
+            config: the :class:`hlbvh.BuildConfig` of its builds.
             policy: the :class:`UpdatePolicy`.
             reshaped: the meshes' faces or vertex counts changed (forces a rebuild; so
                 does a change of :attr:`indices` since the last build).
@@ -78,18 +79,18 @@ class MeshGroup:
         seeded, drift = False, None
         reshaped = reshaped or self.bvh is None or self.stale
         if reshaped or policy.update in ("rebuild", "fresh"):
-            seeded = self._build(shapes, build_options, seed=policy.update != "fresh")
+            seeded = self._build(shapes, config, seed=policy.update != "fresh")
         elif policy.update == "auto" and self._refits_skipped < self._refits_to_skip:
             # Recent refits drifted past the tolerance: rebuild without trying one.
             self._refits_skipped += 1
-            seeded = self._build(shapes, build_options)
+            seeded = self._build(shapes, config)
         else:
             drift = self._refit(shapes)
             decision = "refit"
             rejected = policy.update == "auto" and drift > policy.refit_tolerance
             self._back_off(rejected)
             if rejected:
-                seeded = self._build(shapes, build_options)
+                seeded = self._build(shapes, config)
                 decision = "rebuild"
         self.last = dict(
             decision=decision, ms=clock_ms() - start, triangles=self.triangles,
@@ -120,7 +121,7 @@ class MeshGroup:
         return ([float(c[0]) for c in self.bvh.node_min],
                 [float(c[0]) for c in self.bvh.node_max])
 
-    def _build(self, shapes, build_options, seed: bool = True) -> bool:
+    def _build(self, shapes, config: BuildConfig, seed: bool = True) -> bool:
         """A new BVH over the meshes' current triangles, its CSD sort seeded with the
         previous tree's order when ``seed``, the triangle count is unchanged and the
         order pays (:func:`hlbvh.kernels.csd.seed_pays`); whether it was. On failure
@@ -130,7 +131,7 @@ class MeshGroup:
         bvh = None
         if geometry.prim_count:
             try:
-                bvh = build(geometry.vertices, geometry.faces, previous=previous, **build_options)
+                bvh = build(geometry.vertices, geometry.faces, previous=previous, config=config)
             except ValueError as error:
                 raise _named_error(shapes, self.indices, error) from error
         self.geometry, self.bvh, self._built_indices = geometry, bvh, self.indices

@@ -1,6 +1,7 @@
 """What a user chooses for an accelerator: which one (``ACCELS``), and how it follows
 the scene from frame to frame (:class:`UpdatePolicy`), with the builder's options
-beside it; :func:`split_options` checks a mixed dict of both and names a bad one."""
+beside it; :func:`split_options` parses a mixed dict of both, once, into typed
+objects (naming a bad option), which are then passed down."""
 
 from __future__ import annotations
 
@@ -108,18 +109,17 @@ class UpdatePolicy:
                 "'auto', 'same' or an int in 1..16")
         return self
 
-    def static_options(self, options: dict) -> dict:
-        """The builder options of the static group's tree, from the scene's
-        ``options``."""
-        static = dict(options)
-        if self.static_builder != "same":
-            static["builder"] = self.static_builder
+    def static_config(self, config: BuildConfig) -> BuildConfig:
+        """The builder config of the static group's tree, from the scene's
+        ``config``."""
+        builder = config.builder if self.static_builder == "same" else self.static_builder
+        leaf_size = config.leaf_size
         if self.static_leaf_size == "auto":
-            if static.get("builder", BuildConfig.builder) == "sah":
-                static["leaf_size"] = STATIC_SAH_LEAF_SIZE
+            if builder == "sah":
+                leaf_size = STATIC_SAH_LEAF_SIZE
         elif self.static_leaf_size != "same":
-            static["leaf_size"] = self.static_leaf_size
-        return static
+            leaf_size = self.static_leaf_size
+        return dataclasses.replace(config, builder=builder, leaf_size=leaf_size)
 
 
 def _shape_ids(value) -> tuple:
@@ -133,14 +133,14 @@ def _shape_ids(value) -> tuple:
                      "of ids separated by commas")
 
 
-def split_options(options: dict) -> tuple[UpdatePolicy, dict]:
-    """The update policy and the builder's options among an accelerator's options,
-    both validated.
+def split_options(options: dict) -> tuple[UpdatePolicy, BuildConfig]:
+    """The update policy and the builder's config among an accelerator's options,
+    both validated (the one place they are).
 
     Args:
         options: keyword options: :data:`UPDATE_OPTIONS` and :data:`BUILD_OPTIONS`.
     Returns:
-        ``(UpdatePolicy, build options dict)``.
+        ``(UpdatePolicy, BuildConfig)``.
     Raises:
         ValueError: an unknown option or a bad value, naming it.
     """
@@ -151,6 +151,6 @@ def split_options(options: dict) -> tuple[UpdatePolicy, dict]:
             f"unknown accelerator option(s) {unknown}: expected some of {sorted(known)}"
         )
     policy = UpdatePolicy(**{k: v for k, v in options.items() if k in UPDATE_OPTIONS})
-    build_options = {k: v for k, v in options.items() if k not in UPDATE_OPTIONS}
-    BuildConfig.from_options(**build_options)
-    return policy.validated(), build_options
+    config = BuildConfig.from_options(
+        **{k: v for k, v in options.items() if k not in UPDATE_OPTIONS})
+    return policy.validated(), config

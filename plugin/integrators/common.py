@@ -56,7 +56,7 @@ class AccelIntegrator(mi.SamplingIntegrator):
             )
         self.accel_options = {name: props[name] for name in BUILD_OPTIONS + UPDATE_OPTIONS
                               if name in props}
-        split_options(self.accel_options)
+        self._policy, self._config = split_options(self.accel_options)  # parsed once
         self._accel = None
 
     def update_accel(self, scene):
@@ -72,7 +72,7 @@ class AccelIntegrator(mi.SamplingIntegrator):
         if self.accel_name == "native":
             return NativeAccel(scene)
         if self._accel is None or not self._accel.is_for(scene):
-            self._accel = SceneAccel(scene, **self.accel_options)
+            self._accel = SceneAccel(scene, policy=self._policy, config=self._config)
         else:
             self._accel.update()
         return self._accel
