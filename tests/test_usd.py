@@ -682,3 +682,18 @@ def test20_holes_left_handed_faces_subsets_and_growing_point_counts(tmp_path):
         assert dr.width(params["Growing.vertex_positions"]) == 3 * (3 + i)
     np.testing.assert_allclose(mitsuba_triangles(scene)["Growing"],
                                pxr_triangles(path, Usd.TimeCode(1))["/Growing"], atol=1e-6)
+
+
+def test21_the_stage_s_still_meshes_are_built_once_and_never_leave(shot):
+    """FrameRenderer declares the stage's deforming and rigid meshes as moving: the still
+    world (ground, instances, light shapes) is built once and nothing leaves it."""
+    from hlbvh.frame import FrameRenderer
+    from hlbvh.settings import RenderSettings
+    animation = UsdScene(shot, warn=lambda line: None)
+    renderer = FrameRenderer(animation, RenderSettings(resolution=(8, 8), spp=1))
+    for i in range(animation.frame_count):
+        renderer.render(i)
+        accel = renderer.integrator.accel(renderer.scene)
+        assert accel.last_update["groups"]["static"]["left"] == []
+        assert sorted(accel.last_update["moving"]) == sorted(animation.animated_ids())
+    assert accel.static.builds == 1
