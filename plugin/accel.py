@@ -66,6 +66,7 @@ import mitsuba as mi
 
 from hlbvh.kernels.arrays import concat
 from hlbvh.kernels.bvh import BuildConfig
+from hlbvh.kernels.geometry import half_area
 from hlbvh.kernels.layout import joined
 from hlbvh.kernels.traversal import any_hit, closest_hit
 from hlbvh.mesh_group import MeshGroup
@@ -370,10 +371,10 @@ def _declared(shapes, ids: tuple) -> tuple:
 
 
 def _half_area(lo, hi) -> float:
-    """Half the surface area of the box ``lo``..``hi`` (Python floats: double
-    precision, as the SAH cost's areas)."""
-    e = [max(h - l, 0.0) for l, h in zip(lo, hi)]
-    return e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
+    """Half the surface area of the box ``lo``..``hi`` (lists of Python floats), in
+    double precision as the SAH cost's areas."""
+    extent = dr.maximum(dr.scalar.Array3f64(hi) - dr.scalar.Array3f64(lo), 0.0)
+    return float(half_area(extent))
 
 
 def make_accel(scene, accel: str = "hlbvh", **options):
