@@ -48,6 +48,7 @@ Lights (``UsdLux``)
     said), SphereLight -> a ``sphere`` area light (``point`` with ``treatAsPoint``),
     RectLight -> a ``rectangle``, DiskLight -> a ``disk`` area light, each emitting
     along the light's -Z as UsdLux does; time-sampled lights keep their first frame.
+    Colour temperature and shaping (cones, IES) are not applied (said).
 Materials
     ``UsdPreviewSurface`` bound with ``UsdShade.MaterialBindingAPI``: diffuseColor,
     roughness, metallic to ``principled``; opacity below 1 through a ``mask``
@@ -535,6 +536,12 @@ class UsdScene(AnimatedScene):
         color = np.array([1.0, 1.0, 1.0] if color is None else list(color), dtype=np.float64)
         radiance = intensity * 2.0 ** exposure * color
         normalize = bool(light.GetNormalizeAttr().Get(time))
+        if light.GetEnableColorTemperatureAttr().Get(time):
+            self._warn(f"{self._where}: {path}: its colour temperature is not applied "
+                       f"(RGB rendering); its colour alone tints it")
+        if prim.HasAPI(UsdLux.ShapingAPI):
+            self._warn(f"{self._where}: {path}: its shaping (cone, focus, IES) is not "
+                       f"applied; it emits unshaped")
         transform = self._root @ _matrix(cache.GetLocalToWorldTransform(prim))
         scale = np.linalg.norm(transform[:3, :3], axis=0)
         rotation = transform[:3, :3] / np.where(scale > 0, scale, 1)

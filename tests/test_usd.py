@@ -439,13 +439,19 @@ def test08_unsupported_prims_and_broken_references_are_named_once(tmp_path):
                   indices=(0, 1, 2))
     guide.CreatePurposeAttr(UsdGeom.Tokens.guide)
     stage.DefinePrim("/Ref").GetReferences().AddReference(str(tmp_path / "missing.usda"))
+    warm = UsdLux.SphereLight.Define(stage, "/Warm")
+    warm.CreateEnableColorTemperatureAttr(True)
+    UsdLux.ShapingAPI.Apply(warm.GetPrim()).CreateShapingConeAngleAttr(30.0)
+    UsdLux.CylinderLight.Define(stage, "/Tube")
     stage.GetRootLayer().Save()
     said, warn = lines()
     animation = UsdScene(path, warn=warn)
     # Hidden and guide prims do not render, nor a point instancer's prototypes.
     assert animation.static_ids() == ["Q"]
-    for prim in ("/Hair", "/Dust", "/Ref", "/Scatter", "/Blinking"):
+    for prim in ("/Hair", "/Dust", "/Ref", "/Scatter", "/Blinking", "/Tube"):
         assert sum(prim in line for line in said) == 1, (prim, said)
+    assert sum("/Warm" in line and "temperature" in line for line in said) == 1
+    assert sum("/Warm" in line and "shaping" in line for line in said) == 1
     assert all(line.startswith(f"stage {str(path)!r}: ") for line in said)
     assert not any("/Hidden" in line or "/Guide" in line for line in said)
 
