@@ -23,17 +23,16 @@ from __future__ import annotations
 
 import hashlib
 import os
-import re
 from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
 from .animated import AnimatedScene, FrameGeometry
+from .frame_files import FRAME_FILE, entries, not_a_file, ply_negative_index
+from .parse_tree import configure_films, references, resolving_next_to
 
 TOPOLOGIES = ("fixed", "changing")
-FRAME_FILE = re.compile(r"^frame_(\d+)\.(ply|obj)$", re.IGNORECASE)
 
 
 class SequenceScene(AnimatedScene):
@@ -136,7 +135,7 @@ class SequenceScene(AnimatedScene):
                 (a nested integrator, a texture), which could not be handed on.
         """
         state = self._parse()
-        for index in _references(state.root):
+        for index in references(state.root):
             node = state.nodes[index]
             if node.type != mi.ObjectType.Integrator:
                 continue
@@ -161,7 +160,7 @@ class SequenceScene(AnimatedScene):
             return None
         state = self._parse()
         files = [Path(str(name)) for name in state.files]
-        with _resolving_next_to(self._source):
+        with resolving_next_to(self._source):
             resolver = mi.file_resolver()
             for node in state.nodes:
                 value = node.props["filename"] if "filename" in node.props.keys() else None
@@ -203,7 +202,7 @@ class SequenceScene(AnimatedScene):
         ``shape_<k>``. Instances and their shape groups, which Mitsuba does not take
         built, are described by :meth:`_instancing`."""
         state = self._parse()
-        _configure_films(state, resolution, spp, self._box_filter)
+        configure_films(state, resolution, spp, self._box_filter)
         scene = self._instantiate(state)
         description = {"type": "scene"}
         own = scene.integrator()
@@ -233,12 +232,12 @@ class SequenceScene(AnimatedScene):
                 continue
             kind = node.props.plugin_name()
             if kind == "shapegroup":
-                groups[node.props.id()] = _references(node)
+                groups[node.props.id()] = references(node)
             elif kind == "instance":
                 description = {"type": "instance"}
                 if "to_world" in node.props.keys():
                     description["to_world"] = node.props["to_world"]
-                for k, child in enumerate(_references(node)):
+                for k, child in enumerate(references(node)):
                     description[f"group_{k}"] = {"type": "ref", "id": state.nodes[child].props.id()}
                 instances[node.props.id()] = description
         if not instances:
@@ -264,7 +263,7 @@ class SequenceScene(AnimatedScene):
         """The scene's parse tree, references resolved, every top-level shape named."""
         config = self._config()
         try:
-            with _resolving_next_to(self._source):
+            with resolving_next_to(self._source):
                 if isinstance(self._source, Path):
                     state = mi.parser.parse_file(config, str(self._source))
                 else:
@@ -291,7 +290,7 @@ class SequenceScene(AnimatedScene):
         """The Mitsuba scene of a parse tree, meshes never merged."""
         config = self._config()
         try:
-            with _resolving_next_to(self._source):
+            with resolving_next_to(self._source):
                 mi.parser.transform_merge_equivalent(config, state)
                 return mi.parser.instantiate(config, state)
         except (RuntimeError, UnicodeDecodeError) as error:
@@ -312,7 +311,7 @@ class SequenceScene(AnimatedScene):
     def _scan_frames(self) -> tuple[dict[str, list[Path]], int]:
         """Every animated shape's files in frame order, and the frame count."""
         found: dict[str, dict[int, Path]] = {}
-        for entry in _entries(self._frames_dir):
+        for entry in entries(self._frames_dir):
             if not entry.is_dir():
                 continue
             if entry.name not in self._writable:
@@ -327,14 +326,14 @@ class SequenceScene(AnimatedScene):
                     f"animated: {reason} (animatable meshes: {sorted(self._writable)})"
                 )
             numbered: dict[int, Path] = {}
-            for file in _entries(entry):
+            for file in entries(entry):
                 match = FRAME_FILE.match(file.name)
                 if not match:
                     continue
                 if not file.is_file():
                     raise ValueError(
                         f"frame file {str(file)!r} of shape {entry.name!r}: "
-                        f"{_not_a_file(file)}; make it a readable mesh file or remove it"
+                        f"{not_a_file(file)}; make it a readable mesh file or remove it"
                     )
                 number = int(match.group(1))
                 if number in numbered:
@@ -406,7 +405,7 @@ class SequenceScene(AnimatedScene):
         if kind == "obj" and head.startswith(b"ply"):
             raise ValueError(f"{where}: it holds PLY data but is named .obj; name it .ply")
         if kind == "ply" and self._topology[shape_id] == "changing":
-            negative = _ply_negative_index(path)
+            negative = ply_negative_index(path)
             if negative is not None:
                 raise ValueError(f"{where}: face {negative[0]} has vertex index "
                                  f"{negative[1]}; indices must be 0 or more")
@@ -439,202 +438,6 @@ class SequenceScene(AnimatedScene):
                 f"{_changing_hint(shape_id)}"
             )
         return FrameGeometry(positions)
-
-
-def _entries(directory: Path) -> list[Path]:
-    """The entries of a frames directory, sorted.
-
-    Raises:
-        ValueError: naming the directory, when it cannot be listed (no permission).
-    """
-    try:
-        return sorted(directory.iterdir())
-    except OSError as error:
-        raise ValueError(f"frames directory {str(directory)!r}: cannot be listed "
-                         f"({error.strerror})") from None
-
-
-def _not_a_file(path: Path) -> str:
-    """Why an entry named like a frame file is not a regular file, in words."""
-    if path.is_symlink():
-        try:
-            path.stat()
-        except OSError as error:
-            return f"a symbolic link that leads to no file ({error.strerror})"
-    return "a directory" if path.is_dir() else "not a regular file"
-
-
-#: numpy types of PLY's scalar types.
-_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2",
-              "int16": "i2", "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4",
-              "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
-              "double": "f8", "float64": "f8"}
-
-
-def _ply_negative_index(path: Path) -> tuple[int, int] | None:
-    """``(face, index)`` of the first negative vertex index in a PLY file's faces, or
-    ``None``. Mitsuba's loader reads such an index as another vertex without a word, so
-    it is looked for before the file reaches Mitsuba. Indices of an unsigned type
-    cannot be negative and are not read; a header this does not follow is left to
-    Mitsuba."""
-    data = path.read_bytes()
-    end = data.find(b"end_header")
-    if end < 0:
-        return None
-    body = data[data.index(b"\n", end) + 1:]
-    form, elements = None, []
-    for line in data[:end].decode("ascii", "replace").splitlines():
-        words = line.split()
-        if words[:1] == ["format"] and len(words) > 1:
-            form = words[1]
-        elif words[:1] == ["element"] and len(words) == 3 and words[2].isdigit():
-            elements.append((words[1], int(words[2]), []))
-        elif words[:1] == ["property"] and elements:
-            elements[-1][2].append(words[1:])
-    faces = [e for e in elements if e[0] == "face"]
-    if form is None or not faces:
-        return None
-    index_type = next((p[2] for p in faces[0][2] if p[0] == "list" and len(p) == 4), None)
-    if index_type is None or _PLY_TYPES.get(index_type, "u")[0] == "u":
-        return None
-    try:
-        return _ply_first_negative(body, form, elements)
-    except (ValueError, IndexError, KeyError):
-        return None
-
-
-def _ply_first_negative(body: bytes, form: str, elements) -> tuple[int, int] | None:
-    """``(face, index)`` of the first negative index of a PLY body whose faces hold
-    only their vertex-index list, the elements before them skipped (raises
-    ``ValueError`` for a layout it does not follow). Binary faces that all have as many
-    corners as the first are read as one numpy table, others face by face."""
-    if form == "ascii":
-        lines = body.split(b"\n")
-        start = 0
-        for name, count, properties in elements:
-            if name == "face":
-                (_,) = properties
-                chosen = lines[start:start + count]
-                if b"-" not in b" ".join(chosen):
-                    return None
-                for k, line in enumerate(chosen):
-                    negative = [int(v) for v in line.split()[1:] if int(v) < 0]
-                    if negative:
-                        return k, negative[0]
-                return None
-            start += count
-        return None
-    order = "<" if form == "binary_little_endian" else ">"
-    offset = 0
-    for name, count, properties in elements:
-        if name == "face":
-            ((_, count_type, index_type, _),) = properties
-            count_dtype = np.dtype(order + _PLY_TYPES[count_type])
-            index_dtype = np.dtype(order + _PLY_TYPES[index_type])
-            corners = int(np.frombuffer(body, count_dtype, 1, offset)[0])
-            row = np.dtype([("n", count_dtype), ("i", index_dtype, (corners,))])
-            if count and len(body) - offset >= count * row.itemsize:
-                table = np.frombuffer(body, row, count, offset)
-                if (table["n"] == corners).all():
-                    bad = np.flatnonzero((table["i"] < 0).any(axis=1))
-                    if not len(bad):
-                        return None
-                    indices = table["i"][bad[0]]
-                    return int(bad[0]), int(indices[indices < 0][0])
-            for k in range(count):
-                corners = int(np.frombuffer(body, count_dtype, 1, offset)[0])
-                offset += count_dtype.itemsize
-                indices = np.frombuffer(body, index_dtype, corners, offset)
-                offset += corners * index_dtype.itemsize
-                if (indices < 0).any():
-                    return k, int(indices[indices < 0][0])
-            return None
-        if any(p[0] == "list" for p in properties):
-            raise ValueError("a list property before the faces")
-        offset += count * sum(np.dtype(_PLY_TYPES[p[0]]).itemsize for p in properties)
-    return None
-
-
-class _resolving_next_to:
-    """Context in which Mitsuba's file resolver also looks next to an XML file (as
-    ``mi.load_file`` does), so the scene's relative paths work."""
-
-    def __init__(self, source):
-        self._directory = source.parent if isinstance(source, Path) else None
-
-    def __enter__(self):
-        self._saved = mi.file_resolver()
-        if self._directory is not None:
-            resolver = mi.FileResolver(self._saved)
-            resolver.prepend(str(self._directory))
-            mi.set_file_resolver(resolver)
-
-    def __exit__(self, *exc):
-        mi.set_file_resolver(self._saved)
-
-
-def _configure_films(state, resolution, spp, box_filter: bool) -> None:
-    """Sets size, samples per pixel and box filter on every sensor of a parse tree,
-    adding the film, sampler or filter node a sensor leaves to its defaults.
-
-    Nodes are addressed by index: appending to ``state.nodes`` may move them."""
-    if resolution is not None:
-        try:
-            width, height = (int(v) for v in resolution)
-        except (TypeError, ValueError):
-            raise ValueError(f"resolution={resolution!r}: expected (width, height)") from None
-        if width < 1 or height < 1:
-            raise ValueError(f"resolution={resolution!r}: expected positive sizes")
-    if spp is not None and (not isinstance(spp, int) or isinstance(spp, bool) or spp < 1):
-        raise ValueError(f"spp={spp!r}: expected a positive int")
-    sensors = [k for k, node in enumerate(state.nodes) if node.type == mi.ObjectType.Sensor]
-    for sensor in sensors:
-        film = _child(state, sensor, mi.ObjectType.Film, "film", "hdrfilm")
-        sampler = _child(state, sensor, mi.ObjectType.Sampler, "sampler", "independent")
-        if resolution is not None:
-            state.nodes[film].props["width"] = width
-            state.nodes[film].props["height"] = height
-        if spp is not None:
-            state.nodes[sampler].props["sample_count"] = spp
-        if box_filter:
-            box = _add_node(state, mi.ObjectType.ReconstructionFilter, "box")
-            props = state.nodes[film].props
-            for name, value in list(props.items()):
-                if (
-                    isinstance(value, mi.Properties.ResolvedReference)
-                    and state.nodes[value.index()].type == mi.ObjectType.ReconstructionFilter
-                ):
-                    del props[name]
-            props["rfilter"] = box
-
-
-def _references(node) -> list[int]:
-    """Indices of the nodes a parse-tree node refers to (its children)."""
-    return [value.index() for _, value in node.props.items()
-            if isinstance(value, mi.Properties.ResolvedReference)]
-
-
-def _child(state, parent: int, kind, name: str, plugin: str) -> int:
-    """Index of node ``parent``'s child of type ``kind``, added as ``plugin`` (under
-    the property ``name``) when missing."""
-    for _, value in state.nodes[parent].props.items():
-        if (
-            isinstance(value, mi.Properties.ResolvedReference)
-            and state.nodes[value.index()].type == kind
-        ):
-            return value.index()
-    reference = _add_node(state, kind, plugin)
-    state.nodes[parent].props[name] = reference
-    return reference.index()
-
-
-def _add_node(state, kind, plugin: str) -> mi.Properties.ResolvedReference:
-    """Appends a node of plugin ``plugin`` with default properties; its reference."""
-    node = mi.parser.SceneNode()
-    node.type = kind
-    node.props = mi.Properties(plugin)
-    state.nodes.append(node)
-    return mi.Properties.ResolvedReference(len(state.nodes) - 1)
 
 
 def _free_key(description: dict, key: str) -> str:
