@@ -49,6 +49,10 @@ Lights (``UsdLux``)
     RectLight -> a ``rectangle``, DiskLight -> a ``disk`` area light, each emitting
     along the light's -Z as UsdLux does; time-sampled lights keep their first frame.
     Colour temperature and shaping (cones, IES) are not applied (said).
+Per-face materials
+    A mesh with ``materialBind`` GeomSubsets becomes one Mitsuba mesh per subset (id
+    from the subset's path, its faces, its bound material) plus one for the faces no
+    subset takes, each holding all the mesh's points and moving with it.
 Materials
     ``UsdPreviewSurface`` bound with ``UsdShade.MaterialBindingAPI``: diffuseColor,
     roughness, metallic to ``principled``; opacity below 1 through a ``mask``
@@ -60,8 +64,7 @@ Materials
     else grey.
 Not supported
     Curves, points, volumes, implicit shapes (Sphere, Cube, ...), point instancers,
-    NURBS, UsdSkel skinning that is not baked (the rest points render), per-face
-    materials of GeomSubsets (the mesh's own material covers it), references and
+    NURBS, UsdSkel skinning that is not baked (the rest points render), references and
     payloads that do not resolve: one warning line each on stderr, with the prim's path.
 
 A stage that cannot be opened, has nothing renderable or a bad time range is one
@@ -407,22 +410,48 @@ class UsdScene(AnimatedScene):
             length = np.linalg.norm(normals, axis=1, keepdims=True)
             normals = normals / np.where(length > 0, length, 1)
         double_sided = bool(mesh.GetDoubleSidedAttr().Get())
+        for part, chosen in self._material_parts(prim, mesh, time, topology_varies,
+                                                 source_faces, len(counts)):
+            bsdf, emission, colors = self._material(
+                part, mesh, double_sided, time, len(points),
+                None if topology_varies else source_faces[chosen])
+            self._meshes.append(_Mesh(
+                id=self._new_id(part.GetPath()), path=path, motion=motion,
+                faces=faces[chosen], topology_varies=topology_varies,
+                smooth=normals is not None or scheme not in (None, UsdGeom.Tokens.none),
+                bsdf=bsdf, emission=emission, normals=normals, colors=colors,
+                point_count=len(points),
+                local_points=points if motion == "rigid" else None))
+
+    def _material_parts(self, prim, mesh, time, topology_varies: bool, source_faces,
+                        polygon_count: int) -> list:
+        """``[(prim whose material binds, triangle selection)]``: the whole mesh, or,
+        with ``materialBind`` GeomSubsets, one part per subset (its faces, its bound
+        material) and one for the faces no subset takes (the mesh's material). A part
+        is a Mitsuba mesh of its own holding all the mesh's points. A mesh whose
+        topology is time-sampled is not split (said)."""
+        everything = np.ones(len(source_faces), dtype=bool)
         subsets = [subset for subset in UsdGeom.Subset.GetAllGeomSubsets(mesh)
-                   if subset.GetFamilyNameAttr().Get() == "materialBind"]
-        if subsets:
-            self._warn(f"{self._where}: {path}: per-face materials ({len(subsets)} GeomSubsets) "
-                       f"are not split out; the whole mesh takes the mesh's own material")
-        bsdf, emission, colors = self._material(prim, mesh, double_sided, time,
-                                                len(points), None if topology_varies
-                                                else source_faces)
-        entry = _Mesh(
-            id=self._new_id(path), path=path, motion=motion, faces=faces,
-            topology_varies=topology_varies,
-            smooth=normals is not None or scheme not in (None, UsdGeom.Tokens.none),
-            bsdf=bsdf, emission=emission, normals=normals, colors=colors,
-            point_count=len(points),
-            local_points=points if motion == "rigid" else None)
-        self._meshes.append(entry)
+                   if subset.GetFamilyNameAttr().Get() == "materialBind"
+                   and subset.GetElementTypeAttr().Get() == UsdGeom.Tokens.face]
+        if not subsets:
+            return [(prim, everything)]
+        if topology_varies:
+            self._warn(f"{self._where}: {prim.GetPath()}: its topology is time-sampled, so "
+                       f"its {len(subsets)} GeomSubsets are not split out; the whole mesh "
+                       f"takes the mesh's own material")
+            return [(prim, everything)]
+        taken = np.zeros(polygon_count, dtype=bool)
+        parts = []
+        for subset in subsets:
+            polygons = np.array(subset.GetIndicesAttr().Get(time) or [], dtype=np.int64)
+            polygons = polygons[(polygons >= 0) & (polygons < polygon_count)]
+            chosen = np.isin(source_faces, polygons) & ~taken[source_faces]
+            taken[polygons] = True
+            if chosen.any():
+                parts.append((subset.GetPrim(), chosen))
+        rest = ~taken[source_faces]
+        return ([(prim, rest)] if rest.any() else []) + parts
 
     def _geometry(self, mesh: _Mesh, time, cache):
         """``(points (V, 3) float64 world space, faces (F, 3) or None)`` of a mesh at

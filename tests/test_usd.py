@@ -663,12 +663,14 @@ def test20_holes_left_handed_faces_subsets_and_growing_point_counts(tmp_path):
     stage.SetStartTimeCode(0)
     stage.SetEndTimeCode(1)
     corners = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (2, 0, 0), (2, 1, 0)]
-    left = _quad(stage, "/Left", corners, counts=(4, 4, 2), indices=(0, 1, 2, 3, 1, 4, 5, 2,
-                                                                      0, 1))
+    left = _quad(stage, "/Left", corners, counts=(4, 4, 2, 3),
+                 indices=(0, 1, 2, 3, 1, 4, 5, 2, 0, 1, 1, 4, 5))
     left.CreateOrientationAttr(UsdGeom.Tokens.leftHanded)
     left.CreateHoleIndicesAttr([1])
-    UsdGeom.Subset.CreateGeomSubset(left, "red", UsdGeom.Tokens.face, [0],
-                                    familyName="materialBind")
+    red = UsdGeom.Subset.CreateGeomSubset(left, "red", UsdGeom.Tokens.face, [0],
+                                          familyName="materialBind")
+    _bind(red, _preview(stage, "/Looks/Red", diffuseColor=(0.9, 0.1, 0.1)))
+    _bind(left, _preview(stage, "/Looks/Blue", diffuseColor=(0.1, 0.1, 0.9)))
     growing = _quad(stage, "/Growing", [(0, 0, 0)] * 3, counts=(3,), indices=(0, 1, 2))
     growing.GetPointsAttr().Set([Gf.Vec3f(0, 0, 1), Gf.Vec3f(1, 0, 1), Gf.Vec3f(0, 1, 1)], 0)
     growing.GetPointsAttr().Set([Gf.Vec3f(0, 0, 1), Gf.Vec3f(1, 0, 1), Gf.Vec3f(0, 1, 1),
@@ -677,10 +679,15 @@ def test20_holes_left_handed_faces_subsets_and_growing_point_counts(tmp_path):
     said, warn = lines()
     animation = UsdScene(path, warn=warn)
     meshes = {m.id: m for m in animation._meshes}
-    # The hole (face 1) and the 2-vertex face are left out; left-handed faces reversed.
-    np.testing.assert_array_equal(meshes["Left"].faces, [[2, 1, 0], [3, 2, 0]])
+    # The hole (face 1) and the 2-vertex face are left out; left-handed faces reversed;
+    # the subset's face is a mesh of its own with the subset's material, the rest keeps
+    # the mesh's.
+    np.testing.assert_array_equal(meshes["Left_red"].faces, [[2, 1, 0], [3, 2, 0]])
+    np.testing.assert_array_equal(meshes["Left"].faces, [[5, 4, 1]])
+    assert meshes["Left_red"].bsdf["base_color"]["value"] == pytest.approx([0.9, 0.1, 0.1])
+    assert meshes["Left"].bsdf["base_color"]["value"] == pytest.approx([0.1, 0.1, 0.9])
+    assert animation.prim_paths()["Left_red"] == "/Left"
     assert sum("/Left" in line and "fewer than 3" in line for line in said) == 1
-    assert sum("/Left" in line and "GeomSubsets" in line for line in said) == 1
     scene = mi.load_dict(animation.scene_dict(resolution=(8, 8), spp=1))
     params = mi.traverse(scene)
     for i in range(2):
