@@ -47,12 +47,9 @@ class UpdatePolicy:
             always the best tree. ``"fresh"``: the same without the seed (temporal
             reuse off, for comparison). ``"refit"``: the tree of the last build with
             new boxes (:meth:`hlbvh.BVH.refit`), much cheaper, never wrong, but slower
-            to trace as the geometry moves away from the pose it was built for. (Frame
-            times, update + render at 4 spp, 480x270, frames 2-23, AMD EPYC Zen 5,
-            "auto" against "rebuild": cloth 124 / 138 ms, twist 101 / 109, fracture
-            396 / 404, rigid 698 / 698; docs/decisions.md.)
-        refit_tolerance: the drift ``"auto"`` accepts, a number >= 1 (default 1.05: at
-            1.3 fracture's refit trees traced 10-13% slower than rebuilt ones).
+            to trace as the geometry moves away from the pose it was built for.
+        refit_tolerance: the drift ``"auto"`` accepts, a number >= 1 (default 1.05;
+            looser tolerances let refit trees trace measurably slower).
         static: ``"native"`` (default): shapes that have not moved are traced by the
             scene's own accelerator (Embree on LLVM, OptiX on CUDA), any shape type
             included, and only the moving meshes by hlbvh: the fastest images.
@@ -65,16 +62,17 @@ class UpdatePolicy:
             first build, so their first motion does not rebuild the static structure
             without them. Unknown ids are refused, naming them.
         static_builder: with ``static="hlbvh"``, the builder of the static group once
-            meshes have moved out of it (``"sah"`` by default: it is built once and traced every frame, so the
-            best tree pays; measured on the cloth scene's ground and pole: SAH cost 7.9
-            with "hlbvh", 4.5 with "sah", 1.5x the primary rays per second), or
-            ``"same"`` for the scene's own builder.
+            meshes have moved out of it (``"sah"`` by default: it is built once and
+            traced every frame, so the best tree pays), or ``"same"`` for the scene's
+            own builder.
         static_leaf_size: the most triangles in a leaf of that static tree: ``"auto"``
-            (default: 2 with the ``"sah"`` static builder, whose trees trace 20-30%
-            faster with leaves of 2 than of 4 on mitsuba-data's matpreview and on the
-            cloth scene, where ``"hlbvh"`` trees trace slower with them; otherwise the
-            scene's ``leaf_size``), ``"same"`` (the scene's ``leaf_size``) or an int in
-            1..16.
+            (default: 2 with the ``"sah"`` static builder, whose trees trace faster
+            with leaves of 2, while ``"hlbvh"`` trees trace slower with them; otherwise
+            the scene's ``leaf_size``), ``"same"`` (the scene's ``leaf_size``) or an
+            int in 1..16.
+
+    The defaults' measurements (frame times of each policy, the static tree's builder
+    and leaf size) are in docs/decisions.md.
     """
 
     update: str = "auto"
