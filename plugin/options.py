@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -231,13 +232,19 @@ def open_animation(scene: str, frames_dir, triangles, frames, topology=None,
         animation = scenes.get(scene, **options, frames=max(default, stop))
         source = {"scene": scene, "triangles": animation.triangles}
     elif Path(scene).suffix.lower() in USD_SUFFIXES:
-        animation, source = _open_usd(scene, frames_dir, triangles, topology, camera)
+        held: list[str] = []  # the stage's warnings, said once the frames are valid
+        animation, source = _open_usd(scene, frames_dir, triangles, topology, camera,
+                                      held.append)
         stop = animation.frame_count if stop is None else stop
         if stop > animation.frame_count:
             last = animation.frame_count - 1
             raise UserError(f"--frames {frames}: {scene!r} has frames 0:{animation.frame_count} "
                             f"(time codes {animation.time_code(0):g}..{animation.time_code(last):g},"
                             f" startTimeCode..endTimeCode)")
+        if start < stop:
+            for line in held:
+                print(f"hlbvh: {line}", file=sys.stderr)
+        animation.warn_with(None)
     else:
         path = Path(scene)
         if path.suffix.lower() != ".xml" or not path.is_file():
@@ -268,7 +275,7 @@ def open_animation(scene: str, frames_dir, triangles, frames, topology=None,
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 
 
-def _open_usd(scene: str, frames_dir, triangles, topology, camera) -> tuple:
+def _open_usd(scene: str, frames_dir, triangles, topology, camera, warn) -> tuple:
     """``(animation, source)`` of a USD stage: a :class:`hlbvh.scenes.usd.UsdScene`
     (imported here, ``pxr`` being an optional extra) and what identifies it (with the
     camera when ``--camera`` names one, so a resume through another is refused)."""
@@ -282,7 +289,7 @@ def _open_usd(scene: str, frames_dir, triangles, topology, camera) -> tuple:
     except ImportError as error:
         raise UserError(f"scene {scene!r}: {error}") from None
     try:
-        animation = UsdScene(str(scene), camera=camera)
+        animation = UsdScene(str(scene), camera=camera, warn=warn)
     except ValueError as error:
         raise UserError(str(error)) from None
     source = {"scene": str(Path(scene).resolve()), "scene_sha256": animation.source_digest()}

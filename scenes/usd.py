@@ -166,7 +166,9 @@ class UsdScene(AnimatedScene):
 
     def __init__(self, path, camera: str | None = None, warn=None):
         self._path = Path(path)
-        self._warn = warn or (lambda line: print(f"hlbvh: {line}", file=sys.stderr))
+        emit = warn or _print_warning
+        pending: list[str] = []
+        self._warn = pending.append  # said once the stage is known to render
         self._where = f"stage {str(self._path)!r}"
         if not self._path.is_file():
             raise ValueError(f"{self._where}: no such file")
@@ -185,11 +187,21 @@ class UsdScene(AnimatedScene):
         self._ids: set[str] = set(_RESERVED)
         self._meshes: list[_Mesh] = []
         self._lights: dict = {}
-        self._collect()
+        unresolved = self._collect()
         if not self._meshes:
+            why = (f"; references or payloads that do not resolve: {', '.join(unresolved)}"
+                   if unresolved else "")
             raise ValueError(f"{self._where}: nothing renderable (no visible UsdGeom.Mesh "
-                             f"of purpose default or render)")
+                             f"of purpose default or render){why}")
         self._camera = self._pick_camera(camera)
+        self._warn = emit
+        for line in pending:
+            emit(line)
+
+    def warn_with(self, warn=None) -> None:
+        """Where later warning lines go (those said while rendering, such as a
+        time-sampled camera's): ``warn``, or stderr for ``None``."""
+        self._warn = warn or _print_warning
 
     def __repr__(self) -> str:
         return (f"UsdScene({str(self._path)!r}, frames={self.frame_count}, "
@@ -299,13 +311,15 @@ class UsdScene(AnimatedScene):
 
     # ---- Reading the stage -------------------------------------------------------
 
-    def _collect(self) -> None:
+    def _collect(self) -> list[str]:
         """Walks the stage once (through instance proxies): meshes, lights, and a
-        warning for each prim that will not render."""
+        warning for each prim that will not render. Returns the prim paths whose
+        reference or payload does not resolve."""
         stats = _Stats()
         time = Usd.TimeCode(self._start)
         cache = UsdGeom.XformCache(time)
-        for path, said in _unresolved_arcs(self.stage):
+        unresolved = _unresolved_arcs(self.stage)
+        for path, said in unresolved:
             self._warn(f"{self._where}: {path}: a reference or payload does not resolve "
                        f"({said}); what it would bring is not rendered")
         predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
@@ -345,6 +359,7 @@ class UsdScene(AnimatedScene):
             self._warn(f"{self._where}: {len(stats.moving_normals)} moving mesh(es) with "
                        f"authored normals ({stats.moving_normals[0]}, ...): their normals "
                        f"are recomputed from the points every frame")
+        return [f"{path} ({said})" for path, said in unresolved]
 
     def _renders(self, prim, imageable, time) -> bool:
         """Whether an imageable prim (and so its subtree) renders: visible at the first
@@ -749,6 +764,11 @@ class UsdScene(AnimatedScene):
 
 
 # ---- Helpers -------------------------------------------------------------------------
+
+
+def _print_warning(line: str) -> None:
+    """A warning line on stderr, as ``hlbvh render`` says them."""
+    print(f"hlbvh: {line}", file=sys.stderr)
 
 
 def _open(path: Path, where: str):
