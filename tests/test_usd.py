@@ -717,3 +717,20 @@ def test21_the_stage_s_still_meshes_are_built_once_and_never_leave(shot):
         assert accel.last_update["groups"]["static"]["left"] == []
         assert sorted(accel.last_update["moving"]) == sorted(animation.animated_ids())
     assert accel.static.builds == 1
+
+
+def test22_a_resume_after_the_stage_or_its_layers_changed_is_refused(tmp_path, capsys):
+    layer = tmp_path / "post.usda"
+    write_z_up(layer)
+    shot_path = tmp_path / "shot.usda"
+    stage = Usd.Stage.CreateNew(str(shot_path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    stage.GetRootLayer().subLayerPaths.append("./post.usda")
+    stage.GetRootLayer().Save()
+    argv = ["render", shot_path, "--frames", "0:1", "--out", tmp_path / "out", *TINY]
+    assert run_cli(capsys, *argv)[0] == 0
+    layer.write_text(layer.read_text().replace("150", "140"))  # the sublayer is edited
+    status, _, err = run_cli(capsys, *argv)
+    refusals = [line for line in err if not line.startswith("hlbvh: stage")]
+    assert status == 2 and len(refusals) == 1 and "scene_sha256" in refusals[0]
