@@ -57,8 +57,11 @@ Materials
     ``UsdPreviewSurface`` bound with ``UsdShade.MaterialBindingAPI``: diffuseColor,
     roughness, metallic to ``principled``; opacity below 1 through a ``mask``
     (``opacityThreshold`` makes it a cutout); emissiveColor to an ``area`` emitter on
-    the mesh. Textured inputs keep their authored value (textures are not read, said
-    once per material). Without a material the ``displayColor`` primvar gives a
+    the mesh. A diffuseColor read from a ``UsdUVTexture`` (its file on disk, not
+    inside a .usdz) becomes a ``bitmap`` over the mesh's texture coordinates (the
+    ``UsdPrimvarReader_float2``'s primvar, ``st`` by default; per point, or faceVarying
+    with the points split where their uv differ); other textured inputs keep their
+    authored value (said once per material). Without a material the ``displayColor`` primvar gives a
     diffuse colour: per point or per face as a Mitsuba mesh attribute
     (``vertex_color``, ``face_color``), its mean for other interpolations (said),
     else grey.
@@ -135,6 +138,8 @@ class _Mesh:
     normals: np.ndarray | None = None           # (V, 3) authored world-space normals
     colors: tuple | None = None                 # ("vertex_color" | "face_color", (N, 3))
     point_count: int = 0                        # V of the first frame
+    vertex_points: np.ndarray | None = None     # (V',) the point of each Mitsuba vertex
+    texcoords: np.ndarray | None = None         # (V', 2) Mitsuba uv, with a texture
 
 
 @dataclass
@@ -246,10 +251,11 @@ class UsdScene(AnimatedScene):
             if mesh.motion == "static":
                 continue
             points, faces = self._geometry(mesh, time, cache)
-            if faces is None and len(points) <= int(mesh.faces.max(initial=0)):
+            if faces is None and mesh.vertex_points is None \
+                    and len(points) <= int(mesh.faces.max(initial=0)):
                 raise ValueError(f"{self._where}: mesh {mesh.path} has {len(points)} points "
                                  f"at time code {time.GetValue():g}, too few for its faces")
-            if faces is None and len(points) != mesh.point_count:
+            if faces is None and mesh.vertex_points is None and len(points) != mesh.point_count:
                 faces = mesh.faces  # more points than the first frame's: new vertex count
             frame[mesh.id] = FrameGeometry(
                 np.ascontiguousarray(points, dtype=np.float32).reshape(-1),
@@ -395,8 +401,8 @@ class UsdScene(AnimatedScene):
         rigid = not deforming and _transform_varies(prim)
         motion = "deforming" if deforming or topology_varies else "rigid" if rigid else "static"
         points = _array(points_attr.Get(time), 3)
-        faces, source_faces = _triangulate(mesh, time, len(points), path, self._where,
-                                           with_faces=True)
+        faces, source_faces, corners = _triangulate(mesh, time, len(points), path,
+                                                    self._where, with_faces=True)
         if len(points) == 0 or len(faces) == 0:
             self._warn(f"{self._where}: {path}: a mesh without points or faces; it is not "
                        f"rendered")
@@ -425,18 +431,77 @@ class UsdScene(AnimatedScene):
             length = np.linalg.norm(normals, axis=1, keepdims=True)
             normals = normals / np.where(length > 0, length, 1)
         double_sided = bool(mesh.GetDoubleSidedAttr().Get())
-        for part, chosen in self._material_parts(prim, mesh, time, topology_varies,
-                                                 source_faces, len(counts)):
-            bsdf, emission, colors = self._material(
-                part, mesh, double_sided, time, len(points),
-                None if topology_varies else source_faces[chosen])
+        parts = [(part, chosen, *self._material(
+                    part, mesh, double_sided, time, len(points),
+                    None if topology_varies else source_faces[chosen]))
+                 for part, chosen in self._material_parts(prim, mesh, time, topology_varies,
+                                                          source_faces, len(counts))]
+        wanted = next((st for *_, st in parts if st is not None), None)
+        uv = None if wanted is None else self._texcoords(
+            prim, mesh, time, wanted, len(points), corners, topology_varies)
+        vertex_points = None
+        if uv is not None and uv[0] is not None:  # faceVarying: split by (point, uv)
+            vertex_points, split_faces, texcoords = uv
+            faces = split_faces if np.linalg.det(transform[:3, :3]) >= 0 \
+                else split_faces[:, ::-1].copy()
+        elif uv is not None:
+            texcoords = uv[2]
+        for part, chosen, bsdf, emission, colors, st in parts:
+            if st is not None and uv is None:
+                bsdf = self._material(part, mesh, double_sided, time, len(points), None,
+                                      textures=False)[0]
+            if vertex_points is not None:
+                if colors is not None and colors[0] == "vertex_color":
+                    colors = (colors[0], colors[1][vertex_points])
             self._meshes.append(_Mesh(
                 id=self._new_id(part.GetPath()), path=path, motion=motion,
                 faces=faces[chosen], topology_varies=topology_varies,
                 smooth=normals is not None or scheme not in (None, UsdGeom.Tokens.none),
-                bsdf=bsdf, emission=emission, normals=normals, colors=colors,
-                point_count=len(points),
-                local_points=points if motion == "rigid" else None))
+                bsdf=bsdf, emission=emission,
+                normals=None if normals is None
+                else normals if vertex_points is None else normals[vertex_points],
+                colors=colors, point_count=len(points),
+                local_points=points if motion == "rigid" else None,
+                vertex_points=vertex_points,
+                texcoords=None if uv is None else texcoords))
+
+    def _texcoords(self, prim, mesh, time, name: str, point_count: int, corners,
+                   topology_varies: bool):
+        """The texture coordinates of primvar ``name`` as Mitsuba's uv (``(s, 1 - t)``:
+        USD's t runs up the image, Mitsuba's v down): ``(None, None, (V, 2))`` per
+        point, or, faceVarying, ``(vertex_points, faces, (V', 2))`` with the points
+        split where the uv differ. ``None`` (said) when the mesh has no such primvar,
+        it is of another interpolation or the topology is time-sampled."""
+        primvar = UsdGeom.PrimvarsAPI(mesh).GetPrimvar(name)
+        values = primvar.Get(time) if primvar and primvar.HasValue() else None
+        interpolation = primvar.GetInterpolation() if primvar else None
+        why = None
+        if values is None:
+            why = f"has no primvar {name!r}"
+        elif topology_varies:
+            why = "has a time-sampled topology"
+        elif interpolation not in (UsdGeom.Tokens.vertex, UsdGeom.Tokens.varying,
+                                   UsdGeom.Tokens.faceVarying):
+            why = f"has {name!r} of interpolation {interpolation!r}"
+        if why is None:
+            values = _array(values, 2)
+            indices = primvar.GetIndices(time) if primvar.IsIndexed() else None
+            indices = (np.arange(len(values)) if indices is None
+                       else np.array(indices, dtype=np.int64))
+            if interpolation != UsdGeom.Tokens.faceVarying and len(indices) == point_count:
+                st = values[indices]
+                return None, None, np.stack([st[:, 0], 1 - st[:, 1]], axis=1)
+            face_vertex = np.array(mesh.GetFaceVertexIndicesAttr().Get(time), dtype=np.int64)
+            if interpolation == UsdGeom.Tokens.faceVarying and len(indices) == len(face_vertex):
+                keys = np.stack([face_vertex, indices], axis=1)
+                unique, inverse = np.unique(keys, axis=0, return_inverse=True)
+                st = values[unique[:, 1]]
+                return (unique[:, 0], inverse.reshape(-1)[corners].astype(np.uint32),
+                        np.stack([st[:, 0], 1 - st[:, 1]], axis=1))
+            why = f"has {name!r} of another length than its {interpolation} count"
+        self._warn(f"{self._where}: {prim.GetPath()}: {why}; its textures are not "
+                   f"mapped (their authored values are used)")
+        return None
 
     def _material_parts(self, prim, mesh, time, topology_varies: bool, source_faces,
                         polygon_count: int) -> list:
@@ -478,6 +543,8 @@ class UsdScene(AnimatedScene):
             local = _array(UsdGeom.Mesh(prim).GetPointsAttr().Get(time), 3)
         transform = self._root @ _matrix(cache.GetLocalToWorldTransform(prim))
         points = local @ transform[:3, :3].T + transform[:3, 3]
+        if mesh.vertex_points is not None:
+            points = points[mesh.vertex_points]
         faces = None
         if mesh.topology_varies:
             faces = _triangulate(UsdGeom.Mesh(prim), time, len(local), mesh.path, self._where)
@@ -486,9 +553,12 @@ class UsdScene(AnimatedScene):
         return points, faces
 
     def _material(self, prim, mesh, double_sided: bool, time, point_count: int,
-                  source_faces) -> tuple[dict, tuple | None, tuple | None]:
-        """The mesh's BSDF dict, emitted radiance (``None``: none) and the colour
-        attribute its BSDF reads (``None``: none; see :meth:`_display_color`)."""
+                  source_faces, textures: bool = True) -> tuple:
+        """``(bsdf, emission, colors, st)``: the mesh's BSDF dict, emitted radiance
+        (``None``: none), the colour attribute its BSDF reads (``None``: none; see
+        :meth:`_display_color`) and the primvar of texture coordinates a bitmap of it
+        reads (``None``: none; ``textures=False``: the textured inputs' authored values
+        instead)."""
         material, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
         shader = None
         if material:
@@ -507,7 +577,7 @@ class UsdScene(AnimatedScene):
             else:
                 reflectance, colors = {"type": "rgb", "value": list(color)}, None
             bsdf = {"type": "diffuse", "reflectance": reflectance}
-            return (_two_sided(bsdf) if double_sided else bsdf), None, colors
+            return (_two_sided(bsdf) if double_sided else bsdf), None, colors, None
         values, textured = {}, []
         for name, default in PREVIEW_DEFAULTS.items():
             shader_input = shader.GetInput(name)
@@ -516,12 +586,19 @@ class UsdScene(AnimatedScene):
                 textured.append(name)
             values[name] = default if value is None else (
                 tuple(float(v) for v in value) if isinstance(default, tuple) else float(value))
+        base_color = {"type": "rgb", "value": list(values["diffuseColor"])}
+        st = None
+        if textures and "diffuseColor" in textured:
+            bitmap = _uv_texture(shader.GetInput("diffuseColor"), time)
+            if bitmap is not None:
+                base_color, st = bitmap
+                textured.remove("diffuseColor")
         if textured:
             self._warn_once(f"{self._where}: {material.GetPath()}: textured inputs "
                             f"({', '.join(textured)}) are not read; their authored values "
                             f"are used")
         bsdf = {"type": "principled",
-                "base_color": {"type": "rgb", "value": list(values["diffuseColor"])},
+                "base_color": base_color,
                 "roughness": min(max(values["roughness"], 0.0), 1.0),
                 "metallic": min(max(values["metallic"], 0.0), 1.0)}
         if double_sided:
@@ -532,7 +609,7 @@ class UsdScene(AnimatedScene):
         if opacity < 1:
             bsdf = {"type": "mask", "opacity": opacity, "bsdf": bsdf}
         emission = values["emissiveColor"]
-        return bsdf, (emission if any(c > 0 for c in emission) else None), None
+        return bsdf, (emission if any(c > 0 for c in emission) else None), None, st
 
     def _display_color(self, prim, mesh, time, point_count: int, source_faces):
         """The ``displayColor`` primvar: one colour ``(r, g, b)`` when it is constant
@@ -839,7 +916,8 @@ def _transform_varies(prim) -> bool:
 def _triangulate(mesh, time, point_count: int, path, where: str, with_faces: bool = False):
     """Fan triangulation of a mesh's polygons at ``time``: ``(F, 3)`` uint32, holes
     left out, winding flipped for ``orientation = leftHanded``; with ``with_faces``
-    also each triangle's polygon index (``(F,)``).
+    also each triangle's polygon index (``(F,)``) and its corners' face-vertex indices
+    (``(F, 3)``, positions in ``faceVertexIndices``, where faceVarying values sit).
 
     Raises:
         ValueError: indices that do not add up to the face counts, or that point past
@@ -863,10 +941,11 @@ def _triangulate(mesh, time, point_count: int, path, where: str, with_faces: boo
     k = np.arange(len(face)) - first_triangle[face] + 1
     start = offsets[face]
     corners = np.stack([start, start + k, start + k + 1], axis=1)
-    triangles = indices[corners].astype(np.uint32).reshape(-1, 3)
+    corners = corners.reshape(-1, 3)
     if mesh.GetOrientationAttr().Get(time) == UsdGeom.Tokens.leftHanded:
-        triangles = triangles[:, ::-1].copy()
-    return (triangles, face) if with_faces else triangles
+        corners = corners[:, ::-1].copy()
+    triangles = indices[corners].astype(np.uint32).reshape(-1, 3)
+    return (triangles, face, corners) if with_faces else triangles
 
 
 def _vertex_normals(mesh, time, point_count: int) -> np.ndarray | None:
@@ -922,6 +1001,42 @@ def _dome_pole(dome, kind: str, stage) -> np.ndarray:
     return np.eye(3)
 
 
+#: UsdUVTexture's wrap modes as Mitsuba's bitmap's (``black`` clamps).
+_WRAPS = {"repeat": "repeat", "mirror": "mirror", "clamp": "clamp", "black": "clamp",
+          "useMetadata": "repeat"}
+
+
+def _uv_texture(shader_input, time):
+    """``(bitmap texture dict, st primvar name)`` of a UsdPreviewSurface input
+    connected to a ``UsdUVTexture`` whose file resolves (its ``st`` read by a
+    ``UsdPrimvarReader_float2``, ``st`` by default), else ``None``."""
+    texture = _connected_shader(shader_input)
+    if texture is None or texture.GetIdAttr().Get() != "UsdUVTexture":
+        return None
+    file_input = texture.GetInput("file")
+    asset = file_input.Get(time) if file_input else None
+    if asset is None or not asset.resolvedPath or "[" in asset.resolvedPath:
+        return None  # missing, or inside a .usdz package Mitsuba cannot read from
+    name = "st"
+    reader = _connected_shader(texture.GetInput("st"))
+    if reader is not None and reader.GetInput("varname"):
+        name = str(reader.GetInput("varname").Get(time) or "st")
+    wrap = texture.GetInput("wrapS")
+    wrap = str(wrap.Get(time)) if wrap and wrap.Get(time) else "useMetadata"
+    return {"type": "bitmap", "filename": asset.resolvedPath,
+            "wrap_mode": _WRAPS.get(wrap, "repeat")}, name
+
+
+def _connected_shader(shader_input):
+    """The shader an input is connected to, or ``None``."""
+    if not shader_input or not shader_input.HasConnectedSource():
+        return None
+    sources, _ = shader_input.GetConnectedSources()
+    if not sources:
+        return None
+    return UsdShade.Shader(sources[0].source.GetPrim())
+
+
 def _two_sided(bsdf: dict) -> dict:
     return {"type": "twosided", "material": bsdf}
 
@@ -936,7 +1051,8 @@ def _mitsuba_mesh(mesh: _Mesh, points: np.ndarray, faces: np.ndarray) -> mi.Mesh
         props["emitter"] = mi.load_dict({"type": "area", "radiance": {
             "type": "rgb", "value": [float(c) for c in mesh.emission]}})
     shape = mi.Mesh(mesh.id, len(points), len(faces), props=props,
-                    has_vertex_normals=mesh.smooth)
+                    has_vertex_normals=mesh.smooth,
+                    has_vertex_texcoords=mesh.texcoords is not None)
     params = mi.traverse(shape)
     params["vertex_positions"] = mi.Float(np.ascontiguousarray(points, np.float32).reshape(-1))
     params["faces"] = mi.UInt32(np.ascontiguousarray(faces, np.uint32).reshape(-1))
@@ -947,6 +1063,9 @@ def _mitsuba_mesh(mesh: _Mesh, points: np.ndarray, faces: np.ndarray) -> mi.Mesh
         else:
             params["vertex_normals"] = vertex_normals(params["vertex_positions"],
                                                       params["faces"])
+    if mesh.texcoords is not None:
+        params["vertex_texcoords"] = mi.Float(
+            np.ascontiguousarray(mesh.texcoords, np.float32).reshape(-1))
     if mesh.colors is not None:
         name, values = mesh.colors
         shape.add_attribute(name, 3, mi.Float(np.ascontiguousarray(values, np.float32)

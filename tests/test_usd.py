@@ -734,3 +734,71 @@ def test22_a_resume_after_the_stage_or_its_layers_changed_is_refused(tmp_path, c
     status, _, err = run_cli(capsys, *argv)
     refusals = [line for line in err if not line.startswith("hlbvh: stage")]
     assert status == 2 and len(refusals) == 1 and "scene_sha256" in refusals[0]
+
+
+def write_textured(path, texture, frames=2):
+    """A stage in metres: a deforming 2-quad strip facing the camera with faceVarying
+    (indexed) st and a UsdUVTexture on its diffuseColor; the texture ``texture``."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(frames - 1)
+    strip = _quad(stage, "/Strip", [(0, 0, 0)] * 6, counts=(4, 4),
+                  indices=(0, 1, 4, 3, 1, 2, 5, 4))
+    for t in range(frames):
+        strip.GetPointsAttr().Set([Gf.Vec3f(-1, -1, 0), Gf.Vec3f(0, -1, 0.1 * t),
+                                   Gf.Vec3f(1, -1, 0), Gf.Vec3f(-1, 1, 0),
+                                   Gf.Vec3f(0, 1, 0.1 * t), Gf.Vec3f(1, 1, 0)], t)
+    st = UsdGeom.PrimvarsAPI(strip).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
+                                                  UsdGeom.Tokens.faceVarying)
+    # Each quad maps the whole image: the shared edge has two uv (a seam).
+    st.Set([(0, 0), (1, 0), (1, 1), (0, 1)])
+    st.SetIndices([0, 1, 2, 3, 0, 1, 2, 3])
+    material = UsdShade.Material.Define(stage, "/Looks/Printed")
+    surface = UsdShade.Shader.Define(stage, "/Looks/Printed/Surface")
+    surface.CreateIdAttr("UsdPreviewSurface")
+    image = UsdShade.Shader.Define(stage, "/Looks/Printed/Image")
+    image.CreateIdAttr("UsdUVTexture")
+    image.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(Sdf.AssetPath(str(texture)))
+    reader = UsdShade.Shader.Define(stage, "/Looks/Printed/Reader")
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("st")
+    image.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(
+        reader.ConnectableAPI(), "result")
+    surface.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
+        image.ConnectableAPI(), "rgb")
+    material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
+    _bind(strip, material)
+    camera = UsdGeom.Camera.Define(stage, "/Cam")
+    camera.AddTranslateOp().Set(Gf.Vec3d(0, 0, 4))
+    dome = UsdLux.DomeLight.Define(stage, "/Sky")
+    dome.CreateIntensityAttr(1.0)
+    stage.GetRootLayer().Save()
+    return path
+
+
+def test23_uv_textures_map_the_image_upright_and_split_seams(tmp_path, capsys):
+    texture = tmp_path / "print.exr"
+    rows = np.zeros((8, 8, 3), dtype=np.float32)
+    rows[:4, :, 0] = 1.0  # the image's top half red, its bottom half blue
+    rows[4:, :, 2] = 1.0
+    mi.Bitmap(rows).write(str(texture))
+    path = write_textured(tmp_path / "printed.usda", texture)
+    said, warn = lines()
+    animation = UsdScene(path, warn=warn)
+    assert not [line for line in said if "texture" in line], said
+    strip = {m.id: m for m in animation._meshes}["Strip"]
+    assert strip.motion == "deforming" and len(strip.vertex_points) == 8  # 6 points, 2 split
+    # Mitsuba's uv are (s, 1 - t): the first quad's corners (0,0) (1,0) (1,1) (0,1) in st.
+    np.testing.assert_allclose(strip.texcoords[strip.faces[0]], [[0, 1], [1, 1], [1, 0]])
+    scene = mi.load_dict(animation.scene_dict(resolution=(16, 16), spp=4))
+    params = mi.traverse(scene)
+    for i in range(2):
+        scenes.apply_frame(scene, params, animation.frame(i))
+        np.testing.assert_allclose(mitsuba_triangles(scene)["Strip"],
+                                   pxr_triangles(path, Usd.TimeCode(i))["/Strip"], atol=1e-6)
+    image = np.array(mi.render(scene, seed=0))
+    top, bottom = image[3, 8], image[12, 8]
+    assert top[0] > 5 * top[2] and bottom[2] > 5 * bottom[0], (top, bottom)
+    folders = render_both(capsys, path, tmp_path / "out")
+    assert_frames_agree(folders, range(2))
