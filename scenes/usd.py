@@ -275,14 +275,15 @@ class UsdScene(AnimatedScene):
         return result
 
     def source_digest(self) -> str:
-        """SHA-256 (hex) of every layer the stage uses and the light textures it
-        names, so a render folder can tell that the stage changed between two runs."""
+        """SHA-256 (hex) of every layer the stage uses and the textures its lights and
+        materials read, so a render folder can tell that the stage changed between two
+        runs."""
         # A layer inside a .usdz package is "package.usdz[layer.usdc]": the package is
         # the file that changes.
         files = [Path(layer.realPath.split("[")[0]) for layer in self.stage.GetUsedLayers()
                  if layer.realPath]
-        files += [Path(light["filename"]) for light in self._lights.values()
-                  if "filename" in light]
+        files += [Path(name) for light in self._lights.values() for name in _filenames(light)]
+        files += [Path(name) for mesh in self._meshes for name in _filenames(mesh.bsdf)]
         digest = hashlib.sha256()
         for path in sorted(set(files)):
             digest.update(str(path).encode() + b"\0")
@@ -1025,6 +1026,15 @@ def _uv_texture(shader_input, time):
     wrap = str(wrap.Get(time)) if wrap and wrap.Get(time) else "useMetadata"
     return {"type": "bitmap", "filename": asset.resolvedPath,
             "wrap_mode": _WRAPS.get(wrap, "repeat")}, name
+
+
+def _filenames(description: dict) -> list[str]:
+    """Every ``filename`` a Mitsuba description dict names, nested ones included."""
+    names = [description["filename"]] if "filename" in description else []
+    for value in description.values():
+        if isinstance(value, dict):
+            names += _filenames(value)
+    return names
 
 
 def _connected_shader(shader_input):

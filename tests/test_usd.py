@@ -802,3 +802,7 @@ def test23_uv_textures_map_the_image_upright_and_split_seams(tmp_path, capsys):
     assert top[0] > 5 * top[2] and bottom[2] > 5 * bottom[0], (top, bottom)
     folders = render_both(capsys, path, tmp_path / "out")
     assert_frames_agree(folders, range(2))
+    digest = animation.source_digest()
+    rows[0, 0] = 0.5
+    mi.Bitmap(rows).write(str(texture))
+    assert UsdScene(path, warn=warn).source_digest() != digest  # the texture is hashed
