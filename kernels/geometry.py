@@ -23,6 +23,10 @@ def as_points(vertices):
         raise TypeError(
             f"vertices: expected a Dr.Jit Float (3·V) or Array3f/Point3f, got {type(vertices).__name__}"
         )
+    if dr.is_tensor_v(vertices):
+        raise TypeError(f"vertices: expected a flat Float (3·V) or Array3f/Point3f, got a "
+                        f"tensor of shape {tuple(vertices.shape)} ({type(vertices).__name__}); "
+                        "pass its .array (flat, xyz interleaved)")
     if dr.depth_v(vertices) == 1:
         if dr.type_v(vertices) not in (dr.VarType.Float32, dr.VarType.Float64):
             raise TypeError(f"vertices: expected floating point values, got {type(vertices).__name__}")

@@ -137,6 +137,9 @@ def test07_wrong_types_raise_type_errors():
         hlbvh.build(np.zeros(9, np.float32), mi.UInt32([0, 1, 2]))
     with pytest.raises(TypeError, match="faces"):
         hlbvh.build(mi.Float(np.zeros(9)), [0, 1, 2])
+    with pytest.raises(TypeError, match=r"vertices: .* got a tensor of shape \(3, 3\) "
+                                        r"\(TensorXf\); pass its .array"):
+        hlbvh.build(mi.TensorXf(np.zeros((3, 3), np.float32)), mi.UInt32([0, 1, 2]))
 
 
 @pytest.mark.parametrize("builder", BUILDERS)
