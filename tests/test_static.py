@@ -277,15 +277,20 @@ def test08_stale_queries_and_emptied_meshes_are_refused_in_one_line():
     params = mi.traverse(scene)
     _move(params, "mover", [0.3, 0, 0])
     ray = bounce_rays(scene, 64)
-    with pytest.raises(RuntimeError, match="'mover' \\(Mesh\\) changed since"):
+    with pytest.raises(RuntimeError) as stale:
         accel.ray_intersect_preliminary(ray)
+    assert str(stale.value) == (
+        "SceneAccel: shape 'mover' (Mesh) changed since the accelerator's last update(); "
+        "call update() before tracing (it would answer from the old geometry)")
     accel.update()
     accel.ray_intersect_preliminary(ray)
     faces = mi.UInt32(params["mover.faces"])  # a new handle: Mitsuba writes into the old
     params["mover.faces"] = mi.UInt32()
     params.update()
-    with pytest.raises(ValueError, match="'mover' \\(Mesh\\) has no triangles any more"):
+    with pytest.raises(ValueError) as emptied:
         accel.update()
+    assert str(emptied.value) == ("shape 'mover' (Mesh) has no triangles any more: it would "
+                                  "silently be missing from the image; give it faces")
     params["mover.faces"] = faces
     params.update()
     accel.update()
@@ -296,9 +301,11 @@ def test08_stale_queries_and_emptied_meshes_are_refused_in_one_line():
 def test09_rays_of_mismatched_widths_are_named():
     accel = hlbvh.SceneAccel(mi.load_dict(mixed_scene()))
     ray = mi.Ray3f(mi.Point3f([0, 1, 2], [0, 0, 0], [5, 5, 5]), mi.Vector3f([0, 0], [0, 0], [-1, -1]))
-    with pytest.raises(ValueError, match="ray: its fields hold different numbers of rays "
-                                         "\\(o 3, d 2"):
+    with pytest.raises(ValueError) as ragged:
         accel.ray_intersect_preliminary(ray)
+    assert str(ragged.value) == ("ray: its fields hold different numbers of rays (o 3, d 2, "
+                                 "maxt 1, time 1); give every field one entry per ray, or one "
+                                 "for all")
 
 
 def test10_a_hand_written_loop_with_hlbvh_traverse_renders_like_hlbvh_render():
