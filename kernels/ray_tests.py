@@ -8,9 +8,16 @@ slots of :mod:`hlbvh.kernels.slots`, and the per-ray constants they share.
   (``|d| >= FLT_MIN``, sign kept), so no ``0 · inf = NaN`` reaches the min/max.
 - **Watertight ray/triangle test** (Woop, Benthin & Wald, JCGT 2013): vertices are
   translated to the ray origin, permuted so the ray's dominant axis is z and sheared so
-  the ray becomes the z axis; triangles whose edge functions leave float32's range, or
-  whose determinant rounds to zero, are recomputed in double precision. The traversal
-  module's docstring says what this guarantees.
+  the ray becomes the z axis. Every vertex is transformed the same way whichever
+  triangle it belongs to, and the 2D edge functions U, V, W of a shared edge are exact
+  negatives of each other, so no ray slips between two triangles that share an edge or
+  a vertex. A hit is accepted with barycentrics ``U/det, V/det, W/det`` down to
+  ``-BARYCENTRIC_MARGIN`` (2**-20): this also closes the one-ulp cracks where two
+  separately modelled meshes meet (the walls of Cornell box), as Embree does. Triangles
+  whose edge functions overflow or underflow float32 (coordinates beyond ~1e19 or below
+  ~1e-19 relative to the ray origin) or whose determinant rounds to zero are recomputed
+  in double precision, so scenes at 1e+30 and 1e-30 scale trace correctly. Zero-area
+  triangles are packed with NaN vertices and never hit.
 """
 
 from __future__ import annotations

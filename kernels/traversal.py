@@ -16,23 +16,10 @@ its own loops evaluated still gets one traversal kernel per query.
   is the nearest of them. Closest hit sorts by entry distance and skips a popped entry
   whose distance lies beyond the closest hit so far; any hit, which any occluder ends,
   sorts leaves before nodes (a leaf may end the query at once) and keeps no distance.
-- **Conservative slab test** (Ize, "Robust BVH ray traversal", JCGT 2013): the exit
-  distance of a box is scaled by ``1 + 2·gamma(3)`` so rounding never culls a box the
-  ray touches; so is the closest hit so far when a box's entry distance is compared
-  with it. Reciprocal directions come from directions clamped away from zero
-  (``|d| >= FLT_MIN``, sign kept), so no ``0 · inf = NaN`` reaches the min/max.
-- **Watertight ray/triangle test** (Woop, Benthin & Wald, JCGT 2013): vertices are
-  translated to the ray origin, permuted so the ray's dominant axis is z and sheared so
-  the ray becomes the z axis. Every vertex is transformed the same way whichever
-  triangle it belongs to, and the 2D edge functions U, V, W of a shared edge are exact
-  negatives of each other, so no ray slips between two triangles that share an edge or
-  a vertex. A hit is accepted with barycentrics ``U/det, V/det, W/det`` down to
-  ``-BARYCENTRIC_MARGIN`` (2**-20): this also closes the one-ulp cracks where two
-  separately modelled meshes meet (the walls of Cornell box), as Embree does. Triangles
-  whose edge functions overflow or underflow float32 (coordinates beyond ~1e19 or below
-  ~1e-19 relative to the ray origin) or whose determinant rounds to zero are recomputed
-  in double precision, so scenes at 1e+30 and 1e-30 scale trace correctly. Zero-area
-  triangles are packed with NaN vertices and never hit.
+- **The box and triangle tests** (:mod:`hlbvh.kernels.ray_tests`): Ize's conservative
+  slab test, so rounding never culls a box the ray touches, and Woop's watertight
+  ray/triangle test, so no ray slips between two triangles that share an edge or a
+  vertex, at any scale.
 
 A hit is reported at the smallest ``t`` with ``0 < t <= maxt``. Rays with a NaN or
 infinite component, a zero direction, ``maxt <= 0`` or ``maxt`` NaN are clean misses.

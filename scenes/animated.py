@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import abc
 import numbers
+import operator
 from dataclasses import dataclass
 from typing import Any
 
@@ -207,6 +208,20 @@ def apply_frame(
             params[normals_key] = vertex_normals(positions, triangles)
     params.update()
     return [shape_id for shape_id, _, _ in staged]
+
+
+def checked_resolution(resolution) -> tuple[int, int]:
+    """``resolution`` as ``(width, height)`` ints, after checking it is two positive
+    integers (what every scene's ``scene_dict`` takes); a ValueError naming it
+    otherwise."""
+    try:
+        width, height = resolution
+        width, height = operator.index(width), operator.index(height)
+    except (TypeError, ValueError):
+        raise ValueError(f"resolution={resolution!r}: expected (width, height), two ints") from None
+    if width < 1 or height < 1:
+        raise ValueError(f"resolution={resolution!r}: expected positive sizes")
+    return int(width), int(height)
 
 
 def _width(array) -> int:

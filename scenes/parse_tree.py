@@ -8,6 +8,8 @@ from pathlib import Path
 
 import mitsuba as mi
 
+from .animated import checked_resolution
+
 
 class resolving_next_to:
     """Context in which Mitsuba's file resolver also looks next to an XML file (as
@@ -33,12 +35,7 @@ def configure_films(state, resolution, spp, box_filter: bool) -> None:
 
     Nodes are addressed by index: appending to ``state.nodes`` may move them."""
     if resolution is not None:
-        try:
-            width, height = (int(v) for v in resolution)
-        except (TypeError, ValueError):
-            raise ValueError(f"resolution={resolution!r}: expected (width, height)") from None
-        if width < 1 or height < 1:
-            raise ValueError(f"resolution={resolution!r}: expected positive sizes")
+        width, height = checked_resolution(resolution)
     if spp is not None and (not isinstance(spp, int) or isinstance(spp, bool) or spp < 1):
         raise ValueError(f"spp={spp!r}: expected a positive int")
     sensors = [k for k, node in enumerate(state.nodes) if node.type == mi.ObjectType.Sensor]

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import mitsuba as mi
 import numpy as np
 
-from .animated import AnimatedScene, FrameGeometry
+from .animated import AnimatedScene, FrameGeometry, checked_resolution
 from .normals import vertex_normals
 
 FPS = 24
@@ -148,7 +148,7 @@ class ProceduralScene(AnimatedScene):
     ) -> dict:
         """See :meth:`AnimatedScene.scene_dict`. Defaults: ``DEFAULT_RESOLUTION``,
         ``DEFAULT_SPP``, ``DEFAULT_INTEGRATOR``. The animated parts hold frame 0."""
-        width, height = _resolution(DEFAULT_RESOLUTION if resolution is None else resolution)
+        width, height = checked_resolution(DEFAULT_RESOLUTION if resolution is None else resolution)
         spp = positive_int("spp", DEFAULT_SPP if spp is None else spp)
         view = self._view()
         scene = {
@@ -242,11 +242,3 @@ def positive_int(what: str, value, least: int = 1) -> int:
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
         raise ValueError(f"{what}={value!r}: expected an int >= {least}")
     return int(value)
-
-
-def _resolution(resolution) -> tuple[int, int]:
-    try:
-        width, height = resolution
-    except (TypeError, ValueError):
-        raise ValueError(f"resolution={resolution!r}: expected (width, height)") from None
-    return positive_int("resolution width", width), positive_int("resolution height", height)

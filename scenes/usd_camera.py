@@ -1,0 +1,109 @@
+"""The camera of a USD stage (``UsdGeom.Camera``, or a framing default) as a Mitsuba
+sensor; a mixin of :class:`hlbvh.scenes.usd.UsdScene`."""
+
+from __future__ import annotations
+
+import math
+
+import mitsuba as mi
+import numpy as np
+
+from .animated import checked_resolution
+from .usd_prims import (DEFAULT_WIDTH, Gf, Sdf, Usd, UsdGeom, UsdRender,
+                        _USD_TO_MITSUBA_CAMERA, _matrix, _transform_varies)
+
+
+class _Camera:
+    """The camera of a USD stage, as methods of :class:`UsdScene`."""
+
+    def _pick_camera(self, wanted: str | None):
+        """The camera prim to render through, or ``None`` for the framing default."""
+        if wanted is not None:
+            prim = self.stage.GetPrimAtPath(wanted) if Sdf.Path.IsValidPathString(wanted) \
+                else None
+            if not prim or not prim.IsA(UsdGeom.Camera):
+                found = [str(p.GetPath()) for p in self._cameras()]
+                raise ValueError(f"{self._where}: camera {wanted!r} is not a UsdGeom.Camera "
+                                 f"of the stage (its cameras: {found or 'none'})")
+            return prim
+        settings = UsdRender.Settings.GetStageRenderSettings(self.stage)
+        if settings:
+            targets = settings.GetCameraRel().GetForwardedTargets()
+            if targets and self.stage.GetPrimAtPath(targets[0]).IsA(UsdGeom.Camera):
+                return self.stage.GetPrimAtPath(targets[0])
+        cameras = self._cameras()
+        if cameras:
+            return cameras[0]
+        self._warn(f"{self._where}: no UsdGeom.Camera; a default camera frames the first "
+                   f"frame's meshes")
+        return None
+
+    def _cameras(self) -> list:
+        predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
+        return [p for p in Usd.PrimRange(self.stage.GetPseudoRoot(), predicate)
+                if p.IsA(UsdGeom.Camera)]
+
+    def _resolution(self, resolution) -> tuple[int, int]:
+        if resolution is not None:
+            return checked_resolution(resolution)
+        settings = UsdRender.Settings.GetStageRenderSettings(self.stage)
+        if settings and settings.GetResolutionAttr().HasAuthoredValue():
+            width, height = settings.GetResolutionAttr().Get()
+            return int(width), int(height)
+        if self._camera is None:
+            return DEFAULT_WIDTH, DEFAULT_WIDTH * 9 // 16
+        camera = UsdGeom.Camera(self._camera).GetCamera(Usd.TimeCode(self._start))
+        aspect = camera.horizontalAperture / camera.verticalAperture
+        return DEFAULT_WIDTH, max(1, round(DEFAULT_WIDTH / aspect))
+
+    def _sensor(self, width: int, height: int, spp: int) -> dict:
+        """The perspective sensor: the stage's camera at the first frame, or the
+        framing default."""
+        film = {"type": "hdrfilm", "width": width, "height": height,
+                "rfilter": {"type": "box"}}
+        sampler = {"type": "independent", "sample_count": spp}
+        if self._camera is None:
+            return {"type": "perspective", **self._framing(width / height),
+                    "film": film, "sampler": sampler}
+        time = Usd.TimeCode(self._start)
+        usd_camera = UsdGeom.Camera(self._camera)
+        if _transform_varies(self._camera) or any(
+                a.GetNumTimeSamples() > 1 for a in self._camera.GetAttributes()):
+            self._warn_once(f"{self._where}: camera {self._camera.GetPath()} is time-sampled; "
+                            f"hlbvh moves meshes, not sensors: every frame is rendered from "
+                            f"its pose at time code {self._start:g}")
+        camera = usd_camera.GetCamera(time)
+        if camera.projection != Gf.Camera.Perspective:
+            self._warn_once(f"{self._where}: camera {self._camera.GetPath()} is orthographic; "
+                            f"rendered as a perspective camera of its focal length")
+        to_world = self._root @ _matrix(camera.transform)
+        scale = np.linalg.norm(to_world[:3, :3], axis=0)
+        to_world[:3, :3] = to_world[:3, :3] / np.where(scale > 0, scale, 1)
+        to_world = to_world @ _USD_TO_MITSUBA_CAMERA
+        h_fov = 2 * math.degrees(math.atan(camera.horizontalAperture / (2 * camera.focalLength)))
+        v_fov = 2 * math.degrees(math.atan(camera.verticalAperture / (2 * camera.focalLength)))
+        # The whole aperture shows: a film wider than the aperture fits its height.
+        wider = width / height > camera.horizontalAperture / camera.verticalAperture
+        near, far = camera.clippingRange.min, camera.clippingRange.max
+        units = float(UsdGeom.GetStageMetersPerUnit(self.stage))
+        return {"type": "perspective", "fov": v_fov if wider else h_fov,
+                "fov_axis": "y" if wider else "x",
+                "near_clip": max(near * units, 1e-6), "far_clip": max(far * units, near * units * 2),
+                "to_world": mi.ScalarTransform4f(to_world.tolist()),
+                "film": film, "sampler": sampler}
+
+    def _framing(self, aspect: float) -> dict:
+        """A camera looking at the first frame's meshes from the front, above and to
+        the side, far enough that their bounding sphere fits a 40-degree view."""
+        corners = np.concatenate([t.reshape(-1, 3) for t in self.world_triangles(0).values()])
+        low, high = corners.min(axis=0), corners.max(axis=0)
+        centre = (low + high) / 2
+        radius = max(float(np.linalg.norm(high - low)) / 2, 1e-3)
+        fov = 40.0
+        distance = radius / math.sin(math.radians(fov / 2) * min(1.0, aspect))
+        direction = np.array([0.45, 0.35, 1.0])
+        origin = centre + direction / np.linalg.norm(direction) * distance
+        return {"fov": fov, "fov_axis": "x" if aspect < 1 else "y",
+                "near_clip": distance * 1e-3, "far_clip": distance * 10,
+                "to_world": mi.ScalarTransform4f().look_at(
+                    origin=origin.tolist(), target=centre.tolist(), up=[0, 1, 0])}

@@ -1,0 +1,306 @@
+"""What the USD modules share: pxr's import (the other modules take its modules from
+here, so a missing pxr is one clear error), the constants of the conversion, the mesh
+record, and the helpers that read prims (opening a stage, matrices, triangulation,
+normals, textures)."""
+
+from __future__ import annotations
+
+import os
+import re
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+
+from .normals import vertex_normals
+
+try:
+    from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade  # noqa: F401
+except ImportError as _error:  # pragma: no cover - depends on the installation
+    raise ImportError(f"USD stages need Pixar's pxr module ({_error}): "
+                      f"pip install 'hlbvh[usd]'") from None
+
+
+#: File suffixes that name a USD stage.
+SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+
+DEFAULT_WIDTH = 640
+
+DEFAULT_SPP = 16
+
+DEFAULT_INTEGRATOR = {"type": "path", "max_depth": 8}
+
+#: UsdPreviewSurface's defaults (its specification).
+PREVIEW_DEFAULTS = {"diffuseColor": (0.18, 0.18, 0.18), "roughness": 0.5, "metallic": 0.0,
+                    "opacity": 1.0, "opacityThreshold": 0.0,
+                    "emissiveColor": (0.0, 0.0, 0.0)}
+
+GREY = (0.5, 0.5, 0.5)
+
+#: Prim types hlbvh does not render, named in their warning.
+UNSUPPORTED = ("BasisCurves", "NurbsCurves", "HermiteCurves", "Points", "Volume",
+               "OpenVDBAsset", "Field3DAsset", "NurbsPatch", "PointInstancer", "Sphere",
+               "Cube", "Cylinder", "Cone", "Capsule", "Plane", "TetMesh")
+
+#: Dict keys of the scene description that no shape id may take.
+_RESERVED = {"type", "integrator", "camera"}
+
+#: Stage axes to Mitsuba's Y-up: (x, y, z) -> (x, z, -y) for a Z-up stage.
+_Z_UP_TO_Y_UP = np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], dtype=np.float64)
+
+#: USD's camera looks down -Z with +X right; Mitsuba's down +Z with +X left.
+_USD_TO_MITSUBA_CAMERA = np.diag([-1.0, 1.0, -1.0, 1.0])
+
+#: UsdLux area lights emit along -Z; Mitsuba's rectangle and disk along +Z.
+_FLIP_Z = np.diag([1.0, -1.0, -1.0, 1.0])
+
+@dataclass
+class _Mesh:
+    """One mesh prim as hlbvh renders it."""
+
+    id: str
+    path: Sdf.Path
+    motion: str                       # "static", "deforming" or "rigid"
+    faces: np.ndarray                 # (F, 3) uint32 of the first frame
+    topology_varies: bool             # faces given every frame
+    smooth: bool                      # vertex normals
+    bsdf: dict
+    emission: tuple | None
+    local_points: np.ndarray | None = None     # (V, 3) float64, rigid meshes
+    normals: np.ndarray | None = None           # (V, 3) authored world-space normals
+    colors: tuple | None = None                 # ("vertex_color" | "face_color", (N, 3))
+    point_count: int = 0                        # V of the first frame
+    vertex_points: np.ndarray | None = None     # (V',) the point of each Mitsuba vertex
+    texcoords: np.ndarray | None = None         # (V', 2) Mitsuba uv, with a texture
+
+@dataclass
+class _Stats:
+    """What the traversal saw, for the lines said once per stage."""
+
+    subdivided: list = field(default_factory=list)
+    moving_normals: list = field(default_factory=list)
+    face_varying: list = field(default_factory=list)
+
+def _print_warning(line: str) -> None:
+    """A warning line on stderr, as ``hlbvh render`` says them."""
+    print(f"hlbvh: {line}", file=sys.stderr)
+
+def _open(path: Path, where: str):
+    """``Usd.Stage.Open`` with USD's own diagnostics kept off stderr (they are
+    multi-line and repeated): a failure is one ``ValueError``."""
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
+            error = None
+        except Tf.ErrorException as caught:
+            stage, error = None, caught
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+        if stage is None:
+            text = " ".join(str(error).split()) if error else "no stage"
+            reason = re.sub(r".*?Error in '[^']*' at line \d+ in file [^ ]+ : ", "", text)
+            raise ValueError(f"{where}: USD cannot open it as a stage ({reason[:200]})")
+    return stage
+
+def _unresolved_arcs(stage) -> list[tuple[str, str]]:
+    """``(prim path, what USD said)`` for each reference or payload USD could not
+    resolve, once per prim."""
+    found = {}
+    for error in stage.GetCompositionErrors():
+        site = getattr(error, "rootSite", None)
+        path = str(getattr(site, "path", "") or "") or "?"
+        text = " ".join(str(error).split())
+        found.setdefault(path, text.split(" for ")[0][:200])
+    return list(found.items())
+
+def _root_transform(stage) -> np.ndarray:
+    """The stage's units and up axis to Mitsuba's Y-up metres, a 4x4 matrix."""
+    root = np.eye(4)
+    root[:3, :3] *= float(UsdGeom.GetStageMetersPerUnit(stage))
+    if UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z:
+        root[:3, :3] = _Z_UP_TO_Y_UP @ root[:3, :3]
+    return root
+
+def _matrix(gf_matrix) -> np.ndarray:
+    """A ``Gf.Matrix4d`` (row vectors, ``p * M``) as a numpy 4x4 acting on columns."""
+    return np.array(gf_matrix, dtype=np.float64).T
+
+def _array(value, width: int) -> np.ndarray:
+    """A ``Vt`` array of vectors as ``(N, width)`` float64 (empty when ``None``)."""
+    if value is None:
+        return np.zeros((0, width))
+    return np.array(value, dtype=np.float64).reshape(-1, width)
+
+def _transform_varies(prim) -> bool:
+    """Whether the prim's or an ancestor's transform is time-sampled."""
+    while prim and not prim.IsPseudoRoot():
+        xformable = UsdGeom.Xformable(prim)
+        if xformable and xformable.TransformMightBeTimeVarying():
+            return True
+        prim = prim.GetParent()
+    return False
+
+def _triangulate(mesh, time, point_count: int, path, where: str, with_faces: bool = False):
+    """Fan triangulation of a mesh's polygons at ``time``: ``(F, 3)`` uint32, holes
+    left out, winding flipped for ``orientation = leftHanded``; with ``with_faces``
+    also each triangle's polygon index (``(F,)``) and its corners' face-vertex indices
+    (``(F, 3)``, positions in ``faceVertexIndices``, where faceVarying values sit).
+
+    Raises:
+        ValueError: indices that do not add up to the face counts, or that point past
+            the last point.
+    """
+    counts = np.array(mesh.GetFaceVertexCountsAttr().Get(time) or [], dtype=np.int64)
+    indices = np.array(mesh.GetFaceVertexIndicesAttr().Get(time) or [], dtype=np.int64)
+    if counts.sum() != len(indices):
+        raise ValueError(f"{where}: mesh {path}: faceVertexCounts add up to {counts.sum()} "
+                         f"but faceVertexIndices holds {len(indices)}")
+    if len(indices) and (indices.min() < 0 or indices.max() >= point_count):
+        raise ValueError(f"{where}: mesh {path}: a face index points past its "
+                         f"{point_count} points")
+    offsets = np.cumsum(counts) - counts
+    keep = counts >= 3
+    holes = np.array(mesh.GetHoleIndicesAttr().Get(time) or [], dtype=np.int64)
+    keep[holes[(holes >= 0) & (holes < len(counts))]] = False
+    per_face = np.where(keep, counts - 2, 0)
+    face = np.repeat(np.arange(len(counts)), per_face)
+    first_triangle = np.cumsum(per_face) - per_face
+    k = np.arange(len(face)) - first_triangle[face] + 1
+    start = offsets[face]
+    corners = np.stack([start, start + k, start + k + 1], axis=1)
+    corners = corners.reshape(-1, 3)
+    if mesh.GetOrientationAttr().Get(time) == UsdGeom.Tokens.leftHanded:
+        corners = corners[:, ::-1].copy()
+    triangles = indices[corners].astype(np.uint32).reshape(-1, 3)
+    return (triangles, face, corners) if with_faces else triangles
+
+def _vertex_normals(mesh, time, point_count: int) -> np.ndarray | None:
+    """Authored per-vertex normals ((V, 3), in the mesh's space), or ``None`` when
+    there are none or they are not per vertex (faceVarying normals are recomputed)."""
+    primvar = UsdGeom.PrimvarsAPI(mesh).GetPrimvar("normals")
+    if primvar and primvar.HasAuthoredValue():
+        value, interpolation = primvar.ComputeFlattened(time), primvar.GetInterpolation()
+    else:
+        value, interpolation = mesh.GetNormalsAttr().Get(time), mesh.GetNormalsInterpolation()
+    if value is None or interpolation not in (UsdGeom.Tokens.vertex, UsdGeom.Tokens.varying):
+        return None
+    normals = _array(value, 3)
+    return normals if len(normals) == point_count else None
+
+def _visibility_varies(prim) -> bool:
+    """Whether the visibility of the prim or of an ancestor is time-sampled."""
+    while prim and not prim.IsPseudoRoot():
+        attribute = UsdGeom.Imageable(prim).GetVisibilityAttr()
+        if attribute and attribute.GetNumTimeSamples() > 1:
+            return True
+        prim = prim.GetParent()
+    return False
+
+def _has_normals(mesh) -> bool:
+    """Whether a mesh authors normals at all (attribute or primvar)."""
+    primvar = UsdGeom.PrimvarsAPI(mesh).GetPrimvar("normals")
+    return bool(primvar and primvar.HasAuthoredValue()) or mesh.GetNormalsAttr().HasAuthoredValue()
+
+def _skel_binding():
+    """``UsdSkel.BindingAPI`` (imported when a mesh is checked: UsdSkel is optional in
+    some USD builds)."""
+    try:
+        from pxr import UsdSkel
+    except ImportError:  # pragma: no cover
+        return "SkelBindingAPI"
+    return UsdSkel.BindingAPI
+
+def _dome_pole(dome, kind: str, stage) -> np.ndarray:
+    """The rotation (3x3, in the dome's space) that takes a latlong map's +Y pole to the
+    dome's pole: none for a ``DomeLight`` (its pole is +Y whatever the up axis),
+    a ``DomeLight_1``'s ``poleAxis`` (``scene``: the stage's up axis) otherwise."""
+    pole = "Y"
+    if kind == "DomeLight_1":
+        axis = dome.GetPoleAxisAttr().Get() or "scene"
+        pole = str(UsdGeom.GetStageUpAxis(stage)) if axis == "scene" else str(axis)
+    if pole == "Z":
+        return np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # rotateX(90): +Y -> +Z
+    return np.eye(3)
+
+#: UsdUVTexture's wrap modes as Mitsuba's bitmap's (``black`` clamps).
+_WRAPS = {"repeat": "repeat", "mirror": "mirror", "clamp": "clamp", "black": "clamp",
+          "useMetadata": "repeat"}
+
+def _uv_texture(shader_input, time):
+    """``(bitmap texture dict, st primvar name)`` of a UsdPreviewSurface input
+    connected to a ``UsdUVTexture`` whose file resolves (its ``st`` read by a
+    ``UsdPrimvarReader_float2``, ``st`` by default), else ``None``."""
+    texture = _connected_shader(shader_input)
+    if texture is None or texture.GetIdAttr().Get() != "UsdUVTexture":
+        return None
+    file_input = texture.GetInput("file")
+    asset = file_input.Get(time) if file_input else None
+    if asset is None or not asset.resolvedPath or "[" in asset.resolvedPath:
+        return None  # missing, or inside a .usdz package Mitsuba cannot read from
+    name = "st"
+    reader = _connected_shader(texture.GetInput("st"))
+    if reader is not None and reader.GetInput("varname"):
+        name = str(reader.GetInput("varname").Get(time) or "st")
+    wrap = texture.GetInput("wrapS")
+    wrap = str(wrap.Get(time)) if wrap and wrap.Get(time) else "useMetadata"
+    return {"type": "bitmap", "filename": asset.resolvedPath,
+            "wrap_mode": _WRAPS.get(wrap, "repeat")}, name
+
+def _filenames(description: dict) -> list[str]:
+    """Every ``filename`` a Mitsuba description dict names, nested ones included."""
+    names = [description["filename"]] if "filename" in description else []
+    for value in description.values():
+        if isinstance(value, dict):
+            names += _filenames(value)
+    return names
+
+def _connected_shader(shader_input):
+    """The shader an input is connected to, or ``None``."""
+    if not shader_input or not shader_input.HasConnectedSource():
+        return None
+    sources, _ = shader_input.GetConnectedSources()
+    if not sources:
+        return None
+    return UsdShade.Shader(sources[0].source.GetPrim())
+
+def _two_sided(bsdf: dict) -> dict:
+    return {"type": "twosided", "material": bsdf}
+
+def _mitsuba_mesh(mesh: _Mesh, points: np.ndarray, faces: np.ndarray) -> mi.Mesh:
+    """A Mitsuba mesh holding ``points`` (world space) and ``faces``, its BSDF, an area
+    emitter when the material emits, and vertex normals when smooth (authored ones
+    where given, else computed bit-reproducibly)."""
+    props = mi.Properties()
+    props["bsdf"] = mi.load_dict(mesh.bsdf)
+    if mesh.emission is not None:
+        props["emitter"] = mi.load_dict({"type": "area", "radiance": {
+            "type": "rgb", "value": [float(c) for c in mesh.emission]}})
+    shape = mi.Mesh(mesh.id, len(points), len(faces), props=props,
+                    has_vertex_normals=mesh.smooth,
+                    has_vertex_texcoords=mesh.texcoords is not None)
+    params = mi.traverse(shape)
+    params["vertex_positions"] = mi.Float(np.ascontiguousarray(points, np.float32).reshape(-1))
+    params["faces"] = mi.UInt32(np.ascontiguousarray(faces, np.uint32).reshape(-1))
+    if mesh.smooth:
+        if mesh.normals is not None:
+            params["vertex_normals"] = mi.Float(
+                np.ascontiguousarray(mesh.normals, np.float32).reshape(-1))
+        else:
+            params["vertex_normals"] = vertex_normals(params["vertex_positions"],
+                                                      params["faces"])
+    if mesh.texcoords is not None:
+        params["vertex_texcoords"] = mi.Float(
+            np.ascontiguousarray(mesh.texcoords, np.float32).reshape(-1))
+    if mesh.colors is not None:
+        name, values = mesh.colors
+        shape.add_attribute(name, 3, mi.Float(np.ascontiguousarray(values, np.float32)
+                                              .reshape(-1)))
+    params.update()
+    return shape
