@@ -49,10 +49,12 @@ SIZES = {
     "trace_sizes": [1_000_000],
     "frame_sizes": [200_000],
     "frame_scenes": ["cloth", "fracture"],
+    # The scene users have, at its own size (0: left out): a flag over a 1M landscape.
+    "world_triangles": 1_100_000,
     "sweep_scene": "cloth",
     "sweep_triangles": 200_000,
     # A few settings that span the trade, so the plots stay readable (``all``: the grid).
-    "sweep_settings": "hlbvh,lbvh,sah,axis,leaf8,refit,auto",
+    "sweep_settings": "hlbvh,lbvh,sah,axis,leaf8,refit,auto,static_hlbvh",
     "resolution": 256,
     "repeats": 3,
     "spp": 4,
@@ -97,10 +99,12 @@ def measure(sizes: dict, progress: bool = True) -> dict:
     results["trace"] = bench_trace.run(sizes=sizes["trace_sizes"], repeats=sizes["repeats"],
                                        resolution=sizes["resolution"])
     log("readme_figures: bench frame")
-    results["frame"] = bench_frame.run(repeats=sizes["repeats"], sizes=sizes["frame_sizes"],
-                                       resolution=sizes["resolution"],
-                                       scenes=sizes["frame_scenes"],
-                                       spps=sizes["spp_curve"], drift_frames=20)
+    frame = dict(repeats=sizes["repeats"], resolution=sizes["resolution"],
+                 spps=sizes["spp_curve"], drift_frames=20)
+    results["frame"] = (bench_frame.run(scenes=["world"], sizes=[sizes["world_triangles"]],
+                                        **frame) if sizes["world_triangles"] else [])
+    results["frame"] += bench_frame.run(scenes=sizes["frame_scenes"],
+                                        sizes=sizes["frame_sizes"], **frame)
     log("readme_figures: sweep")
     animation, _, frames = open_animation(sizes["sweep_scene"], None,
                                           str(sizes["sweep_triangles"]), sizes["frames"])
@@ -159,7 +163,9 @@ def write(out_dir, results: dict, sizes: dict, command: str) -> dict[str, Path]:
         f"## Frame (`python -m hlbvh.comparison.bench_frame --scenes "
         f"{','.join(sizes['frame_scenes'])} --sizes {_join(sizes['frame_sizes'])} "
         f"--resolution {sizes['resolution']} --spp {_join(sizes['spp_curve'])} "
-        f"--repeats {sizes['repeats']} --drift-frames 20`)",
+        f"--repeats {sizes['repeats']} --drift-frames 20`"
+        + (f", and `--scenes world --sizes {sizes['world_triangles']}` with the same options"
+           if sizes["world_triangles"] else "") + ")",
         "",
         "```",
         bench_frame.format_table(results["frame"]),

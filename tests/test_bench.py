@@ -231,6 +231,7 @@ def test08_bench_frame_main_flags_json(capsys):
 
 FIGURE_FLAGS = ["--build-sizes", "1500", "--sah-max", "1500", "--trace-sizes", "1500",
                 "--frame-sizes", "1200", "--frame-scenes", "fracture",
+                "--world-triangles", "1500",
                 "--sweep-triangles", "1500", "--sweep-settings", "hlbvh,lbvh",
                 "--resolution", "8", "--repeats", "1", "--spp", "1", "--spp-curve", "1,2",
                 "--frames", "0:2", "--quiet"]
@@ -246,7 +247,8 @@ def test09_readme_figures_main_and_replot(tmp_path, capsys, small_cloth):
     for heading in ("## Build (`hlbvh bench build --sizes 1500 --repeats 1`",
                     "## Trace (`hlbvh bench trace --sizes 1500 --resolution 8",
                     "## Frame (`python -m hlbvh.comparison.bench_frame --scenes fracture "
-                    "--sizes 1200 --resolution 8 --spp 1,2 --repeats 1 --drift-frames 20`)",
+                    "--sizes 1200 --resolution 8 --spp 1,2 --repeats 1 --drift-frames 20`, "
+                    "and `--scenes world --sizes 1500` with the same options)",
                     "## Sweep (`hlbvh sweep cloth --triangles 1500 --resolution 8 --spp 1 "
                     "--spp-curve 1,2 --frames 0:2 --settings hlbvh,lbvh`)"):
         assert heading in md, heading
@@ -258,8 +260,8 @@ def test09_readme_figures_main_and_replot(tmp_path, capsys, small_cloth):
     # sah only up to --sah-max triangles
     assert all((r["builder"] == "sah") <= (r["triangles"] <= 1500) for r in document["build"])
     assert {r["scene"] for r in document["trace"]} == {"grid 1k", "cornell box", "cloth"}
-    assert [(r["scene"], r["spp"]) for r in document["frame"]] == [("fracture", 1),
-                                                                   ("fracture", 2)]
+    assert [(r["scene"], r["spp"]) for r in document["frame"]] == [
+        ("world", 1), ("world", 2), ("fracture", 1), ("fracture", 2)]
     assert [r["setting"] for r in document["sweep"]][-2:] == ["hlbvh", "lbvh"]
     for section, key in (("build", "native_over_ready"), ("trace", "ratio"),
                          ("frame", "native_over_hlbvh")):
