@@ -21,6 +21,12 @@ its own loops evaluated still gets one traversal kernel per query.
   ray/triangle test, so no ray slips between two triangles that share an edge or a
   vertex, at any scale.
 
+**Two levels** (:class:`TwoLevel`, rigid motion): the top level's leaf slots stand for
+instances. A ray reaching one takes the instance's object-space ray (world-to-object
+transform, direction not normalised, so ``t`` stays the world ray's), pushes a return
+marker and the rest of the leaf, and descends into the instance's tree; popping the
+marker restores the world ray. The one-level kernel is the same as without this path.
+
 A hit is reported at the smallest ``t`` with ``0 < t <= maxt``. Rays with a NaN or
 infinite component, a zero direction, ``maxt <= 0`` or ``maxt`` NaN are clean misses.
 
@@ -49,6 +55,7 @@ from .packing import packed_records  # noqa: F401  (what traversal reads, built 
 from .ray_tests import (BARYCENTRIC_MARGIN, TFAR_SCALE, Ray, _max, _min,  # noqa: F401
                         ray_setup, slab_test, triangle_test)
 from .slots import LEAF_BIT, MAX_DEPTH, SLOT, TRI_FACE, WIDTH, open_ref
+from .two_level import NO_INSTANCE, RETURN_REF, TwoLevel, enter_instance, select_ray
 
 #: Entries of the per-lane traversal stack: a wide node pushes at most three, one wide
 #: level per two of the deepest tree that packs.
@@ -128,6 +135,18 @@ def occluded(bvh, ray, active=True):
     return mi.Bool(any_hit(bvh, ray.o, ray.d, ray.maxt, active))
 
 
+def closest_instance_hit(two_level: TwoLevel, o, d, maxt, active=True):
+    """:func:`closest_hit` through a :class:`TwoLevel` hierarchy: a ray that enters an
+    instance's box is transformed into the instance's object space (its direction not
+    normalised, so ``t`` is the world ray's) and traced through the instance's tree.
+
+    Returns:
+        ``(t, u, v, prim, inst, valid)``: as :func:`closest_hit`, ``prim`` counted over
+        the instanced trees' faces, and UInt32 ``inst`` the hit's instance.
+    """
+    return _trace(two_level, o, d, maxt, active, any_hit=False)
+
+
 # ---------------------------------------------------------------------------------------
 # Traversal
 # ---------------------------------------------------------------------------------------
@@ -168,6 +187,9 @@ class _Query:
     n: int  # rays
     any_hit: bool
     no_t: Any  # Float[n] zeros: an any-hit entry's distance
+    two_level: Any = None  # TwoLevel: instances at the top level's leaf slots, or None
+    world_o: Any = None  # Array3f: the world rays' origins (two levels)
+    world_d: Any = None  # Array3f: their directions (two levels)
 
     @property
     def Entry(self):
@@ -220,16 +242,21 @@ class _Stack:
     local memory, touched only by a packet in which some lane pushes past the registers
     or pops with none held (in a symbolic if)."""
 
-    def __init__(self, Entry, n: int):
+    def __init__(self, Entry, n: int, size: int = STACK_SIZE, ordered: bool = False):
         self.Entry, self.n = Entry, n
-        self.memory = dr.alloc_local(Entry, STACK_SIZE)
+        self.memory = dr.alloc_local(Entry, size)
+        # One level writes a spill of several entries newest deepest: harmless, as
+        # every entry is popped in the end and only the pruning order changes. Two
+        # levels need the stack's order (a return marker must come out last).
+        self.ordered = ordered
 
     def _spill(self, held, depth, count, sp, spilled):
         """Move the ``spilled`` oldest register entries to local memory, oldest
         deepest, before ``count`` new entries push them out."""
         for i in range(WIDTH - 1):
             oldest = _pick_entry(held, depth - 1 - i)
-            self.memory.write(oldest, sp + (spilled - 1 - i), active=spilled > i)
+            self.memory.write(oldest, sp + (i if self.ordered else spilled - 1 - i),
+                              active=spilled > i)
         return sp + spilled
 
     def _no_spill(self, held, depth, count, sp, spilled):
@@ -295,12 +322,19 @@ class _TraceState:
     hit_slot: Any  # UInt32: slot of the closest hit's triangle
     found: Any  # Bool: a hit so far
     steps: Any = None  # UInt32: loop iterations (count_steps only)
+    # Two levels only (None otherwise):
+    ray: Any = None  # Ray: the ray the tests read, in the current instance's object space
+    inst: Any = None  # UInt32: the instance the ray is in (NO_INSTANCE at the top level)
+    returning: Any = None  # Bool: the last pop left an instance (this step only pops)
+    hit_inst: Any = None  # UInt32: the instance of the closest hit's triangle
 
 
-def _start(ns, query: _Query, root: int, alive, maxt, count_steps: bool) -> _TraceState:
+def _start(ns, query: _Query, root: int, alive, maxt, count_steps: bool,
+           ray: Ray) -> _TraceState:
     """The state of rays starting at reference ``root``."""
     n = query.n
     cur, end = open_ref(dr.full(ns.UInt32, root, n))
+    two = query.two_level is not None
     return _TraceState(
         cur=cur, end=end, node_t=dr.zeros(ns.Float, n), entering=dr.full(ns.Bool, True, n),
         held=[dr.zeros(query.Entry, n) for _ in range(REGISTERS)],
@@ -308,23 +342,35 @@ def _start(ns, query: _Query, root: int, alive, maxt, count_steps: bool) -> _Tra
         t_best=dr.select(alive, maxt, dr.inf), u_best=dr.zeros(ns.Float, n),
         v_best=dr.zeros(ns.Float, n), hit_slot=dr.zeros(ns.UInt32, n),
         found=dr.zeros(ns.Bool, n),
-        steps=dr.zeros(ns.UInt32, n) if count_steps else None)
+        steps=dr.zeros(ns.UInt32, n) if count_steps else None,
+        ray=ray if two else None,
+        inst=dr.full(ns.UInt32, NO_INSTANCE, n) if two else None,
+        returning=dr.zeros(ns.Bool, n) if two else None,
+        hit_inst=dr.full(ns.UInt32, NO_INSTANCE, n) if two else None)
 
 
-def _step(query: _Query, ray: Ray, stack: _Stack, s: _TraceState) -> _TraceState:
-    """One iteration: a lane in a leaf tests one triangle, a lane at a wide node its
-    children's boxes; then each goes to the leaf's next triangle, the nearest child hit,
-    or the entry it pops."""
+def _step(query: _Query, world: Ray, stack: _Stack, s: _TraceState) -> _TraceState:
+    """One iteration: a lane in a leaf tests one triangle (or, with two levels, enters
+    the instance of a top-level leaf slot), a lane at a wide node its children's boxes;
+    then each goes to the leaf's next triangle, the nearest child hit, or the entry it
+    pops."""
     ns = namespace_of(s.cur)
     UInt32, Bool, Float, n = ns.UInt32, ns.Bool, ns.Float, query.n
+    two = query.two_level is not None
+    ray = s.ray if two else world
     rec = query.slot(s.cur)  # a triangle, or a wide node's first slot
     in_leaf = s.cur < s.end
     # A node (or leaf) popped from beyond the closest hit so far is skipped.
     stale = dr.zeros(Bool, n) if query.any_hit else \
         s.entering & (s.node_t > s.t_best * TFAR_SCALE)
+    if two:
+        stale |= s.returning  # the step after leaving an instance only pops
+        at_instance = in_leaf & ~stale & (s.cur < query.two_level.top_slots)
 
     # ---- A lane in a leaf: test one triangle ----
     at_triangle = in_leaf & ~stale
+    if two:
+        at_triangle &= ~at_instance
     hit, t, u, v = dr.if_stmt(
         args=(rec, s.t_best), cond=at_triangle,
         true_fn=lambda rec, t_max: triangle_test(ray, rec, t_max),
@@ -339,6 +385,8 @@ def _step(query: _Query, ray: Ray, stack: _Stack, s: _TraceState) -> _TraceState
     s.v_best = dr.select(hit, v, s.v_best)
     s.hit_slot = dr.select(hit, s.cur, s.hit_slot)
     s.found |= hit
+    if two:
+        s.hit_inst = dr.select(hit, s.inst, s.hit_inst)
 
     # ---- A lane at a wide node: test its children's boxes, push all but the first ----
     at_node = ~in_leaf & ~stale
@@ -351,12 +399,17 @@ def _step(query: _Query, ray: Ray, stack: _Stack, s: _TraceState) -> _TraceState
         rv_labels=tuple(f"key{k}" for k in range(WIDTH)),
         label="hlbvh_boxes", mode="symbolic",
     )
+    if two:
+        # ---- A lane at an instance: into its group's tree, object space ----
+        keys = enter_instance(query, rec, s, at_instance, keys)
     hits = [k != query.miss for k in keys]
     count = sum((UInt32(h) for h in hits[2:]), UInt32(hits[1]))
     s.held, s.depth, s.sp = stack.push(s.held, s.depth, s.sp, keys, count)
 
     # ---- Next step: the leaf's next triangle, the first child, or a pop ----
     more = in_leaf & ~stale & (s.cur + 1 < s.end)
+    if two:
+        more &= ~at_instance
     if query.any_hit:
         more &= ~hit
         s.alive &= ~hit
@@ -366,7 +419,15 @@ def _step(query: _Query, ray: Ray, stack: _Stack, s: _TraceState) -> _TraceState
     popped, s.held, s.depth, s.sp = stack.pop(s.held, s.depth, s.sp, take)
     s.alive &= more | descend | take
     entry = dr.select(take, popped, keys[0])
-    next_cur, next_end = open_ref(query.ref_of(entry))
+    ref = query.ref_of(entry)
+    next_cur, next_end = open_ref(ref)
+    if two:
+        # ---- A popped return marker: back in the world, this instance done ----
+        leaving = take & (ref == RETURN_REF)
+        s.ray = select_ray(leaving, world, s.ray)
+        s.inst = dr.select(leaving, NO_INSTANCE, s.inst)
+        s.returning = leaving
+        next_cur, next_end = dr.select(leaving, 0, next_cur), dr.select(leaving, 0, next_end)
     s.cur = dr.select(more, s.cur + 1, next_cur)
     s.end = dr.select(more, s.end, next_end)
     s.node_t = dr.select(more, s.node_t, query.t_of(entry))
@@ -386,9 +447,12 @@ def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False):
         raise ValueError(f"ray arrays of different widths {sorted(widths)}: expected one")
     n = widths.pop() if widths else 1
     if n == 0:
-        return UInt32() if count_steps else Bool() if any_hit else \
-            (Float(), Float(), Float(), UInt32(), Bool())
-    if isinstance(bvh, Packed):
+        if count_steps or any_hit:
+            return UInt32() if count_steps else Bool()
+        return (Float(), Float(), Float(), UInt32()) + \
+            ((UInt32(),) if isinstance(bvh, TwoLevel) else ()) + (Bool(),)
+    two_level = bvh if isinstance(bvh, TwoLevel) else None
+    if isinstance(bvh, (Packed, TwoLevel)):
         records, root = bvh.records, bvh.root
     else:
         records, root = packed_records(bvh)
@@ -402,10 +466,16 @@ def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False):
     finite = dr.all(dr.isfinite(o)) & dr.all(dr.isfinite(d))
     alive = active & finite & dr.any(d != 0) & (maxt > 0)
     ray = ray_setup(o, d)
-    query = _Query(records=records, n=n, any_hit=any_hit, no_t=dr.zeros(Float, n))
-    stack = _Stack(query.Entry, n)
+    query = _Query(records=records, n=n, any_hit=any_hit, no_t=dr.zeros(Float, n),
+                   two_level=two_level, world_o=o, world_d=d)
+    # Two levels: a tree under a tree, and the two entries an instance pushes.
+    stack = _Stack(query.Entry, n, STACK_SIZE) if two_level is None else \
+        _Stack(query.Entry, n, 2 * STACK_SIZE + 2, ordered=True)
 
-    state = _start(ns, query, root, alive, maxt, count_steps)
+    # Two levels: the loop carries a ray of its own (loop state must not share arrays
+    # with what the body reads as the world ray).
+    state = _start(ns, query, root, alive, maxt, count_steps,
+                   ray_setup(dr.copy(o), dr.copy(d)) if two_level is not None else None)
     state, = dr.while_loop(state=(state,), cond=lambda s: s.alive,
                            body=lambda s: (_step(query, ray, stack, s),), labels=("ray",),
                            label="hlbvh_trace", mode="symbolic")
@@ -416,5 +486,8 @@ def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False):
         return valid
     prim = dr.reinterpret_array(UInt32, dr.gather(Float, records,
                                                   state.hit_slot * SLOT + TRI_FACE, valid))
-    return (dr.select(valid, state.t_best, dr.inf), dr.select(valid, state.u_best, 0),
-            dr.select(valid, state.v_best, 0), dr.select(valid, prim, 0), valid)
+    hit = (dr.select(valid, state.t_best, dr.inf), dr.select(valid, state.u_best, 0),
+           dr.select(valid, state.v_best, 0), dr.select(valid, prim, 0))
+    if two_level is not None:
+        return (*hit, dr.select(valid, state.hit_inst, NO_INSTANCE), valid)
+    return (*hit, valid)

@@ -1,0 +1,145 @@
+"""Two levels for rigid motion: instances of shared geometry (Mitsuba's shape groups),
+each with its own transform, under a top-level tree over their world boxes. The
+geometry's trees are built once; when instances move, only the top level is rebuilt,
+by the same builder (:func:`hlbvh.build`) over the instances' boxes, which is what
+HLBVH's builder is made for (few primitives, rebuilt every frame).
+
+The result is a :class:`hlbvh.kernels.two_level.TwoLevel`: the top level's slots, then
+every geometry tree's, in one array; the traversal enters an instance at its top-level
+leaf slot with the ray in the instance's object space.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+
+from .arrays import concat, namespace_of, plain
+from .build import build
+from .bvh import BVH, BuildConfig
+from .packing import packed_records
+from .slots import SLOT
+from .two_level import TwoLevel
+
+
+def world_boxes(group_bvhs: list[BVH], instance_group, to_world):
+    """The world box of each instance: its geometry's root box through its transform.
+
+    Args:
+        group_bvhs: the geometry trees (object space).
+        instance_group: UInt32 (M): each instance's tree, an index into ``group_bvhs``.
+        to_world: Float (12·M): each instance's object-to-world transform, rows of a
+            3x4 matrix (``p_world = A p + b``, A row-major, then b).
+    Returns:
+        ``(lo, hi)``: Array3f (M) each.
+    """
+    ns = namespace_of(instance_group)
+    instance_group, to_world = plain(instance_group, "UInt32"), plain(to_world, "Float")
+    lo_g = ns.Array3f(*(concat([_first(b.node_min[i]) for b in group_bvhs]) for i in range(3)))
+    hi_g = ns.Array3f(*(concat([_first(b.node_max[i]) for b in group_bvhs]) for i in range(3)))
+    lo_o = dr.gather(ns.Array3f, lo_g, instance_group)
+    hi_o = dr.gather(ns.Array3f, hi_g, instance_group)
+    m = _rows(ns, to_world, dr.width(instance_group))
+    lo = ns.Array3f(dr.inf, dr.inf, dr.inf)
+    hi = ns.Array3f(-dr.inf, -dr.inf, -dr.inf)
+    for corner in range(8):
+        c = ns.Array3f(*(dr.select(((corner >> i) & 1) == 1, hi_o[i], lo_o[i]) for i in range(3)))
+        p = _apply(m, c, True)
+        lo, hi = dr.minimum(lo, p), dr.maximum(hi, p)
+    return lo, hi
+
+
+def two_level(group_bvhs: list[BVH], instance_group, to_world,
+              config: BuildConfig | None = None, previous: BVH | None = None):
+    """The two-level hierarchy of instances of ``group_bvhs``.
+
+    Args:
+        group_bvhs, instance_group, to_world: as :func:`world_boxes`; every transform
+            invertible.
+        config: the top level's builder config (defaults).
+        previous: last frame's top-level BVH, seeding its CSD sort.
+    Returns:
+        ``(TwoLevel, top-level BVH)``. Face indices in the geometry trees count over
+        ``group_bvhs`` in order (a hit's ``prim`` minus the faces of the trees before
+        its own is the face in its tree).
+    Raises:
+        ValueError: naming the first instance whose transform is not invertible or
+            not finite.
+    """
+    ns = namespace_of(instance_group)
+    instance_group, to_world = plain(instance_group, "UInt32"), plain(to_world, "Float")
+    M = dr.width(instance_group)
+    to_object = _inverse_rows(ns, to_world, M)  # first: it names a bad transform
+    lo, hi = world_boxes(group_bvhs, instance_group, to_world)
+    # ---- The top level: one proxy triangle an instance, whose box is the instance's ----
+    corners = [lo, hi, lo]
+    vertices = dr.zeros(ns.Float, 9 * M)
+    k = dr.arange(ns.UInt32, M)
+    for v, p in enumerate(corners):
+        for i in range(3):
+            dr.scatter(vertices, p[i], k * 9 + 3 * v + i)
+    faces = dr.zeros(ns.UInt32, 3 * M)
+    for v in range(3):
+        dr.scatter(faces, k * 3 + v, k * 3 + v)
+    top = build(vertices, faces, previous=previous, config=config or BuildConfig())
+    # ---- Slots: the top level, then every geometry tree, face indices counted over them ----
+    records, root = packed_records(top)
+    parts, roots = [records], []
+    slot_base, face_base = dr.width(records) // SLOT, 0
+    top_slots = slot_base
+    for bvh in group_bvhs:
+        records, group_root = packed_records(bvh, slot_base, face_base)
+        parts.append(records)
+        roots.append(group_root)
+        slot_base += dr.width(records) // SLOT
+        face_base += bvh.prim_count
+    group_root = dr.gather(ns.UInt32, ns.UInt32(roots), instance_group)
+    dr.eval(group_root)
+    return TwoLevel(records=concat(parts), root=root, top_slots=top_slots,
+                    to_object=to_object, group_root=group_root), top
+
+
+def _first(x):
+    """The first entry of a flat array (a width-1 array)."""
+    return dr.gather(type(x), x, dr.zeros(dr.uint32_array_t(type(x)), 1))
+
+
+def _rows(ns, flat, M):
+    """The 12 floats per instance of ``flat`` as a list of 12 Float (M)."""
+    k = dr.arange(ns.UInt32, M) * 12
+    return [dr.gather(ns.Float, flat, k + i) for i in range(12)]
+
+
+def _apply(m, p, translate: bool):
+    """``A p (+ b)`` for the rows ``m`` (12 Float) and Array3f ``p``."""
+    return type(p)(*(dr.fma(m[3 * r], p.x, dr.fma(m[3 * r + 1], p.y,
+                                                  dr.fma(m[3 * r + 2], p.z,
+                                                         m[9 + r] if translate else 0.0)))
+                     for r in range(3)))
+
+
+def _inverse_rows(ns, to_world, M):
+    """Each instance's world-to-object rows (A⁻¹, -A⁻¹ b), as a Float (12·M).
+
+    Raises:
+        ValueError: a transform whose matrix is singular or not finite."""
+    m = _rows(ns, to_world, M)
+    a = [m[0:3], m[3:6], m[6:9]]
+    cof = [[a[(r + 1) % 3][(c + 1) % 3] * a[(r + 2) % 3][(c + 2) % 3]
+            - a[(r + 1) % 3][(c + 2) % 3] * a[(r + 2) % 3][(c + 1) % 3]
+            for c in range(3)] for r in range(3)]
+    det = a[0][0] * cof[0][0] + a[0][1] * cof[0][1] + a[0][2] * cof[0][2]
+    finite = dr.all(dr.isfinite(ns.ArrayXf(m)), axis=0)
+    bad = ~finite | (det == 0)
+    if dr.any(bad, axis=None):
+        k = int(dr.compress(bad)[0])
+        what = "not finite" if not finite[k] else "singular (a scale of 0)"
+        raise ValueError(f"instance {k}: its transform is {what}")
+    inv = [[cof[c][r] / det for c in range(3)] for r in range(3)]  # adjugate / det
+    b = m[9:12]
+    t = [-(inv[r][0] * b[0] + inv[r][1] * b[1] + inv[r][2] * b[2]) for r in range(3)]
+    out = dr.zeros(ns.Float, 12 * M)
+    k = dr.arange(ns.UInt32, M) * 12
+    for i, value in enumerate([inv[0][0], inv[0][1], inv[0][2], inv[1][0], inv[1][1],
+                               inv[1][2], inv[2][0], inv[2][1], inv[2][2], *t]):
+        dr.scatter(out, value, k + i)
+    return out
