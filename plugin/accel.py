@@ -69,6 +69,8 @@ from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.kernels.geometry import half_area
 from hlbvh.kernels.layout import joined
 from hlbvh.kernels.traversal import any_hit, closest_hit
+from hlbvh.instance_group import InstanceGroup
+from hlbvh.kernels.traversal import closest_instance_hit
 from hlbvh.mesh_group import MeshGroup
 from hlbvh.motion import MeshState, shape_states
 from hlbvh.native_group import NativeGroup, shape_groups
@@ -134,11 +136,12 @@ class SceneAccel(_Accel):
         native = self.policy.static == "native"
         self.meshes, self.analytic, self._others = scene_shapes(self.shapes, self.policy.static)
         self.moving = _declared(self.shapes, self.policy.moving)
-        for i in self.moving:
-            if i in self._others:
-                raise unmovable_error(self.shapes[i])
-        self.static = NativeGroup(shape_groups(scene)) if native else MeshGroup("static")
+        groups = shape_groups(scene) if native else []
+        self.static = NativeGroup(groups) if native else MeshGroup("static")
         self.dynamic = MeshGroup("dynamic")
+        self.instances = InstanceGroup(groups, config) if native else None
+        for i in self.moving:
+            self._check_movable(i)
         self.last_update = None
         self._states = None  # each shape's state at the last update
         self._current = False  # whether the last update succeeded
@@ -195,11 +198,16 @@ class SceneAccel(_Accel):
                                 decision="build" if first else "rebuild")
         else:
             self.dynamic.keep()
+        # ---- The moving instances: the top level over them ----
+        if self.instances is not None:
+            moving_instances = tuple(i for i in moving if _is_instance(self.shapes[i]))
+            self.instances.update(self.shapes, moving_instances,
+                                  moved=any(i in moving_instances for i in changed))
         self._states, self._current = states, True
         traced = [g for g in (self.static, self.dynamic) if isinstance(g, MeshGroup) and g.bvh]
         if traced != self._traced or any(g.last["decision"] != "kept" for g in traced):
             self._join(traced)
-        groups = (self.static, self.dynamic)
+        groups = (self.static, self.dynamic) + ((self.instances,) if self.instances else ())
         self.last_update = dict(
             decision=max((g.last["decision"] for g in groups), key=DECISIONS.index),
             ms=clock_ms() - start,
@@ -212,9 +220,10 @@ class SceneAccel(_Accel):
 
     def _check_movable(self, i: int):
         """Refuse a change this accelerator cannot follow: a shape that cannot be traced
-        moving, or a mesh whose faces were emptied."""
+        moving (instances can, with ``static="native"``), or a mesh whose faces were
+        emptied."""
         shape = self.shapes[i]
-        if i in self._others:
+        if i in self._others and not (self.instances is not None and _is_instance(shape)):
             raise unmovable_error(shape)
         if shape.is_mesh() and shape.face_count() == 0:
             raise ValueError(f"{_describe(shape)} has no triangles any more: it would "
@@ -306,13 +315,30 @@ class SceneAccel(_Accel):
             t, prim_uv, prim_index, shape_index, from_native = _nearer(
                 self._closest_mesh_hit(ray, active), t, prim_uv, prim_index, shape_index,
                 from_native)
+        from_instance = dr.zeros(mi.Bool, n)
+        if self.instances is not None and self.instances.tree is not None:
+            ray.maxt = dr.minimum(ray.maxt, t)
+            t_i, u_i, v_i, prim_i, inst_i, valid_i = closest_instance_hit(
+                self.instances.tree, ray.o, ray.d, ray.maxt, active)
+            valid_i = mi.Bool(valid_i)
+            local, in_group, inst_index = self.instances.hit_fields(
+                mi.UInt32(prim_i), mi.UInt32(inst_i), valid_i)
+            closer = valid_i & (mi.Float(t_i) < t)
+            t = dr.select(closer, mi.Float(t_i), t)
+            prim_uv = dr.select(closer, mi.Point2f(mi.Float(u_i), mi.Float(v_i)), prim_uv)
+            prim_index = dr.select(closer, local, prim_index)
+            shape_index = dr.select(closer, in_group, shape_index)
+            from_native &= ~closer
+            from_instance = closer
         for index, shape in self._routine_shapes():
             ray.maxt = dr.minimum(ray.maxt, t)
             pi_s = shape.ray_intersect_preliminary(ray, 0, active)
+            closer = pi_s.is_valid() & (pi_s.t < t)
             t, prim_uv, prim_index, shape_index, from_native = _nearer(
                 (dr.select(pi_s.is_valid(), pi_s.t, dr.inf), pi_s.prim_uv, pi_s.prim_index,
                  dr.full(mi.UInt32, index, n)), t, prim_uv, prim_index, shape_index,
                 from_native)
+            from_instance &= ~closer
         result = dr.zeros(mi.PreliminaryIntersection3f, n)
         result.valid = active & (t < dr.inf)
         result.t = dr.select(result.valid, t, dr.inf)
@@ -320,11 +346,18 @@ class SceneAccel(_Accel):
         result.prim_index = dr.select(result.valid, prim_index, 0)
         result.shape_index = dr.select(result.valid, shape_index, 0xFFFFFFFF)
         if dr.width(self.shapes_dr) > 0:  # a scene may have no shape at all
-            ours = result.valid & ~from_native
+            ours = result.valid & ~from_native & ~from_instance
             result.shape = dr.gather(mi.ShapePtr, self.shapes_dr, result.shape_index, ours)
             if native:
                 result.shape = dr.select(from_native, pi.shape, result.shape)
                 result.instance = dr.select(from_native, pi.instance, result.instance)
+            if self.instances is not None and self.instances.tree is not None:
+                # As Mitsuba reports a hit inside an instance: no shape pointer, the
+                # shape's index in its group, the instance.
+                result.shape = dr.select(from_instance, dr.zeros(mi.ShapePtr, n), result.shape)
+                result.instance = dr.select(
+                    from_instance, dr.gather(mi.ShapePtr, self.shapes_dr, inst_index,
+                                             from_instance), result.instance)
         return result
 
     def _closest_mesh_hit(self, ray, active):
@@ -344,9 +377,15 @@ class SceneAccel(_Accel):
             hit |= self.static.test(ray, coherent, active)
         if self._tree is not None:
             hit |= mi.Bool(any_hit(self._tree, ray.o, ray.d, ray.maxt, active & ~hit))
+        if self.instances is not None and self.instances.tree is not None:
+            hit |= mi.Bool(any_hit(self.instances.tree, ray.o, ray.d, ray.maxt, active & ~hit))
         for _, shape in self._routine_shapes():
             hit |= shape.ray_test(ray, active & ~hit)
         return hit & active
+
+
+def _is_instance(shape) -> bool:
+    return shape.class_name() == "Instance"
 
 
 def _nearer(hit, t, prim_uv, prim_index, shape_index, from_native):

@@ -242,13 +242,15 @@ def test06_moving_shapes_we_cannot_trace_and_unknown_ids_are_named():
     scene = mi.load_dict(mixed_scene())
     with pytest.raises(ValueError, match=r"no shape of the scene has the id\(s\) \['flag'\]"):
         hlbvh.SceneAccel(scene, moving="mover, flag")
-    with pytest.raises(ValueError, match="'copy_a' \\(Instance\\) moved"):
+    # (an instance moves through our two levels, but not one of a group with a sphere)
+    with pytest.raises(ValueError, match="'copy_a' \\(Instance\\) moved, and its shape group "
+                                         "holds shapes other than meshes"):
         hlbvh.SceneAccel(scene, moving=["copy_a"])
     accel = hlbvh.SceneAccel(scene)
     params = mi.traverse(scene)
     params["copy_b.to_world"] = mi.Transform4f().translate([0, 0.1, 0]) @ params["copy_b.to_world"]
     params.update()
-    with pytest.raises(ValueError, match="'copy_b' \\(Instance\\) moved"):
+    with pytest.raises(ValueError, match="'copy_b' \\(Instance\\) moved, and its shape group"):
         accel.update()
     with pytest.raises(RuntimeError, match="last update\\(\\) failed"):
         accel.ray_test(bounce_rays(scene, 16))
@@ -366,3 +368,53 @@ def test12_the_static_flag_reaches_the_accelerator(tmp_path, capsys):
     status, _, err = run_cli(capsys, "render", "cloth", "--static", "embree", "--out",
                              tmp_path / "bad", "--quiet")
     assert status == 2 and err == ["hlbvh render: --static 'embree': expected one of native, hlbvh"]
+
+
+def _rigid_scene() -> dict:
+    """A floor and 12 instances of two shape groups (a mesh blob; a cube with a
+    rectangle), rotated, scaled non-uniformly and mirrored."""
+    rng = np.random.default_rng(5)
+    desc = {"type": "scene",
+            "sensor": dict(type="perspective", fov=60,
+                           to_world=T().look_at(origin=[0, 4, 8], target=[0, 1, 0], up=[0, 1, 0]),
+                           **_film()),
+            "floor": dict(type="rectangle", to_world=T().rotate([1, 0, 0], -90).scale(6)),
+            "rocks": {"type": "shapegroup", "rock": _mesh("rock", *_blob(8, [0, 0, 0], 150))},
+            "boxes": {"type": "shapegroup", "cube": {"type": "cube"},
+                      "lid": {"type": "rectangle",
+                              "to_world": T().translate([0, 1.5, 0]).scale(0.5)}}}
+    for k in range(12):
+        desc[f"inst_{k}"] = {
+            "type": "instance", "shapegroup": {"type": "ref", "id": ["rocks", "boxes"][k % 2]},
+            "to_world": T().translate(list(rng.uniform(-3, 3, 3) + [0, 1.5, 0]))
+            .rotate(list(rng.normal(size=3)), float(rng.uniform(0, 360)))
+            .scale(list(rng.uniform(0.3, 0.8, 3) * rng.choice([-1, 1], 3)))}
+    return desc
+
+
+def test13_moving_instances_hit_as_natives_do():
+    """Instances that move are traced through our two-level hierarchy: every hit field
+    (shape, shape_index, prim_index, instance, t) and shadow test as Mitsuba's, after
+    each move; only the top level is rebuilt, the still world stays built."""
+    scene = mi.load_dict(_rigid_scene())
+    params = mi.traverse(scene)
+    accel = hlbvh.SceneAccel(scene, moving=[f"inst_{k}" for k in range(0, 12, 3)])
+    assert accel.last_update["groups"]["instances"]["instances"] == 4
+    for step in range(3):
+        if step:
+            for k in range(0, 12, 3):
+                key = f"inst_{k}.to_world"
+                params[key] = mi.Transform4f().translate([0.2 * step, 0.1, -0.1]) @ params[key]
+            params.update()
+            update = accel.update().last_update
+            assert update["groups"]["instances"]["decision"] == "rebuild"
+            assert update["groups"]["static"]["decision"] == "kept"
+        for coherent, ray in _rays(scene):
+            theirs = scene.ray_intersect_preliminary(ray, coherent)
+            ours = accel.ray_intersect_preliminary(ray, coherent)
+            assert dr.count(theirs.instance != None)[0] > 50  # noqa: E711
+            assert _agreement(scene, ray, ours, theirs) >= 1 - 2 / dr.width(ray)
+            occluded = np.array(accel.ray_test(ray, coherent, True))
+            assert np.mean(occluded == np.array(scene.ray_test(ray, coherent, True))) >= \
+                1 - 2 / dr.width(ray)
+    assert accel.static.builds == 1

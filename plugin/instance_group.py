@@ -1,0 +1,173 @@
+"""The moving instances of a scene (rigid motion), traced through our two-level
+hierarchy: one BVH per shape group they use, built once, and a top level over the
+instances' world boxes, rebuilt whenever one of them moves
+(:func:`hlbvh.kernels.instances.two_level`). The moving-instances group of
+:class:`hlbvh.SceneAccel` with ``static="native"``.
+
+Mitsuba does not say which shape group an instance uses (an instance's parameters are
+its ``to_world`` alone), so it is found from what Mitsuba does say: the group whose box,
+through the instance's ``to_world``, is the instance's box, and whose primitive count is
+the instance's. An instance that matches no group, or several groups of other geometry,
+is refused naming it.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from hlbvh.kernels.arrays import concat
+from hlbvh.kernels.build import build
+from hlbvh.kernels.bvh import BuildConfig
+from hlbvh.kernels.instances import two_level
+from hlbvh.scene_geometry import _describe, collect_geometry
+from hlbvh.timing import clock_ms
+
+
+class InstanceGroup:
+    """Moving instances, their groups' BVHs and the top level over them.
+
+    Args:
+        groups: the scene's shape groups.
+        config: the builder config of the groups' BVHs and of the top level.
+
+    Attributes:
+        name: ``"instances"``.
+        indices: indices into ``scene.shapes()`` of the instances, ascending.
+        tree: the :class:`hlbvh.kernels.two_level.TwoLevel` traced; None without
+            instances.
+        last: what the last update did: ``decision`` (``"build"``, ``"rebuild"``:
+            the top level only, or ``"kept"``), ``ms``, ``instances``, ``groups``,
+            ``triangles`` (instanced), ``sah_cost`` None.
+    """
+
+    name = "instances"
+
+    def __init__(self, groups: list, config: BuildConfig):
+        self.groups, self.config = groups, config
+        self.indices: tuple = ()
+        self.tree = None
+        self.last = None
+        self._group_of = {}  # instance index -> group position in self._used
+        self._used = []  # the groups the instances use, in the order of their BVHs
+        self._bvhs = []  # their BVHs (object space)
+        self._top = None  # the top level's BVH of the last update
+        self._prims = None  # per instanced face: (its mesh's index in its group, local)
+        self.keep()
+
+    @property
+    def triangles(self) -> int:
+        return sum(b.prim_count for b in self._bvhs) if self.tree is not None else 0
+
+    def keep(self):
+        self.last = dict(decision="kept", ms=0.0, instances=len(self.indices),
+                         groups=len(self._used), triangles=self.triangles, sah_cost=None)
+
+    def update(self, shapes, indices: tuple, moved: bool):
+        """Trace the instances ``shapes[i]``, ``i`` in ``indices``: their groups' BVHs
+        built for instances seen for the first time, the top level rebuilt when the
+        set changed or ``moved``.
+
+        Raises:
+            ValueError: naming an instance whose group cannot be told, whose group holds
+                other shapes than meshes, or whose transform is singular or not finite.
+        """
+        indices = tuple(indices)
+        if indices == self.indices and not moved:
+            self.keep()
+            return
+        start = clock_ms()
+        decision = "rebuild" if self.tree is not None else "build"
+        for i in indices:
+            if i not in self._group_of:
+                self._group_of[i] = self._group_position(shapes[i])
+        self.indices = indices
+        if not indices:
+            self.tree, self._top = None, None
+        else:
+            rows = concat([_rows(shapes[i]) for i in indices])
+            which = mi.UInt32([self._group_of[i] for i in indices])
+            try:
+                self.tree, self._top = two_level(self._bvhs, which, rows, self.config,
+                                                 previous=self._top)
+            except ValueError as error:
+                k = str(error).split(":")[0].split()[-1]
+                bad = shapes[indices[int(k)]] if k.isdigit() else None
+                raise ValueError(f"{_describe(bad)}: {str(error).split(': ', 1)[-1]}"
+                                 if bad is not None else str(error)) from None
+        self.last = dict(decision=decision, ms=clock_ms() - start, instances=len(indices),
+                         groups=len(self._used), triangles=self.triangles, sah_cost=None)
+
+    def hit_fields(self, prim, inst, valid):
+        """Mitsuba's fields of instance hits: ``(prim_index, shape_index (the shape's
+        index in its group), index of the instance in scene.shapes())``."""
+        in_group, local = self._prims
+        scene_index = mi.UInt32(list(self.indices))
+        return (dr.gather(mi.UInt32, local, prim, valid),
+                dr.gather(mi.UInt32, in_group, prim, valid),
+                dr.gather(mi.UInt32, scene_index, inst, valid))
+
+    def _group_position(self, instance) -> int:
+        """The position (in ``self._used``) of the group ``instance`` uses, its BVH
+        built when it is new."""
+        box = instance.bbox()
+        count = instance.effective_primitive_count()
+        to_world = mi.traverse(instance)["to_world"]
+        found = [g for g in self.groups if g.primitive_count() == count
+                 and _same_box(_transformed(g.bbox(), to_world), box)]
+        if not found:
+            raise ValueError(f"{_describe(instance)} moved, and no shape group of the scene "
+                             "matches its box and primitive count; render it with "
+                             "accel='native'")
+        if len(found) > 1 and len({id(g) for g in found}) > 1:
+            raise ValueError(f"{_describe(instance)} moved, and {len(found)} shape groups "
+                             "match its box and primitive count: which it instances "
+                             "cannot be told; give the groups different geometry, or "
+                             "render with accel='native'")
+        group = found[0]
+        if any(g is group for g in self._used):
+            return next(k for k, g in enumerate(self._used) if g is group)
+        self._add_group(group, instance)
+        return len(self._used) - 1
+
+    def _add_group(self, group, instance):
+        """A BVH over the group's meshes in object space, and its faces' fields."""
+        params = mi.traverse(group)
+        members = [node for node, (parent, _) in params.hierarchy.items()
+                   if parent is group and isinstance(node, mi.Shape)]
+        if not members or not all(m.is_mesh() for m in members):
+            raise ValueError(f"{_describe(instance)} moved, and its shape group holds shapes "
+                             "other than meshes, which hlbvh cannot trace moving; keep it "
+                             "still or render with accel='native'")
+        geometry = collect_geometry(members, list(range(len(members))))
+        self._used.append(group)
+        self._bvhs.append(build(geometry.vertices, geometry.faces, config=self.config))
+        part = (geometry.prim_shape, geometry.prim_local)
+        self._prims = part if self._prims is None else tuple(
+            concat([a, b]) for a, b in zip(self._prims, part))
+
+
+def _rows(instance) -> mi.Float:
+    """The instance's ``to_world`` as the 12 floats (A row-major, then b) the two-level
+    builder takes."""
+    m = mi.traverse(instance)["to_world"].matrix
+    return mi.Float([m[r][c][0] for r in range(3) for c in range(3)]
+                    + [m[r][3][0] for r in range(3)])
+
+
+def _transformed(box, to_world):
+    """The box around ``box``'s corners through ``to_world``."""
+    matrix = to_world.matrix
+    lo, hi = [float("inf")] * 3, [float("-inf")] * 3
+    for corner in range(8):
+        c = [box.max[i] if (corner >> i) & 1 else box.min[i] for i in range(3)]
+        p = [sum(float(matrix[r][j][0]) * c[j] for j in range(3)) + float(matrix[r][3][0])
+             for r in range(3)]
+        lo, hi = [min(a, b) for a, b in zip(lo, p)], [max(a, b) for a, b in zip(hi, p)]
+    return lo, hi
+
+
+def _same_box(ours, box) -> bool:
+    lo, hi = ours
+    scale = max(1.0, *(abs(v) for v in lo + hi))
+    return all(abs(a - b) <= 1e-4 * scale for a, b in zip(lo + hi, list(box.min) + list(box.max)))
