@@ -25,8 +25,10 @@ or once it changed (see :mod:`hlbvh.motion`). Then it stays moving.
   Moving meshes are in the dynamic :class:`MeshGroup`'s HLBVH; moving ``sphere``,
   ``disk`` and ``cylinder`` shapes are intersected by their own routine
   (``shape.ray_intersect_preliminary``, once per shape: a call through a shape
-  pointer inside a symbolic loop would trace every registered shape); any other shape
-  that moves is refused with a ``ValueError`` naming it.
+  pointer inside a symbolic loop would trace every registered shape); moving instances
+  go through our two-level hierarchy (:class:`hlbvh.instance_group.InstanceGroup`: their
+  groups' BVHs built once, the top level rebuilt when one moves); any other shape that
+  moves is refused with a ``ValueError`` naming it.
 * ``static="hlbvh"``: every mesh in our BVHs (the static :class:`MeshGroup`, built
   once with the static builder, and the dynamic one), traced by our watertight
   traversal; the analytic shapes by their own routine; instances, curves, SDF grids
@@ -111,6 +113,8 @@ class SceneAccel(_Accel):
         static: the static group: a :class:`NativeGroup` (``static="native"``) or a
             :class:`MeshGroup` (``static="hlbvh"``).
         dynamic: the moving meshes' :class:`MeshGroup`.
+        instances: the moving instances' :class:`InstanceGroup` (``static="native"``;
+            None with ``"hlbvh"``).
         last_update: what the last :meth:`update` (or the construction) did:
             ``decision`` (the most work any group did, one of :data:`DECISIONS`),
             ``ms`` (wall time of the whole update), ``triangles``, ``sah_cost`` (of the
