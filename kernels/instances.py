@@ -21,6 +21,14 @@ from .slots import SLOT
 from .two_level import TwoLevel
 
 
+class BadTransform(ValueError):
+    """An instance's transform that cannot be inverted; ``index`` says which."""
+
+    def __init__(self, index: int, what: str):
+        super().__init__(f"instance {index}: its transform is {what}")
+        self.index = index
+
+
 def world_boxes(group_bvhs: list[BVH], instance_group, to_world):
     """The world box of each instance: its geometry's root box through its transform.
 
@@ -62,8 +70,8 @@ def two_level(group_bvhs: list[BVH], instance_group, to_world,
         ``group_bvhs`` in order (a hit's ``prim`` minus the faces of the trees before
         its own is the face in its tree).
     Raises:
-        ValueError: naming the first instance whose transform is not invertible or
-            not finite.
+        BadTransform: (a ValueError) naming the first instance whose transform is not
+            invertible or not finite.
     """
     ns = namespace_of(instance_group)
     instance_group, to_world = plain(instance_group, "UInt32"), plain(to_world, "Float")
@@ -132,8 +140,7 @@ def _inverse_rows(ns, to_world, M):
     bad = ~finite | (det == 0)
     if dr.any(bad, axis=None):
         k = int(dr.compress(bad)[0])
-        what = "not finite" if not finite[k] else "singular (a scale of 0)"
-        raise ValueError(f"instance {k}: its transform is {what}")
+        raise BadTransform(k, "not finite" if not finite[k] else "singular (a scale of 0)")
     inv = [[cof[c][r] / det for c in range(3)] for r in range(3)]  # adjugate / det
     b = m[9:12]
     t = [-(inv[r][0] * b[0] + inv[r][1] * b[1] + inv[r][2] * b[2]) for r in range(3)]

@@ -19,7 +19,7 @@ import mitsuba as mi
 from hlbvh.kernels.arrays import concat
 from hlbvh.kernels.build import build
 from hlbvh.kernels.bvh import BuildConfig
-from hlbvh.kernels.instances import two_level
+from hlbvh.kernels.instances import BadTransform, two_level
 from hlbvh.scene_geometry import _describe, collect_geometry
 from hlbvh.timing import clock_ms
 
@@ -53,6 +53,7 @@ class InstanceGroup:
         self._bvhs = []  # their BVHs (object space)
         self._top = None  # the top level's BVH of the last update
         self._prims = None  # per instanced face: (its mesh's index in its group, local)
+        self._scene_index = None  # UInt32: each instance's index in scene.shapes()
         self.keep()
 
     @property
@@ -85,16 +86,15 @@ class InstanceGroup:
         if not indices:
             self.tree, self._top = None, None
         else:
-            rows = concat([_rows(shapes[i]) for i in indices])
+            rows = concat([v for i in indices for v in _rows(shapes[i])])  # one kernel
             which = mi.UInt32([self._group_of[i] for i in indices])
             try:
                 self.tree, self._top = two_level(self._bvhs, which, rows, self.config,
                                                  previous=self._top)
-            except ValueError as error:
-                k = str(error).split(":")[0].split()[-1]
-                bad = shapes[indices[int(k)]] if k.isdigit() else None
-                raise ValueError(f"{_describe(bad)}: {str(error).split(': ', 1)[-1]}"
-                                 if bad is not None else str(error)) from None
+            except BadTransform as error:
+                raise ValueError(f"{_describe(shapes[indices[error.index]])}: its to_world "
+                                 f"is {str(error).split(' is ', 1)[1]}") from None
+        self._scene_index = mi.UInt32(list(indices))
         self.last = dict(decision=decision, ms=clock_ms() - start, instances=len(indices),
                          groups=len(self._used), triangles=self.triangles, sah_cost=None)
 
@@ -102,10 +102,9 @@ class InstanceGroup:
         """Mitsuba's fields of instance hits: ``(prim_index, shape_index (the shape's
         index in its group), index of the instance in scene.shapes())``."""
         in_group, local = self._prims
-        scene_index = mi.UInt32(list(self.indices))
         return (dr.gather(mi.UInt32, local, prim, valid),
                 dr.gather(mi.UInt32, in_group, prim, valid),
-                dr.gather(mi.UInt32, scene_index, inst, valid))
+                dr.gather(mi.UInt32, self._scene_index, inst, valid))
 
     def _group_position(self, instance) -> int:
         """The position (in ``self._used``) of the group ``instance`` uses, its BVH
@@ -119,7 +118,7 @@ class InstanceGroup:
             raise ValueError(f"{_describe(instance)} moved, and no shape group of the scene "
                              "matches its box and primitive count; render it with "
                              "accel='native'")
-        if len(found) > 1 and len({id(g) for g in found}) > 1:
+        if len(found) > 1:
             raise ValueError(f"{_describe(instance)} moved, and {len(found)} shape groups "
                              "match its box and primitive count: which it instances "
                              "cannot be told; give the groups different geometry, or "
@@ -147,12 +146,11 @@ class InstanceGroup:
             concat([a, b]) for a, b in zip(self._prims, part))
 
 
-def _rows(instance) -> mi.Float:
-    """The instance's ``to_world`` as the 12 floats (A row-major, then b) the two-level
-    builder takes."""
+def _rows(instance) -> list:
+    """The instance's ``to_world`` as the 12 one-entry arrays (A row-major, then b) the
+    two-level builder takes in turn; no value is read back to the host."""
     m = mi.traverse(instance)["to_world"].matrix
-    return mi.Float([m[r][c][0] for r in range(3) for c in range(3)]
-                    + [m[r][3][0] for r in range(3)])
+    return [m[r][c] for r in range(3) for c in range(3)] + [m[r][3] for r in range(3)]
 
 
 def _transformed(box, to_world):
