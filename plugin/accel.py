@@ -71,7 +71,8 @@ from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.kernels.geometry import half_area
 from hlbvh.kernels.layout import joined
 from hlbvh.kernels.traversal import any_hit, closest_hit
-from hlbvh.instance_group import InstanceGroup
+from hlbvh.instance_group import InstanceGroup, group_of
+from hlbvh.instance_shading import InstanceShading, is_instance
 from hlbvh.kernels.traversal import closest_instance_hit
 from hlbvh.mesh_group import MeshGroup
 from hlbvh.motion import MeshState, shape_states
@@ -143,10 +144,20 @@ class SceneAccel(_Accel):
         groups = shape_groups(scene) if native else []
         self.static = NativeGroup(groups) if native else MeshGroup("static")
         self.dynamic = MeshGroup("dynamic")
-        self.instances = InstanceGroup(groups, config) if native else None
+        known = {}  # id(instance) -> its shape group, told once for both uses
+
+        def told(instance):
+            if id(instance) not in known:
+                known[id(instance)] = group_of(instance, groups)
+            return known[id(instance)]
+
+        self.instances = InstanceGroup(groups, config, told) if native else None
+        self.shading = (InstanceShading(self.shapes, told)
+                        if native and any(is_instance(s) for s in self.shapes) else None)
         for i in self.moving:
             self._check_movable(i)
         self.last_update = None
+        self._handles = {}  # each shape's parameter handles (hlbvh.motion)
         self._states = None  # each shape's state at the last update
         self._current = False  # whether the last update succeeded
         self._traced = []  # the mesh groups with triangles our BVHs trace, static first
@@ -162,7 +173,7 @@ class SceneAccel(_Accel):
     def changed(self) -> bool:
         """Whether a shape changed (a ``params.update()`` with new values) since the
         last update, or a group's last build failed."""
-        states = shape_states(self.shapes, range(len(self.shapes)))
+        states = shape_states(self.shapes, range(len(self.shapes)), self._handles)
         return self._stale_groups() or any(
             states[i].moved(self._states[i]) for i in range(len(self.shapes)))
 
@@ -181,7 +192,7 @@ class SceneAccel(_Accel):
         """
         start = clock_ms()
         self._current = False  # until every group is up to date
-        states = shape_states(self.shapes, range(len(self.shapes)))
+        states = shape_states(self.shapes, range(len(self.shapes)), self._handles)
         first = self._states is None
         changed = [] if first else [i for i in states if states[i].moved(self._states[i])]
         # ---- Shapes that changed for the first time start moving ----
@@ -203,10 +214,14 @@ class SceneAccel(_Accel):
         else:
             self.dynamic.keep()
         # ---- The moving instances: the top level over them ----
+        if self.shading is not None:
+            self.shading.refresh([i for i in changed if is_instance(self.shapes[i])])
         if self.instances is not None:
-            moving_instances = tuple(i for i in moving if _is_instance(self.shapes[i]))
+            moving_instances = tuple(i for i in moving if is_instance(self.shapes[i]))
+            table = self.shading if self.shading is not None and self.shading.usable else None
             self.instances.update(self.shapes, moving_instances,
-                                  moved=any(i in moving_instances for i in changed))
+                                  moved=any(i in moving_instances for i in changed),
+                                  rows_of=table.rows_of if table else None)
         self._states, self._current = states, True
         traced = [g for g in (self.static, self.dynamic) if isinstance(g, MeshGroup) and g.bvh]
         if traced != self._traced or any(g.last["decision"] != "kept" for g in traced):
@@ -222,12 +237,20 @@ class SceneAccel(_Accel):
         )
         return self
 
+    def surface_interaction(self, pi, ray, ray_flags=mi.RayFlags.All, active=True):
+        """``pi.compute_surface_interaction(ray, ray_flags, active)``; in a scene with
+        instances, expanded without Mitsuba's call through a shape pointer, whose kernel
+        grows with the number of instances (:mod:`hlbvh.instance_shading`)."""
+        if self.shading is None:
+            return pi.compute_surface_interaction(ray, ray_flags, active)
+        return self.shading.surface_interaction(pi, ray, ray_flags, active)
+
     def _check_movable(self, i: int):
         """Refuse a change this accelerator cannot follow: a shape that cannot be traced
         moving (instances can, with ``static="native"``), or a mesh whose faces were
         emptied."""
         shape = self.shapes[i]
-        if i in self._others and not (self.instances is not None and _is_instance(shape)):
+        if i in self._others and not (self.instances is not None and is_instance(shape)):
             raise unmovable_error(shape)
         if shape.is_mesh() and shape.face_count() == 0:
             raise ValueError(f"{_describe(shape)} has no triangles any more: it would "
@@ -388,10 +411,6 @@ class SceneAccel(_Accel):
         return hit & active
 
 
-def _is_instance(shape) -> bool:
-    return shape.class_name() == "Instance"
-
-
 def _nearer(hit, t, prim_uv, prim_index, shape_index, from_native):
     """The nearest-hit fields after one more structure's ``hit`` (t, prim_uv,
     prim_index, shape_index): taken where strictly nearer, so ties keep the earlier."""
@@ -405,7 +424,8 @@ def _nearer(hit, t, prim_uv, prim_index, shape_index, from_native):
 def _declared(shapes, ids: tuple) -> tuple:
     """Indices into ``shapes`` of the shapes whose ids are ``ids`` (every shape of an
     id); ValueError naming the ids that name no shape."""
-    found = [i for i, shape in enumerate(shapes) if shape.id() in ids]
+    wanted = set(ids)
+    found = [i for i, shape in enumerate(shapes) if shape.id() in wanted]
     unknown = sorted(set(ids) - {shapes[i].id() for i in found})
     if unknown:
         raise ValueError(f"moving={list(ids)}: no shape of the scene has the id(s) {unknown} "

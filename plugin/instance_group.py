@@ -15,11 +15,13 @@ from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from hlbvh.kernels.arrays import concat
 from hlbvh.kernels.build import build
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.kernels.instances import BadTransform, two_level
+from hlbvh.instance_shading import group_members, to_world_rows
 from hlbvh.scene_geometry import _describe, collect_geometry
 from hlbvh.timing import clock_ms
 
@@ -30,6 +32,8 @@ class InstanceGroup:
     Args:
         groups: the scene's shape groups.
         config: the builder config of the groups' BVHs and of the top level.
+        group_of: a function giving the shape group an instance uses, where the caller
+            tells it already; :func:`group_of` otherwise.
 
     Attributes:
         name: ``"instances"``.
@@ -43,8 +47,9 @@ class InstanceGroup:
 
     name = "instances"
 
-    def __init__(self, groups: list, config: BuildConfig):
+    def __init__(self, groups: list, config: BuildConfig, group_of=None):
         self.groups, self.config = groups, config
+        self._told = group_of
         self.indices: tuple = ()
         self.tree = None
         self.last = None
@@ -64,10 +69,11 @@ class InstanceGroup:
         self.last = dict(decision="kept", ms=0.0, instances=len(self.indices),
                          groups=len(self._used), triangles=self.triangles, sah_cost=None)
 
-    def update(self, shapes, indices: tuple, moved: bool):
+    def update(self, shapes, indices: tuple, moved: bool, rows_of=None):
         """Trace the instances ``shapes[i]``, ``i`` in ``indices``: their groups' BVHs
         built for instances seen for the first time, the top level rebuilt when the
-        set changed or ``moved``.
+        set changed or ``moved``. ``rows_of(indices)``: their transforms as one Float
+        (12 an instance), where the caller holds them already; read here otherwise.
 
         Raises:
             ValueError: naming an instance whose group cannot be told, whose group holds
@@ -86,7 +92,8 @@ class InstanceGroup:
         if not indices:
             self.tree, self._top = None, None
         else:
-            rows = concat([v for i in indices for v in _rows(shapes[i])])  # one kernel
+            rows = (rows_of(indices) if rows_of is not None else
+                    concat([v for i in indices for v in to_world_rows(shapes[i])]))
             which = mi.UInt32([self._group_of[i] for i in indices])
             try:
                 self.tree, self._top = two_level(self._bvhs, which, rows, self.config,
@@ -109,21 +116,8 @@ class InstanceGroup:
     def _group_position(self, instance) -> int:
         """The position (in ``self._used``) of the group ``instance`` uses, its BVH
         built when it is new."""
-        box = instance.bbox()
-        count = instance.effective_primitive_count()
-        to_world = mi.traverse(instance)["to_world"]
-        found = [g for g in self.groups if g.primitive_count() == count
-                 and _same_box(_transformed(g.bbox(), to_world), box)]
-        if not found:
-            raise ValueError(f"{_describe(instance)} moved, and no shape group of the scene "
-                             "matches its box and primitive count; render it with "
-                             "accel='native'")
-        if len(found) > 1:
-            raise ValueError(f"{_describe(instance)} moved, and {len(found)} shape groups "
-                             "match its box and primitive count: which it instances "
-                             "cannot be told; give the groups different geometry, or "
-                             "render with accel='native'")
-        group = found[0]
+        group = (self._told(instance) if self._told is not None
+                 else group_of(instance, self.groups, "moved"))
         if any(g is group for g in self._used):
             return next(k for k, g in enumerate(self._used) if g is group)
         self._add_group(group, instance)
@@ -131,9 +125,7 @@ class InstanceGroup:
 
     def _add_group(self, group, instance):
         """A BVH over the group's meshes in object space, and its faces' fields."""
-        params = mi.traverse(group)
-        members = [node for node, (parent, _) in params.hierarchy.items()
-                   if parent is group and isinstance(node, mi.Shape)]
+        members = group_members(group)
         if not members or not all(m.is_mesh() for m in members):
             raise ValueError(f"{_describe(instance)} moved, and its shape group holds shapes "
                              "other than meshes, which hlbvh cannot trace moving; keep it "
@@ -146,23 +138,38 @@ class InstanceGroup:
             concat([a, b]) for a, b in zip(self._prims, part))
 
 
-def _rows(instance) -> list:
-    """The instance's ``to_world`` as the 12 one-entry arrays (A row-major, then b) the
-    two-level builder takes in turn; no value is read back to the host."""
-    m = mi.traverse(instance)["to_world"].matrix
-    return [m[r][c] for r in range(3) for c in range(3)] + [m[r][3] for r in range(3)]
+def group_of(instance, groups: list, why: str = "is traced by hlbvh"):
+    """The shape group of ``groups`` that ``instance`` uses: the one whose box, through
+    the instance's ``to_world``, is the instance's box, and whose primitive count is the
+    instance's (Mitsuba does not expose the link). ``why`` says in errors why it is
+    asked for.
+
+    Raises:
+        ValueError: naming the instance, when no group or several groups match.
+    """
+    box = instance.bbox()
+    count = instance.effective_primitive_count()
+    matrix = np.array(mi.traverse(instance)["to_world"].matrix, np.float64).reshape(4, 4)
+    found = [g for g in groups if g.primitive_count() == count
+             and _same_box(_transformed(g.bbox(), matrix), box)]
+    if not found:
+        raise ValueError(f"{_describe(instance)} {why}, and no shape group of the scene "
+                         "matches its box and primitive count; render it with "
+                         "accel='native'")
+    if len(found) > 1:
+        raise ValueError(f"{_describe(instance)} {why}, and {len(found)} shape groups "
+                         "match its box and primitive count: which it instances "
+                         "cannot be told; give the groups different geometry, or "
+                         "render with accel='native'")
+    return found[0]
 
 
-def _transformed(box, to_world):
-    """The box around ``box``'s corners through ``to_world``."""
-    matrix = to_world.matrix
-    lo, hi = [float("inf")] * 3, [float("-inf")] * 3
-    for corner in range(8):
-        c = [box.max[i] if (corner >> i) & 1 else box.min[i] for i in range(3)]
-        p = [sum(float(matrix[r][j][0]) * c[j] for j in range(3)) + float(matrix[r][3][0])
-             for r in range(3)]
-        lo, hi = [min(a, b) for a, b in zip(lo, p)], [max(a, b) for a, b in zip(hi, p)]
-    return lo, hi
+def _transformed(box, matrix: np.ndarray):
+    """The box around ``box``'s corners through the 4x4 ``matrix``."""
+    bits = (np.arange(8)[:, None] >> np.arange(3)) & 1
+    corners = np.where(bits == 1, np.array(box.max, np.float64), np.array(box.min, np.float64))
+    p = corners @ matrix[:3, :3].T + matrix[:3, 3]
+    return list(p.min(axis=0)), list(p.max(axis=0))
 
 
 def _same_box(ours, box) -> bool:

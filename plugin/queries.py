@@ -123,6 +123,11 @@ class _Accel:
     def _intersect(self, ray, ray_flags, coherent, active, reorder):
         """The closest hit, expanded by Mitsuba, as ``mi.Scene.ray_intersect`` does."""
         pi = self._preliminary(ray, coherent, active, reorder)
+        return self.surface_interaction(pi, ray, ray_flags, active)
+
+    def surface_interaction(self, pi, ray, ray_flags=mi.RayFlags.All, active=True):
+        """The surface interaction of the hits ``pi`` of ``ray``:
+        ``pi.compute_surface_interaction(ray, ray_flags, active)`` (Mitsuba's)."""
         return pi.compute_surface_interaction(ray, ray_flags, active)
 
 

@@ -68,7 +68,7 @@ class AOVIntegrator(AccelIntegrator):
         accel = self.accel(scene)
         ray = mi.Ray3f(ray)
         pi = accel.ray_intersect_preliminary(ray, True, active)
-        si = pi.compute_surface_interaction(ray, mi.RayFlags.All, active)
+        si = accel.surface_interaction(pi, ray, mi.RayFlags.All, active)
         hit = mi.Bool(active) & pi.is_valid()
         n = dr.select(hit, si.sh_frame.n, 0.0)
         p = dr.select(hit, si.p, 0.0)

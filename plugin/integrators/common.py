@@ -139,6 +139,6 @@ def skip_area_emitters(accel, ray, coherent, active):
     while dr.hint(active, label="hlbvh_skip_area_emitters"):
         pi = accel.ray_intersect_preliminary(ray, coherent)
         active &= pi.is_valid() & (pi.shape.emitter() != None)  # noqa: E711 (JIT compare)
-        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
+        si = accel.surface_interaction(pi, ray, mi.RayFlags.Minimal, active)
         ray = si.spawn_ray(ray.d)
     return pi

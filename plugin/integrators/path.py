@@ -112,12 +112,12 @@ class PathIntegrator(AccelIntegrator):
 
         if dr.hint(self.hide_emitters, mode="scalar"):
             skip = pi.is_valid() & (pi.shape.emitter() != None) & active  # noqa: E711
-            si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, skip)
+            si = accel.surface_interaction(pi, ray, mi.RayFlags.Minimal, skip)
             pi_after_skip = skip_area_emitters(accel, si.spawn_ray(ray.d), True, skip)
             pi = dr.select(skip, pi_after_skip, pi)
 
         while dr.hint(active, label="hlbvh_path"):
-            si = pi.compute_surface_interaction(ray, mi.RayFlags.All)
+            si = accel.surface_interaction(pi, ray, mi.RayFlags.All)
 
             # ---------------------- Direct emission ----------------------
 

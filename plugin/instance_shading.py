@@ -1,0 +1,218 @@
+"""Surface interactions of a scene with instances, expanded without Mitsuba's call
+through a shape pointer.
+
+Mitsuba expands a hit (``pi.compute_surface_interaction``) with a call through the
+hit's shape or instance pointer. On the JIT backends such a call is recorded once for
+every shape the variant knows, and an instance's own expansion holds a second call of
+that kind through its group's shapes, so the kernel that expands hits grows with the
+number of instances: its compilation takes about 40 ms an instance (docs/decisions.md),
+and a scene of 10k instances does not fit in 24 GB. Here a hit inside an instance is
+expanded as Mitsuba's ``Instance`` does it (the ray taken into object space, the group
+shape's own expansion, the result taken back to world space) with the instance's
+transform gathered per lane from a table, and each group shape called directly; a hit
+on any other shape is expanded by a direct call of that shape. The kernel then holds one
+expansion per distinct shape, however many instances there are.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from hlbvh.kernels.arrays import concat
+
+#: Most shapes outside instances expanded by a direct call each (every call runs on
+#: every lane); a scene with more leaves their hits to Mitsuba's call.
+MOST_DIRECT_SHAPES = 32
+
+_NO_SLOT = 0xFFFFFFFF
+ROW = 24  # floats a transform takes in the table: to_world's 12, its inverse transpose's 12
+
+
+def is_instance(shape) -> bool:
+    """Whether ``shape`` is a Mitsuba ``instance``."""
+    return shape.class_name() == "Instance"
+
+
+def registry_id(shape) -> int:
+    """The id a JIT shape pointer to ``shape`` holds."""
+    return int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0])
+
+
+def group_members(group) -> list:
+    """The shapes a shape group holds, in the group's order (its ``shape_index``)."""
+    params = mi.traverse(group)
+    return [node for node, (parent, _) in params.hierarchy.items()
+            if parent is group and isinstance(node, mi.Shape)]
+
+
+def to_world_rows(instance) -> list:
+    """The instance's ``to_world`` as 12 one-entry arrays (A row-major, then b), read
+    without a host round trip."""
+    m = mi.traverse(instance)["to_world"].matrix
+    return [m[r][c] for r in range(3) for c in range(3)] + [m[r][3] for r in range(3)]
+
+
+def _transform_rows(instance) -> list:
+    """:func:`to_world_rows`, then the 12 entries of the inverse transpose that an
+    affine transform uses (its 3x3 block row-major, then its last row's first three):
+    the inverse transpose as Mitsuba keeps it, which a chain of transforms builds from
+    its steps (a rotation about an axis that is not a unit vector, say, is not
+    orthogonal, and its kept inverse transpose is not the matrix's); normals go
+    through it, so they are Mitsuba's."""
+    to_world = mi.traverse(instance)["to_world"]
+    m, it = to_world.matrix, to_world.inverse_transpose
+    return ([m[r][c] for r in range(3) for c in range(3)] + [m[r][3] for r in range(3)]
+            + [it[r][c] for r in range(3) for c in range(3)] + [it[3][c] for c in range(3)])
+
+
+class InstanceShading:
+    """The expansion of hits of a scene whose shapes include instances.
+
+    Args:
+        shapes: ``scene.shapes()``.
+        group_of: a function giving the shape group an instance uses (raising
+            ValueError when it cannot be told).
+
+    Attributes:
+        usable: False when some instance's group cannot be told, or the scene has more
+            than :data:`MOST_DIRECT_SHAPES` other shapes: then
+            :meth:`surface_interaction` is Mitsuba's own.
+        slots: ``{index into shapes: slot}`` of every instance, its row in the table of
+            transforms.
+    """
+
+    def __init__(self, shapes, group_of):
+        self.shapes = shapes
+        instances = [i for i, s in enumerate(shapes) if is_instance(s)]
+        self._others = [s for s in shapes if not is_instance(s)]
+        self.slots = {i: k for k, i in enumerate(instances)}
+        self.usable = bool(instances) and len(self._others) <= MOST_DIRECT_SHAPES
+        self._children, bases, where = [], [], {}
+        if self.usable:
+            try:
+                for i in instances:
+                    group = group_of(shapes[i])
+                    if id(group) not in where:
+                        where[id(group)] = len(self._children)
+                        self._children += group_members(group)
+                    bases.append(where[id(group)])
+            except ValueError:
+                self.usable = False
+        if not self.usable:
+            return
+        ids = [registry_id(shapes[i]) for i in instances]
+        table = [_NO_SLOT] * (max(ids) + 1)
+        for k, rid in enumerate(ids):
+            table[rid] = k
+        self._slot_of_id = mi.UInt32(table)
+        self._child_base = mi.UInt32(bases)
+        self._rows = None
+        self.refresh(instances)
+
+    def refresh(self, indices):
+        """Read again the transforms of the instances ``shapes[i]``, ``i`` in
+        ``indices`` (all of them on the first call), in one kernel."""
+        if not self.usable or not indices:
+            return
+        if self._rows is None:
+            self._rows = concat([v for i in indices for v in _transform_rows(self.shapes[i])])
+            return
+        values = [v for i in indices for v in _transform_rows(self.shapes[i])]
+        offsets = [ROW * self.slots[i] + c for i in indices for c in range(ROW)]
+        dr.scatter(self._rows, concat(values), mi.UInt32(offsets))
+        dr.eval(self._rows)
+
+    def rows_of(self, indices) -> mi.Float:
+        """The transforms of the instances ``shapes[i]``, ``i`` in ``indices``, as one
+        Float of 12 an instance (the two-level builder's input)."""
+        slots = mi.UInt32([ROW * self.slots[i] for i in indices])
+        out = dr.zeros(mi.Float, 12 * len(indices))
+        k = dr.arange(mi.UInt32, len(indices)) * 12
+        for c in range(12):
+            dr.scatter(out, dr.gather(mi.Float, self._rows, slots + c), k + c)
+        dr.eval(out)
+        return out
+
+    def surface_interaction(self, pi, ray, ray_flags=mi.RayFlags.All, active=True):
+        """``pi.compute_surface_interaction(ray, ray_flags, active)``, field for field
+        (see the module docstring); Mitsuba's own when not :attr:`usable`."""
+        if not self.usable:
+            return pi.compute_surface_interaction(ray, ray_flags, active)
+        flags = int(ray_flags)
+        ray = mi.Ray3f(ray)
+        active = mi.Bool(active) & pi.is_valid()
+        in_instance = active & (pi.instance != None)  # noqa: E711 (JIT compare)
+        # ---- Hits inside instances: as Mitsuba's Instance expands them ----
+        slot = dr.gather(mi.UInt32, self._slot_of_id,
+                         dr.reinterpret_array(mi.UInt32, pi.instance), in_instance)
+        to_world = mi.AffineTransform4f(*self._matrices(slot, in_instance))
+        to_object = to_world.inverse()
+        local_ray = to_object @ ray
+        child = dr.gather(mi.UInt32, self._child_base, slot, in_instance) + pi.shape_index
+        si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ray))
+        for k, shape in enumerate(self._children):
+            mask = in_instance & (child == k)
+            si = dr.select(mask, shape.compute_surface_interaction(local_ray, pi, flags, mask), si)
+        si = _to_world(si, to_world, to_object, flags)
+        si.prim_index = pi.prim_index
+        si.instance = pi.instance
+        # ---- Hits on other shapes: each shape's own expansion ----
+        for shape in self._others:
+            mask = active & ~in_instance & (pi.shape == mi.ShapePtr(shape))
+            si = dr.select(mask, shape.compute_surface_interaction(ray, pi, flags, mask), si)
+        return _finalized(si, ray, flags, active)
+
+    def _matrices(self, slot, active) -> tuple:
+        """Each lane's instance's object-to-world matrix and its inverse transpose
+        (affine: the one's last row, the other's last column 0 0 0 1)."""
+        m = [dr.gather(mi.Float, self._rows, slot * ROW + c, active) for c in range(ROW)]
+        t = m[12:]
+        return (mi.Matrix4f(m[0], m[1], m[2], m[9],
+                            m[3], m[4], m[5], m[10],
+                            m[6], m[7], m[8], m[11],
+                            0.0, 0.0, 0.0, 1.0),
+                mi.Matrix4f(t[0], t[1], t[2], 0.0,
+                            t[3], t[4], t[5], 0.0,
+                            t[6], t[7], t[8], 0.0,
+                            t[9], t[10], t[11], 1.0))
+
+
+def _to_world(si, to_world, to_object, flags: int):
+    """The group shape's interaction ``si`` taken to world space, as Mitsuba's
+    ``Instance`` takes it (the same operations in the same order)."""
+    si.p = to_world @ mi.Point3f(si.p)
+    si.n = dr.normalize(to_world @ mi.Normal3f(si.n))
+    if flags & int(mi.RayFlags.ShadingFrame):
+        si.sh_frame.n = dr.normalize(to_world @ mi.Normal3f(si.sh_frame.n))
+        si.initialize_sh_frame()
+    if flags & int(mi.RayFlags.dPdUV):
+        si.dp_du = to_world @ mi.Vector3f(si.dp_du)
+        si.dp_dv = to_world @ mi.Vector3f(si.dp_dv)
+    if flags & (int(mi.RayFlags.dNGdUV) | int(mi.RayFlags.dNSdUV)):
+        n = si.n if flags & int(mi.RayFlags.dNGdUV) else si.sh_frame.n
+        tn = to_world @ mi.Normal3f(dr.normalize(to_object @ mi.Normal3f(n)))
+        inv_len = dr.rcp(dr.norm(tn))
+        tn *= inv_len
+        si.dn_du = mi.Vector3f(to_world @ mi.Normal3f(si.dn_du)) * inv_len
+        si.dn_dv = mi.Vector3f(to_world @ mi.Normal3f(si.dn_dv)) * inv_len
+        si.dn_du -= tn * dr.dot(tn, si.dn_du)
+        si.dn_dv -= tn * dr.dot(tn, si.dn_dv)
+    return si
+
+
+def _finalized(si, ray, flags: int, active):
+    """What Mitsuba fills in after a shape's expansion: time, wavelengths, the shading
+    frame, the incident direction, no pointers on a miss."""
+    si.t = dr.select(active, si.t, dr.inf)
+    si.shape = dr.select(active, si.shape, dr.zeros(mi.ShapePtr, dr.width(si.t)))
+    si.instance = dr.select(active, si.instance, dr.zeros(mi.ShapePtr, dr.width(si.t)))
+    si.time = ray.time
+    si.wavelengths = ray.wavelengths
+    if flags & int(mi.RayFlags.ShadingFrame):
+        si.initialize_sh_frame()
+    si.wi = dr.select(active, si.to_local(-ray.d), -ray.d)
+    si.duv_dx = dr.zeros(mi.Vector2f, dr.width(si.t))
+    si.duv_dy = dr.zeros(mi.Vector2f, dr.width(si.t))
+    return si
+
