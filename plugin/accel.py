@@ -139,16 +139,17 @@ class SceneAccel(_Accel):
         self.shapes = list(scene.shapes())
         self.shapes_dr = scene.shapes_dr()
         native = self.policy.static == "native"
-        self.meshes, self.analytic, self._others = scene_shapes(self.shapes, self.policy.static)
+        self.meshes, self.analytic, others = scene_shapes(self.shapes, self.policy.static)
+        self._others = set(others)  # shapes our BVHs do not intersect
         self.moving = _declared(self.shapes, self.policy.moving)
         groups = shape_groups(scene) if native else []
         self.static = NativeGroup(groups) if native else MeshGroup("static")
         self.dynamic = MeshGroup("dynamic")
         known = {}  # id(instance) -> its shape group, told once for both uses
 
-        def told(instance):
+        def told(instance, matrix=None):
             if id(instance) not in known:
-                known[id(instance)] = group_of(instance, groups)
+                known[id(instance)] = group_of(instance, groups, matrix=matrix)
             return known[id(instance)]
 
         self.instances = InstanceGroup(groups, config, told) if native else None
@@ -196,7 +197,7 @@ class SceneAccel(_Accel):
         first = self._states is None
         changed = [] if first else [i for i in states if states[i].moved(self._states[i])]
         # ---- Shapes that changed for the first time start moving ----
-        started = [i for i in changed if i not in self.moving]
+        started = sorted(set(changed) - set(self.moving))
         for i in changed:
             self._check_movable(i)
         moving = tuple(sorted(self.moving + tuple(started)))
@@ -204,7 +205,8 @@ class SceneAccel(_Accel):
         self._update_static(moving, started, first)
         self.moving = moving
         # ---- The moving meshes ----
-        self.dynamic.indices = tuple(i for i in moving if i in self.meshes)
+        meshes = set(self.meshes)
+        self.dynamic.indices = tuple(i for i in moving if i in meshes)
         dynamic_changed = [i for i in changed if i in self.dynamic.indices]
         if (first and self.dynamic.indices) or dynamic_changed or self.dynamic.stale:
             reshaped = first or any(
@@ -220,7 +222,7 @@ class SceneAccel(_Accel):
             moving_instances = tuple(i for i in moving if is_instance(self.shapes[i]))
             table = self.shading if self.shading is not None and self.shading.usable else None
             self.instances.update(self.shapes, moving_instances,
-                                  moved=any(i in moving_instances for i in changed),
+                                  moved=not set(moving_instances).isdisjoint(changed),
                                   rows_of=table.rows_of if table else None)
         self._states, self._current = states, True
         traced = [g for g in (self.static, self.dynamic) if isinstance(g, MeshGroup) and g.bvh]
@@ -260,9 +262,11 @@ class SceneAccel(_Accel):
         """The static group over every shape (``"native"``) or mesh (``"hlbvh"``) not in
         ``moving``; ``started``: the shapes that just started moving."""
         if isinstance(self.static, NativeGroup):
+            moving = set(moving)
             still = tuple(i for i in range(len(self.shapes)) if i not in moving)
             self.static.update(self.shapes, still, [self.shapes[i].id() for i in started])
             return
+        moving = set(moving)
         self.static.indices = tuple(i for i in self.meshes if i not in moving)
         if first or self.static.stale:
             # Built once for every frame to come: with the static builder, unless no

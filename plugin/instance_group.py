@@ -138,18 +138,20 @@ class InstanceGroup:
             concat([a, b]) for a, b in zip(self._prims, part))
 
 
-def group_of(instance, groups: list, why: str = "is traced by hlbvh"):
+def group_of(instance, groups: list, why: str = "is traced by hlbvh", matrix=None):
     """The shape group of ``groups`` that ``instance`` uses: the one whose box, through
     the instance's ``to_world``, is the instance's box, and whose primitive count is the
     instance's (Mitsuba does not expose the link). ``why`` says in errors why it is
-    asked for.
+    asked for; ``matrix``: the instance's ``to_world`` as a 4x4 numpy array, where the
+    caller read it already.
 
     Raises:
         ValueError: naming the instance, when no group or several groups match.
     """
     box = instance.bbox()
     count = instance.effective_primitive_count()
-    matrix = np.array(mi.traverse(instance)["to_world"].matrix, np.float64).reshape(4, 4)
+    if matrix is None:
+        matrix = np.array(mi.traverse(instance)["to_world"].matrix, np.float64).reshape(4, 4)
     found = [g for g in groups if g.primitive_count() == count
              and _same_box(_transformed(g.bbox(), matrix), box)]
     if not found:
