@@ -331,10 +331,14 @@ class _TraceState:
 
 def _start(ns, query: _Query, root: int, alive, maxt, count_steps: bool,
            ray: Ray) -> _TraceState:
-    """The state of rays starting at reference ``root``."""
+    """The state of rays starting at reference ``root``. Two levels: the root enters
+    the kernel as an opaque value (the top level is rebuilt every frame, and its root's
+    reference as a literal would compile the kernel anew whenever it moved)."""
     n = query.n
-    cur, end = open_ref(dr.full(ns.UInt32, root, n))
     two = query.two_level is not None
+    start = (dr.opaque(ns.UInt32, root) + dr.zeros(ns.UInt32, n)) if two else \
+        dr.full(ns.UInt32, root, n)
+    cur, end = open_ref(start)
     return _TraceState(
         cur=cur, end=end, node_t=dr.zeros(ns.Float, n), entering=dr.full(ns.Bool, True, n),
         held=[dr.zeros(query.Entry, n) for _ in range(REGISTERS)],
@@ -365,7 +369,9 @@ def _step(query: _Query, world: Ray, stack: _Stack, s: _TraceState) -> _TraceSta
         s.entering & (s.node_t > s.t_best * TFAR_SCALE)
     if two:
         stale |= s.returning  # the step after leaving an instance only pops
-        at_instance = in_leaf & ~stale & (s.cur < query.two_level.top_slots)
+        # opaque: the top level's size changes from frame to frame (see _start)
+        at_instance = in_leaf & ~stale & (
+            s.cur < dr.opaque(type(s.cur), query.two_level.top_slots))
 
     # ---- A lane in a leaf: test one triangle ----
     at_triangle = in_leaf & ~stale

@@ -26,6 +26,11 @@ STATS_FIELDS = ("frame", "accel", "triangles", "seed", "geometry_ms", "mitsuba_u
 #: 2^32 - 1 entries, and ``mi.render`` traces them as one wavefront.
 MAX_SAMPLES = 2**32 - 1
 
+#: Most instances a native render is let to take: Mitsuba compiles its expansion of
+#: hits for every instance, with a call through each group inside (docs/decisions.md:
+#: 17 s of compilation at 400 instances, more than 24 GB at 10k).
+MOST_NATIVE_INSTANCES = 1000
+
 #: Memory a frame takes per pixel and per sample, in bytes: about twice the peak of
 #: ``mi.render`` on the LLVM backend (film, wavefront and the developed image;
 #: docs/decisions.md), so a frame refused here would not have fit.
@@ -42,7 +47,8 @@ class FrameRenderer:
         ValueError: the integrator cannot be made from the settings (naming what
             Mitsuba or the builder objected to).
         UserError: the frame does not fit in Dr.Jit's arrays or the machine's memory
-            (:func:`check_frame_fits`), or ``accel="hlbvh"`` with ``static="hlbvh"``
+            (:func:`check_frame_fits`), ``accel="native"`` over more than
+            :data:`MOST_NATIVE_INSTANCES` instances, or ``accel="hlbvh"`` with ``static="hlbvh"``
             and the scene holds shapes our BVHs do not intersect (instances, curves,
             ...).
 
@@ -75,6 +81,11 @@ class FrameRenderer:
         sensor = self.scene.sensors()[0]
         width, height = sensor.film().crop_size()
         check_frame_fits(int(width), int(height), int(sensor.sampler().sample_count()))
+        instances = sum(s.class_name() == "Instance" for s in self.scene.shapes())
+        if settings.accel == "native" and instances > MOST_NATIVE_INSTANCES:
+            raise UserError(f"the scene has {instances} instances: Mitsuba's own renderer "
+                            f"compiles a call for each (more than {MOST_NATIVE_INSTANCES} "
+                            "take minutes and tens of GB); render it with --accel hlbvh")
         if settings.accel == "hlbvh":
             try:
                 scene_shapes(self.scene.shapes(), description.get("static", "native"))

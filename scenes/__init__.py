@@ -57,6 +57,9 @@ name           what moves                                                      s
 ``world``      the ``cloth`` flag (``flag_triangles``: 1/11) over rolling     pole, terrain
                hills (``triangles=1_100_000`` in all): a moving object in a
                static world
+``flock``      ``birds=10_000`` instances of one bird (``bird_triangles=300``)  terrain
+               circling over the hills (``triangles=500_000``): rigid motion,
+               transforms only (see :class:`Flock` for native references)
 =============  ==============================================================  ==================
 
 Sequences (:class:`SequenceScene`)
@@ -84,6 +87,7 @@ from __future__ import annotations
 
 from .animated import AnimatedScene, FrameGeometry, apply_frame
 from .cloth import Cloth
+from .flock import Flock
 from .fracture import Fracture
 from .procedural import ProceduralScene
 from .rigid import Rigid
@@ -92,7 +96,7 @@ from .soup import Soup
 from .twist import Twist
 from .world import World
 
-_PROCEDURAL = {cls.name: cls for cls in (Cloth, Twist, Fracture, Rigid, Soup, World)}
+_PROCEDURAL = {cls.name: cls for cls in (Cloth, Twist, Fracture, Rigid, Soup, World, Flock)}
 
 
 def names() -> list[str]:
@@ -123,6 +127,7 @@ __all__ = [
     "Cloth",
     "Twist",
     "Fracture",
+    "Flock",
     "Rigid",
     "Soup",
     "World",

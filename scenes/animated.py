@@ -28,25 +28,37 @@ from .normals import vertex_normals
 
 @dataclass(frozen=True)
 class FrameGeometry:
-    """The geometry of one shape in one frame.
+    """The geometry of one shape in one frame: new vertices for a mesh, a new transform
+    for an instance (rigid motion).
 
     Attributes:
-        positions: the new vertex positions, flat ``x0, y0, z0, x1, ...`` in world space:
-            a numpy ``float32`` array of shape ``(3V,)`` or an ``mi.Float`` of width ``3V``.
-        faces: ``None`` when the shape keeps its triangles (then ``V`` equals the shape's
+        positions: a mesh's new vertex positions, flat ``x0, y0, z0, x1, ...`` in world
+            space: a numpy ``float32`` array of shape ``(3V,)`` or an ``mi.Float`` of
+            width ``3V``; ``None`` for an instance.
+        faces: ``None`` when the mesh keeps its triangles (then ``V`` equals the shape's
             current vertex count); otherwise the new triangles, flat vertex indices
             ``(3F,)``: a numpy ``uint32`` array or an ``mi.UInt32``. Given whenever the
             topology may have changed (a sequence shape declared ``topology="changing"``
             gives it every frame).
+        to_world: an instance's new object-to-world transform, a ``(4, 4)`` numpy array
+            (affine: last row ``0 0 0 1``); ``None`` for a mesh.
+    Raises:
+        ValueError: neither or both of ``positions`` and ``to_world``.
     """
 
-    positions: Any
+    positions: Any = None
     faces: Any = None
+    to_world: Any = None
+
+    def __post_init__(self):
+        if (self.positions is None) == (self.to_world is None):
+            raise ValueError("FrameGeometry: give positions (a mesh) or to_world (an "
+                             "instance), one of them")
 
     @property
     def vertex_count(self) -> int:
-        """``V``, the number of vertices ``positions`` holds."""
-        return _width(self.positions) // 3
+        """``V``, the number of vertices ``positions`` holds (0 for an instance)."""
+        return 0 if self.positions is None else _width(self.positions) // 3
 
     @property
     def face_count(self) -> int | None:
@@ -93,7 +105,8 @@ class AnimatedScene(abc.ABC):
 
     @abc.abstractmethod
     def animated_ids(self) -> list[str]:
-        """Ids of the shapes whose geometry ``frame`` gives, in a fixed order."""
+        """Ids of the shapes whose geometry ``frame`` gives (meshes, and instances
+        moved by their transform), in a fixed order."""
 
     @abc.abstractmethod
     def static_ids(self) -> list[str]:
@@ -146,8 +159,9 @@ def apply_frame(
     """Write one frame's geometry into a loaded scene and let Mitsuba refresh it.
 
     Sets ``params[f"{id}.vertex_positions"]`` (and ``params[f"{id}.faces"]`` when the
-    frame gives faces) for every shape of ``frame_geometry``, and, for a mesh with
-    vertex normals, ``params[f"{id}.vertex_normals"]``, then calls ``params.update()``
+    frame gives faces) for every mesh of ``frame_geometry``, and, for a mesh with
+    vertex normals, ``params[f"{id}.vertex_normals"]``; ``params[f"{id}.to_world"]``
+    for every instance it moves; then calls ``params.update()``
     once: with ``mi.traverse(scene)``'s parameters it recomputes bounds and rebuilds
     the native acceleration structure; with ``hlbvh.traverse(scene)``'s the meshes
     refresh themselves and Mitsuba's accelerator is not rebuilt (for renders whose
@@ -168,15 +182,24 @@ def apply_frame(
         The ids written, in the order of ``frame_geometry``.
 
     Raises:
-        ValueError: an id that names no mesh of the scene, positions that are empty,
-            not a multiple of 3 long or not finite, a vertex count that differs from the
-            mesh's without new faces, faces indexing past the last vertex.
+        ValueError: an id that names no mesh (or, for a transform, no instance) of the
+            scene, positions that are empty, not a multiple of 3 long or not finite, a
+            vertex count that differs from the mesh's without new faces, faces indexing
+            past the last vertex, a transform that is not finite or not invertible.
+            Nothing is written then.
     """
     if params is None:
         params = mi.traverse(scene)
     mesh_ids = {shape.id() for shape in scene.shapes() if isinstance(shape, mi.Mesh)}
-    staged = []
+    instance_ids = {shape.id() for shape in scene.shapes() if shape.class_name() == "Instance"}
+    staged, transforms = [], []
     for shape_id, geometry in frame_geometry.items():
+        if geometry.to_world is not None:
+            if shape_id not in instance_ids or f"{shape_id}.to_world" not in params:
+                raise ValueError(f"frame transform for shape {shape_id!r}: the scene has no "
+                                 "instance with that id")
+            transforms.append((shape_id, _checked_transform(shape_id, geometry.to_world)))
+            continue
         key = f"{shape_id}.vertex_positions"
         if shape_id not in mesh_ids or key not in params:
             raise ValueError(
@@ -198,6 +221,8 @@ def apply_frame(
         else:
             faces = _checked_faces(shape_id, geometry.faces, vertex_count)
         staged.append((shape_id, positions, faces))
+    for shape_id, matrix in transforms:
+        params[f"{shape_id}.to_world"] = mi.AffineTransform4f(matrix)
     for shape_id, positions, faces in staged:
         params[f"{shape_id}.vertex_positions"] = positions
         if faces is not None:
@@ -207,7 +232,7 @@ def apply_frame(
             triangles = faces if faces is not None else params[f"{shape_id}.faces"]
             params[normals_key] = vertex_normals(positions, triangles)
     params.update()
-    return [shape_id for shape_id, _, _ in staged]
+    return [shape_id for shape_id in frame_geometry]
 
 
 def checked_resolution(resolution) -> tuple[int, int]:
@@ -255,6 +280,21 @@ def _flat(shape_id: str, what: str, values, flat_type):
     raise ValueError(f"frame geometry for shape {shape_id!r}: {what} of type "
                      f"{type(values).__name__}; expected a flat numpy or Dr.Jit array (3 "
                      f"per entry), a tensor, or an array of 3-vectors")
+
+
+def _checked_transform(shape_id: str, to_world) -> np.ndarray:
+    """``to_world`` as a float32 ``(4, 4)`` array after checking it is finite and
+    invertible (an instance scaled to nothing would vanish, or break its inverse)."""
+    matrix = np.asarray(to_world, dtype=np.float64)
+    if matrix.shape != (4, 4):
+        raise ValueError(f"frame transform for shape {shape_id!r}: shape {matrix.shape}; "
+                         "expected a 4x4 matrix")
+    if not np.isfinite(matrix).all():
+        raise ValueError(f"frame transform for shape {shape_id!r}: its to_world is not finite")
+    if abs(np.linalg.det(matrix[:3, :3])) <= 1e-30:
+        raise ValueError(f"frame transform for shape {shape_id!r}: its to_world is singular "
+                         "(a scale of 0)")
+    return matrix.astype(np.float32)
 
 
 def _checked_positions(shape_id: str, positions) -> mi.Float:

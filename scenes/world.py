@@ -66,23 +66,7 @@ class World(Cloth):
     @functools.cached_property
     def _terrain(self) -> tuple[np.ndarray, np.ndarray]:
         """Vertices ``(V, 3)`` and faces of the height field (y up, facing up)."""
-        n = self._terrain_quads()
-        rest, faces = meshes.grid(n, n)
-        # (u, v) -> (x, -z): the grid's triangles then face +y
-        x = (rest[:, 0] - 0.5) * TERRAIN_SIZE
-        z = (0.5 - rest[:, 1]) * TERRAIN_SIZE
-        rng = np.random.default_rng(self.seed + 1)
-        height = np.zeros_like(x)
-        for octave in range(5):
-            k = 0.035 * 2.1**octave
-            angle, phase = rng.uniform(0, 2 * np.pi, 2)
-            height += (np.sin(k * (x * np.cos(angle) + z * np.sin(angle)) + phase)
-                       * np.cos(k * 0.7 * (z * np.cos(angle) - x * np.sin(angle)) + phase)
-                       / 1.9**octave)
-        r = np.hypot(x, z)
-        ramp = np.clip((r - FLAT_RADIUS) / (HILLS_RADIUS - FLAT_RADIUS), 0.0, 1.0)
-        y = HILL_HEIGHT * ramp * ramp * (3 - 2 * ramp) * (height + 1.2)
-        return np.stack([x, y, z], axis=1), faces
+        return terrain(self._terrain_quads(), self.seed)
 
     def _build_parts(self) -> dict[str, Part]:
         vertices, faces = self._terrain
@@ -91,3 +75,25 @@ class World(Cloth):
 
     def _view(self) -> View:
         return View(origin=(9.0, 2.4, 10.0), target=(1.5, 3.3, 0.0), fov=55.0)
+
+
+def terrain(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rolling hills of ``n`` by ``n`` quads over ``TERRAIN_SIZE`` squared, flat out to
+    ``FLAT_RADIUS`` around the origin: vertices ``(V, 3)`` (y up) and faces facing up,
+    the hills drawn from ``seed``."""
+    rest, faces = meshes.grid(n, n)
+    # (u, v) -> (x, -z): the grid's triangles then face +y
+    x = (rest[:, 0] - 0.5) * TERRAIN_SIZE
+    z = (0.5 - rest[:, 1]) * TERRAIN_SIZE
+    rng = np.random.default_rng(seed + 1)
+    height = np.zeros_like(x)
+    for octave in range(5):
+        k = 0.035 * 2.1**octave
+        angle, phase = rng.uniform(0, 2 * np.pi, 2)
+        height += (np.sin(k * (x * np.cos(angle) + z * np.sin(angle)) + phase)
+                   * np.cos(k * 0.7 * (z * np.cos(angle) - x * np.sin(angle)) + phase)
+                   / 1.9**octave)
+    r = np.hypot(x, z)
+    ramp = np.clip((r - FLAT_RADIUS) / (HILLS_RADIUS - FLAT_RADIUS), 0.0, 1.0)
+    y = HILL_HEIGHT * ramp * ramp * (3 - 2 * ramp) * (height + 1.2)
+    return np.stack([x, y, z], axis=1), faces

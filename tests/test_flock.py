@@ -1,0 +1,101 @@
+"""Rigid motion as transforms: ``FrameGeometry(to_world=...)``, ``apply_frame`` moving
+instances, the ``flock`` scene, and its animation rendered through our two levels
+frame by frame as native renders it, rebuilding only the top level."""
+
+import hlbvh
+import hlbvh.native_group
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from hlbvh import scenes
+from hlbvh.frame import FrameRenderer
+from hlbvh.settings import RenderSettings
+
+
+def _flock(**kw):
+    return scenes.get("flock", birds=12, triangles=2000, frames=6, **kw)
+
+
+def _to_world(params, key):
+    return np.array(params[f"{key}.to_world"].matrix).reshape(4, 4)
+
+
+def test01_frames_move_the_birds_by_their_transforms():
+    animation = _flock()
+    assert animation.animated_ids() == [f"bird_{k}" for k in range(12)]
+    scene = mi.load_dict(animation.scene_dict(resolution=(16, 12), spp=1))
+    params = mi.traverse(scene)
+    before = _to_world(params, "bird_3")
+    frame = animation.frame(4)
+    assert all(g.positions is None and g.to_world.shape == (4, 4) for g in frame.values())
+    written = scenes.apply_frame(scene, params, frame)
+    assert written == animation.animated_ids()
+    after = _to_world(params, "bird_3")
+    assert np.abs(after - before).max() > 1e-3
+    assert np.allclose(after, frame["bird_3"].to_world, atol=1e-5)
+    assert np.linalg.det(after[:3, :3]) > 0  # turned and scaled, never mirrored
+    group = hlbvh.native_group.shape_groups(scene)[0]
+    assert animation.triangle_counts()["bird_0"] == group.primitive_count()
+
+
+@pytest.mark.parametrize("bad, what", [
+    (np.full((4, 4), np.nan), "not finite"),
+    (np.diag([1.0, 0.0, 1.0, 1.0]), "singular"),
+    (np.eye(3), "4x4"),
+])
+def test02_a_bad_transform_is_named_and_nothing_is_written(bad, what):
+    animation = _flock()
+    scene = mi.load_dict(animation.scene_dict(resolution=(16, 12), spp=1))
+    params = mi.traverse(scene)
+    before = _to_world(params, "bird_0")
+    frame = animation.frame(2)
+    frame["bird_5"] = scenes.FrameGeometry(to_world=bad)
+    with pytest.raises(ValueError, match=f"'bird_5'.*{what}"):
+        scenes.apply_frame(scene, params, frame)
+    assert np.array_equal(_to_world(params, "bird_0"), before)
+
+
+def test03_transforms_and_positions_go_to_their_own_kind_of_shape():
+    animation = _flock()
+    scene = mi.load_dict(animation.scene_dict(resolution=(16, 12), spp=1))
+    with pytest.raises(ValueError, match="'terrain'.*no instance"):
+        scenes.apply_frame(scene, None, {"terrain": scenes.FrameGeometry(to_world=np.eye(4))})
+    with pytest.raises(ValueError, match="'bird_1'.*no mesh"):
+        scenes.apply_frame(scene, None, {"bird_1": scenes.FrameGeometry(np.zeros(9, np.float32))})
+    with pytest.raises(ValueError, match="one of them"):
+        scenes.FrameGeometry()
+
+
+def test04_an_instanced_animation_renders_as_native_rebuilding_only_the_top_level():
+    animation = _flock()
+    renderers = {accel: FrameRenderer(animation, RenderSettings(
+        resolution=(48, 32), spp=2, integrator="path", max_depth=3, accel=accel))
+        for accel in ("native", "hlbvh")}
+    for i in range(3):
+        rendered = {a: r.render(i) for a, r in renderers.items()}
+        images = {a: np.array(image) for a, (image, _) in rendered.items()}
+        assert rendered["hlbvh"][1]["decision"] == ("build" if i == 0 else "rebuild")
+        assert np.abs(images["hlbvh"] - images["native"]).mean() <= 1e-4 * images["native"].mean()
+        update = renderers["hlbvh"].integrator.accel(renderers["hlbvh"].scene).last_update
+        groups = update["groups"]
+        # The render's own update finds nothing new; the frame's update rebuilt the top level
+        assert groups["static"]["decision"] == "kept" and groups["dynamic"]["triangles"] == 0
+        assert groups["instances"]["instances"] == 12
+    accel = renderers["hlbvh"].integrator.accel(renderers["hlbvh"].scene)
+    assert accel.static.builds == 1
+    assert accel.instances.triangles == animation.triangle_counts()["bird_0"]
+
+
+def test05_flock_options_are_checked():
+    for bad in (dict(birds=0), dict(bird_triangles=3), dict(birds="many")):
+        with pytest.raises(ValueError, match=list(bad)[0]):
+            scenes.get("flock", **bad)
+
+
+def test06_a_native_render_of_too_many_instances_is_refused_in_one_line():
+    from hlbvh.errors import UserError
+    from hlbvh.frame import MOST_NATIVE_INSTANCES
+    animation = scenes.get("flock", birds=MOST_NATIVE_INSTANCES + 1, triangles=200, frames=2)
+    with pytest.raises(UserError, match="instances.*--accel hlbvh"):
+        FrameRenderer(animation, RenderSettings(resolution=(8, 8), spp=1, accel="native"))
