@@ -52,7 +52,8 @@ name           what moves                                                      s
 ``twist``      a closed bar twisting, bending and bulging (skinning-like)      ground
 ``fracture``   a torus shell bursting into ``pieces=300`` tumbling shards      ground
 ``rigid``      ``objects=240`` bodies in ``groups=8`` meshes, bouncing and      walls, columns,
-               spinning                                                        ground
+               spinning (``instanced=True``: as instances of ``groups`` shape  ground
+               groups, moved by their transforms)
 ``soup``       random triangles re-drawn every frame (incoherent, worst case)  ground
 ``world``      the ``cloth`` flag (``flag_triangles``: 1/11) over rolling     pole, terrain
                hills (``triangles=1_100_000`` in all): a moving object in a

@@ -9,16 +9,21 @@ import numbers
 
 import numpy as np
 
+import mitsuba as mi
+
 from . import meshes
+from .animated import FrameGeometry
 from .procedural import (
     DEFAULT_FRAMES,
     DEFAULT_TRIANGLES,
+    FPS,
     Part,
     ProceduralScene,
     View,
     diffuse,
     ground,
     glossy,
+    mesh_object,
     positive_int,
 )
 from .rigid_motion import random_unit_vectors, rotation_matrices
@@ -50,11 +55,21 @@ class Rigid(ProceduralScene):
     Triangles: ``static_fraction`` of the budget goes to the columns (finely
     tessellated), the rest to the bodies, ``12 n^2`` triangles each.
 
+    With ``instanced=True`` the same bodies move as Mitsuba instances instead: group
+    ``g`` is a shape group holding one body of its prototype (``12 n_g^2`` triangles,
+    ``n_g = n + g``: no two groups have the same triangle count, which is how an
+    accelerator tells an instance's group), body ``k`` the instance ``body_k`` of group
+    ``k % groups``, and each frame gives each body its ``to_world`` (rigid motion as
+    transforms: nothing is re-tessellated, an accelerator that follows transforms
+    rebuilds only its top level). The better model of rigid bodies; the mesh variant
+    stays the default, the case of engines that bake rigid motion into vertices.
+
     Args:
         objects: the number of bodies.
         groups: the number of body meshes (Mitsuba shapes) they are spread over;
             ``groups = objects`` gives one shape per body.
         static_fraction: share of the triangles in the static environment (0..0.9).
+        instanced: the bodies as instances of ``groups`` shape groups.
         others: see :class:`ProceduralScene`.
     """
 
@@ -68,8 +83,12 @@ class Rigid(ProceduralScene):
         objects: int = 240,
         groups: int = 8,
         static_fraction: float = 0.2,
+        instanced: bool = False,
     ):
         super().__init__(triangles, frames, seed)
+        if not isinstance(instanced, bool):
+            raise ValueError(f"instanced={instanced!r}: expected True or False")
+        self.instanced = instanced
         self.objects = positive_int("objects", objects)
         self.groups = positive_int("groups", groups)
         if self.groups > self.objects:
@@ -81,7 +100,8 @@ class Rigid(ProceduralScene):
     def __repr__(self) -> str:
         return super().__repr__()[:-1] + (
             f", objects={self.objects}, groups={self.groups}, "
-            f"static_fraction={self.static_fraction})"
+            f"static_fraction={self.static_fraction}"
+            + (", instanced=True)" if self.instanced else ")")
         )
 
     # ---- Sizes -----------------------------------------------------------------------
@@ -110,6 +130,8 @@ class Rigid(ProceduralScene):
         sizes = self._group_sizes()
         budget = max(self.triangles - self._static_triangles(), 12 * self.objects)
         n = max(1, math.isqrt(budget // (12 * self.objects)))
+        if self.instanced:  # n + g: a count of its own for every group
+            return [max(1, n - self.groups // 2) + g for g in range(self.groups)]
         resolutions = [n] * self.groups
         total = 12 * n * n * self.objects
         for g in range(self.groups):
@@ -121,10 +143,15 @@ class Rigid(ProceduralScene):
 
     def triangle_counts(self) -> dict[str, int]:
         segments, rings = self._column_tessellation()
-        counts = {
-            f"bodies_{g}": 12 * n * n * int(k)
-            for g, (n, k) in enumerate(zip(self._group_resolutions(), self._group_sizes()))
-        }
+        resolutions = self._group_resolutions()
+        if self.instanced:
+            counts = {body: 12 * resolutions[k % self.groups] ** 2
+                      for k, body in enumerate(self.animated_ids())}
+        else:
+            counts = {
+                f"bodies_{g}": 12 * n * n * int(k)
+                for g, (n, k) in enumerate(zip(resolutions, self._group_sizes()))
+            }
         counts["walls"] = 3 * 12
         counts["columns"] = 3 * COLUMNS_PER_WALL * (2 * segments * rings + 2 * segments)
         counts["ground"] = 2
@@ -168,7 +195,7 @@ class Rigid(ProceduralScene):
 
     def _build_parts(self) -> dict[str, Part]:
         parts = {}
-        for g, count in enumerate(self._group_sizes()):
+        for g, count in enumerate(self._group_sizes() if not self.instanced else []):
             rest, faces = self._prototypes[g]
             vertex_count = len(rest)
             copies = faces[None].astype(np.int64) + vertex_count * np.arange(count)[:, None, None]
@@ -182,7 +209,8 @@ class Rigid(ProceduralScene):
         parts["ground"] = ground((0.50, 0.47, 0.42))
         return parts
 
-    def _animated_positions(self, t: float, i: int) -> dict[str, np.ndarray]:
+    def _poses(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Every body's centre ``(K, 3)`` and turn times size ``(K, 3, 3)`` at ``t``."""
         paths = self._paths
         angle = paths["phase"] + paths["speed"] * t
         radius = paths["size"]
@@ -193,6 +221,12 @@ class Rigid(ProceduralScene):
             [paths["orbit"] * np.cos(angle), height, paths["orbit"] * np.sin(angle)], axis=1
         )
         turns = rotation_matrices(paths["axis"], paths["spin"] * t) * radius[:, None, None]
+        return centres, turns
+
+    def _animated_positions(self, t: float, i: int) -> dict[str, np.ndarray]:
+        if self.instanced:
+            return {}  # the bodies move by their transforms (frame)
+        centres, turns = self._poses(t)
         positions = {}
         for g in range(self.groups):
             rest = self._prototypes[g][0]
@@ -200,6 +234,42 @@ class Rigid(ProceduralScene):
             moved = np.einsum("kij,vj->kvi", turns[bodies], rest) + centres[bodies][:, None, :]
             positions[f"bodies_{g}"] = moved.reshape(-1, 3)
         return positions
+
+    # ---- The instanced variant ---------------------------------------------------------
+
+    def animated_ids(self) -> list[str]:
+        if self.instanced:
+            return [f"body_{k}" for k in range(self.objects)]
+        return super().animated_ids()
+
+    def transforms(self, t: float) -> np.ndarray:
+        """Every body's ``to_world`` at time ``t`` (``(objects, 4, 4)``): the motion
+        of the mesh variant as transforms of the unit-reach prototypes."""
+        centres, turns = self._poses(t)
+        m = np.zeros((self.objects, 4, 4))
+        m[:, :3, :3], m[:, :3, 3], m[:, 3, 3] = turns, centres, 1.0
+        return m
+
+    def frame(self, i: int) -> dict[str, FrameGeometry]:
+        if not self.instanced:
+            return super().frame(i)
+        i = self._check_frame_index(i)
+        return {body: FrameGeometry(to_world=m)
+                for body, m in zip(self.animated_ids(), self.transforms(i / FPS))}
+
+    def scene_dict(self, resolution=None, spp=None, integrator=None) -> dict:
+        """See :meth:`ProceduralScene.scene_dict`; instanced: the shape groups
+        ``group_0`` .. and the bodies ``body_k`` as their instances, at frame 0."""
+        scene = super().scene_dict(resolution, spp, integrator)
+        if self.instanced:
+            for g, (rest, faces) in enumerate(self._prototypes):
+                scene[f"group_{g}"] = {"type": "shapegroup", f"prototype_{g}": mesh_object(
+                    f"prototype_{g}", rest, faces, glossy(PALETTE[g % len(PALETTE)]))}
+            for k, (body, m) in enumerate(zip(self.animated_ids(), self.transforms(0.0))):
+                scene[body] = {"type": "instance",
+                               "shape": {"type": "ref", "id": f"group_{k % self.groups}"},
+                               "to_world": mi.ScalarTransform4f(m.astype(np.float32))}
+        return scene
 
     def _view(self) -> View:
         return View(origin=(0.0, 6.0, 14.5), target=(0.0, 0.6, -0.5), fov=52.0)

@@ -99,3 +99,33 @@ def test06_a_native_render_of_too_many_instances_is_refused_in_one_line():
     animation = scenes.get("flock", birds=MOST_NATIVE_INSTANCES + 1, triangles=200, frames=2)
     with pytest.raises(UserError, match="instances.*--accel hlbvh"):
         FrameRenderer(animation, RenderSettings(resolution=(8, 8), spp=1, accel="native"))
+
+
+def test07_rigid_instanced_moves_the_mesh_variants_bodies_by_transforms():
+    """rigid(instanced=True): the bodies of the mesh variant, as instances; every
+    group its own triangle count; rendered through our two levels as native renders."""
+    kw = dict(objects=10, groups=4, triangles=6000, frames=4)
+    meshes, instanced = scenes.get("rigid", **kw), scenes.get("rigid", instanced=True, **kw)
+    counts = instanced.triangle_counts()
+    assert len({counts[f"body_{g}"] for g in range(4)}) == 4
+    assert instanced.animated_ids() == [f"body_{k}" for k in range(10)]
+    assert instanced.static_ids() == meshes.static_ids()
+    # The transforms carry the mesh variant's motion: body 0 (a sphere) sits where the
+    # mesh variant's body 0 does (its vertices' centre), and as large
+    scene = mi.load_dict(instanced.scene_dict(resolution=(16, 12), spp=1))
+    scenes.apply_frame(scene, None, instanced.frame(3))
+    params = mi.traverse(scene)
+    m = _to_world(params, "body_0")
+    vertices = meshes.frame(3)["bodies_0"].positions.reshape(-1, 3)
+    body = vertices[:len(vertices) // 3]  # group 0 holds bodies 0, 4 and 8
+    assert np.allclose(m[:3, 3], body.mean(axis=0), atol=1e-3)
+    assert np.isclose(np.abs(np.linalg.det(m[:3, :3])) ** (1 / 3),
+                      np.linalg.norm(body - body.mean(axis=0), axis=1).max(), rtol=1e-3)
+    renderers = {accel: FrameRenderer(instanced, RenderSettings(
+        resolution=(48, 32), spp=2, integrator="path", max_depth=3, accel=accel))
+        for accel in ("native", "hlbvh")}
+    for i in range(3):
+        images = {a: np.array(r.render(i)[0]) for a, r in renderers.items()}
+        assert np.abs(images["hlbvh"] - images["native"]).mean() <= 1e-4 * images["native"].mean()
+    with pytest.raises(ValueError, match="instanced"):
+        scenes.get("rigid", instanced="yes")
