@@ -58,7 +58,13 @@ import numpy as np
 
 import hlbvh
 from hlbvh.comparison.crossover import crossover_spp, describe
-from hlbvh.scenes import get as get_scene
+from hlbvh.errors import UserError
+from hlbvh.instance_group import group_of
+from hlbvh.instance_shading import group_members
+from hlbvh.kernels.instances import two_level
+from hlbvh.native_group import shape_groups
+from hlbvh.scene_geometry import collect_geometry
+from hlbvh.scenes import get as get_scene, parse as parse_scene
 from hlbvh.frame import FrameRenderer
 from hlbvh.policy import UpdatePolicy
 from hlbvh.settings import RenderSettings
@@ -72,7 +78,7 @@ SPPS = (1, 4, 16)
 
 #: Keys of every row :func:`run` returns.
 ROW_KEYS = (
-    "scene", "triangles", "builder", "resolution", "spp", "drift_frames",
+    "scene", "triangles", "instances", "builder", "resolution", "spp", "drift_frames",
     "build_cold_ms", "build_min_ms", "build_median_ms",
     "seeded_min_ms", "seeded_median_ms", "refit_min_ms", "refit_median_ms",
     "sah_fresh", "sah_drift_last", "sah_drift_max",
@@ -108,24 +114,28 @@ def run(repeats: int = 3, sizes=(1_000_000,), resolution: int = 512, builder: st
                          "expected repeats >= 1, drift_frames >= 2 and at least one spp")
     hlbvh.BuildConfig.from_options(builder=builder)
     rows = []
-    for name in scenes:
+    for spec in scenes:
+        name, options = parse_scene(spec)
         for size in sizes:
             render_frames = len(spps) * (repeats + 1)
             animation = get_scene(name, triangles=size,
-                                   frames=max(drift_frames, render_frames))
-            renderers = {
-                accel: FrameRenderer(animation, RenderSettings(
-                    resolution=(resolution, resolution), integrator="path",
-                    max_depth=max_depth, accel=accel, build_options={"builder": builder}))
-                for accel in ("hlbvh", "native")
-            }
-            build = _build_runs(animation, renderers["native"].scene, builder, drift_frames)
+                                   frames=max(drift_frames, render_frames), **options)
+            renderers = _renderers(animation, resolution, max_depth, builder)
+            scene = renderers["hlbvh"].scene
+            build = (_top_level_runs(animation, scene, builder, drift_frames)
+                     if _transforms_only(animation) else
+                     _build_runs(animation, scene, builder, drift_frames))
             frames = _frame_runs(renderers, spps, repeats)
-            crossover = _crossover(spps, frames["hlbvh"], frames["native"])
+            nothing = {spp: dict.fromkeys(_FRAME_KEYS) for spp in spps}
+            frames.setdefault("native", nothing)  # native refused the scene
+            crossover = (_crossover(spps, frames["hlbvh"], frames["native"])
+                         if "native" in renderers else None)
+            instances = sum(s.class_name() == "Instance" for s in scene.shapes())
             for spp in spps:
                 ours, native = frames["hlbvh"][spp], frames["native"][spp]
                 rows.append({
-                    "scene": name, "triangles": renderers["native"].triangle_count(),
+                    "scene": spec, "triangles": renderers["hlbvh"].triangle_count(),
+                    "instances": instances,
                     "builder": builder, "resolution": resolution, "spp": spp,
                     "drift_frames": drift_frames, **build,
                     "hlbvh_build_ms": ours["build_ms"], "hlbvh_render_ms": ours["render_ms"],
@@ -137,10 +147,84 @@ def run(repeats: int = 3, sizes=(1_000_000,), resolution: int = 512, builder: st
                     "native_frame_cold_ms": native["cold_ms"],
                     "native_frame_min_ms": native["min_ms"],
                     "native_frame_median_ms": native["median_ms"],
-                    "native_over_hlbvh": native["min_ms"] / ours["min_ms"],
+                    "native_over_hlbvh": (native["min_ms"] / ours["min_ms"]
+                                          if native["min_ms"] is not None else None),
                     "crossover_spp": crossover,
                 })
     return rows
+
+
+#: Keys of :func:`_frame_runs`' result per accelerator and spp.
+_FRAME_KEYS = ("cold_ms", "min_ms", "median_ms", "build_ms", "render_ms", "mitsuba_update_ms")
+
+
+def _renderers(animation, resolution: int, max_depth: int, builder: str) -> dict:
+    """``{"hlbvh": FrameRenderer, "native": FrameRenderer}``, without native where it
+    refuses the scene (more instances than Mitsuba's renderer takes)."""
+    renderers = {}
+    for accel in ("hlbvh", "native"):
+        try:
+            renderers[accel] = FrameRenderer(animation, RenderSettings(
+                resolution=(resolution, resolution), integrator="path",
+                max_depth=max_depth, accel=accel, build_options={"builder": builder}))
+        except UserError:
+            if accel == "hlbvh":
+                raise
+    return renderers
+
+
+def _transforms_only(animation) -> bool:
+    """Whether every animated shape moves by its ``to_world`` alone (instances)."""
+    frame = animation.frame(0)
+    return bool(frame) and all(g.to_world is not None for g in frame.values())
+
+
+def _top_level_runs(animation, scene, builder: str, drift_frames: int) -> dict:
+    """For a scene whose motion is instances' transforms: the two-level build our
+    accelerator does per frame (:func:`hlbvh.kernels.instances.two_level`: the
+    instances' world boxes and the top level over them; the groups' BVHs are built
+    once, before) over ``drift_frames`` frames, fresh and seeded. A top level is not
+    refit (a rebuild over its boxes costs what a refit would), so the refit and drift
+    values are None; ``sah_fresh`` is the top level's SAH cost."""
+    config = hlbvh.BuildConfig.from_options(builder=builder)
+    shapes = {shape.id(): shape for shape in scene.shapes()}
+    ids = animation.animated_ids()
+    groups, bvhs, which, used = shape_groups(scene), [], [], {}
+    for shape_id in ids:
+        group = group_of(shapes[shape_id], groups, "is timed")
+        if id(group) not in used:
+            members = group_members(group)
+            geometry = collect_geometry(members, list(range(len(members))))
+            used[id(group)] = len(bvhs)
+            bvhs.append(hlbvh.build(geometry.vertices, geometry.faces, config=config))
+        which.append(used[id(group)])
+    which = mi.UInt32(which)
+
+    def rows(i: int) -> mi.Float:
+        frame = animation.frame(i)
+        m = np.stack([np.asarray(frame[s].to_world, np.float32) for s in ids])
+        flat = mi.Float(np.concatenate([m[:, :3, :3].reshape(-1, 9), m[:, :3, 3]], 1).ravel())
+        dr.eval(flat)
+        return flat
+
+    fresh_ms, seeded_ms, seeded = [], [], None
+    for i in range(drift_frames):
+        transforms = rows(i)
+        ms, (_, fresh) = timed(lambda: two_level(bvhs, which, transforms, config))
+        fresh_ms.append(ms)
+        if i == 0:
+            seeded = fresh
+            continue
+        ms, (_, seeded) = timed(lambda: two_level(bvhs, which, transforms, config,
+                                                  previous=seeded))
+        seeded_ms.append(ms)
+    return {
+        "build_cold_ms": fresh_ms[0], "build_min_ms": min(fresh_ms[1:]),
+        "build_median_ms": statistics.median(fresh_ms[1:]),
+        "seeded_min_ms": min(seeded_ms), "seeded_median_ms": statistics.median(seeded_ms),
+        "refit_min_ms": None, "refit_median_ms": None,
+        "sah_fresh": fresh.stats.sah_cost, "sah_drift_last": None, "sah_drift_max": None,
+    }
 
 
 def _animated_mesh(animation, scene):
@@ -231,44 +315,50 @@ def _crossover_text(rows: list[dict], row: dict) -> str:
     """The crossover of ``row``'s scene and size in words (``describe``)."""
     same = sorted((r for r in rows if (r["scene"], r["triangles"]) == (row["scene"], row["triangles"])),
                   key=lambda r: r["spp"])
+    if any(r["native_frame_median_ms"] is None for r in same):
+        return "-"
     return describe([r["spp"] for r in same], [r["hlbvh_frame_median_ms"] for r in same],
                     [r["native_frame_median_ms"] for r in same])
 
 
 def format_table(rows: list[dict]) -> str:
     """Two fixed-width tables: builds per scene, frame times per scene and spp."""
-    head = (f"{'scene':9} {'tris':>8} {'fresh cold/min/med':>20} {'seeded min/med':>15} "
+    w = max([9] + [len(r["scene"]) for r in rows])  # scene column: names with options
+    head = (f"{'scene':{w}} {'tris':>8} {'fresh cold/min/med':>20} {'seeded min/med':>15} "
             f"{'refit min/med':>14} {'SAH':>6} {'drift last/max':>15}")
-    lines = ["per-frame build (ms), hlbvh.build over the animated meshes", head, "-" * len(head)]
+    lines = ["per-frame build (ms), hlbvh.build over the animated meshes (scenes whose "
+             "motion is transforms: the instances' top level, kernels.instances.two_level; "
+             "a top level is not refit)", head, "-" * len(head)]
     seen = set()
     for r in rows:
         if (r["scene"], r["triangles"]) in seen:
             continue
         seen.add((r["scene"], r["triangles"]))
         lines.append(
-            f"{r['scene']:9} {r['triangles']:>8} "
+            f"{r['scene']:{w}} {r['triangles']:>8} "
             f"{_slash(r['build_cold_ms'], r['build_min_ms'], r['build_median_ms']):>20} "
             f"{_slash(r['seeded_min_ms'], r['seeded_median_ms']):>15} "
             f"{_slash(r['refit_min_ms'], r['refit_median_ms']):>14} {r['sah_fresh']:6.2f} "
-            f"{r['sah_drift_last']:7.3f}/{r['sah_drift_max']:.3f} "
-            f"(over {r['drift_frames']} frames)"
+            f"{_slash(r['sah_drift_last'], r['sah_drift_max'], digits=3):>15} "
+            f"(over {r['drift_frames']} frames"
+            + (f", {r['instances']} instances)" if r["instances"] else ")")
         )
-    head = (f"{'scene':9} {'tris':>8} {'spp':>4} | {'build':>7} {'render':>8} "
+    head = (f"{'scene':{w}} {'tris':>8} {'spp':>4} | {'build':>7} {'render':>8} "
             f"{'frame min/med/cold':>20} | {'update':>7} {'render':>8} "
             f"{'frame min/med/cold':>20} | {'nat/ours':>8} {'crossover':>10}")
     lines += ["", f"frame time (ms) at {rows[0]['resolution']}x{rows[0]['resolution']}"
               if rows else "frame time (ms)",
-              f"{'':24}| {'hlbvh (hlbvh_path, accel=hlbvh)':^37} | "
+              f"{'':{w + 15}}| {'hlbvh (hlbvh_path, accel=hlbvh)':^37} | "
               f"{'native (hlbvh_path, accel=native)':^37} |", head, "-" * len(head)]
     for r in rows:
         crossover = _crossover_text(rows, r)
         lines.append(
-            f"{r['scene']:9} {r['triangles']:>8} {r['spp']:>4} | {r['hlbvh_build_ms']:7.1f} "
+            f"{r['scene']:{w}} {r['triangles']:>8} {r['spp']:>4} | {r['hlbvh_build_ms']:7.1f} "
             f"{r['hlbvh_render_ms']:8.1f} "
             f"{_slash(r['hlbvh_frame_min_ms'], r['hlbvh_frame_median_ms'], r['hlbvh_frame_cold_ms']):>20} | "
-            f"{r['native_update_ms']:7.1f} {r['native_render_ms']:8.1f} "
+            f"{_number(r['native_update_ms'], 7)} {_number(r['native_render_ms'], 8)} "
             f"{_slash(r['native_frame_min_ms'], r['native_frame_median_ms'], r['native_frame_cold_ms']):>20} | "
-            f"{r['native_over_hlbvh']:7.2f}x {crossover:>10}"
+            f"{_ratio(r['native_over_hlbvh'])} {crossover:>10}"
         )
     if rows:
         update = statistics.median(r["mitsuba_update_ms"] for r in rows)
@@ -285,8 +375,18 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def _slash(*values) -> str:
-    return "/".join(f"{v:.1f}" for v in values)
+def _slash(*values, digits: int = 1) -> str:
+    """Values joined by ``/``; ``-`` for one not measured (None)."""
+    return "/".join("-" if v is None else f"{v:.{digits}f}" for v in values)
+
+
+def _number(value, width: int) -> str:
+    return f"{'-':>{width}}" if value is None else f"{value:{width}.1f}"
+
+
+def _ratio(value) -> str:
+    """``nat/ours``, or why there is none (native refused the scene's instances)."""
+    return f"{'refused':>8}" if value is None else f"{value:7.2f}x"
 
 
 def main(argv=None) -> int:

@@ -217,6 +217,18 @@ def _spelled_out(word: str) -> dict:
 # ---------------------------------------------------------------------------------------
 
 
+def _renderer(animation, setting: Setting, base: RenderSettings, renderers: dict) -> bool:
+    """Put ``setting``'s :class:`FrameRenderer` into ``renderers``; False, said on
+    stderr, when the scene cannot be rendered so (``static_hlbvh`` and instances)."""
+    try:
+        renderers[setting.label] = FrameRenderer(animation, setting.render_settings(base))
+    except UserError as error:
+        reason = str(error).split(" Render this scene with")[0]
+        print(f"hlbvh sweep: setting {setting.label} left out: {reason}", file=sys.stderr)
+        return False
+    return True
+
+
 def sweep(animation, frames, settings: list[Setting], base: RenderSettings, spp: int,
           spp_curve=SPP_CURVE, progress: bool = True) -> list[dict]:
     """Measure every setting, and native, on ``frames`` of ``animation`` (see the module
@@ -231,9 +243,12 @@ def sweep(animation, frames, settings: list[Setting], base: RenderSettings, spp:
         spp_curve: samples per pixel of the frame-time curve (``spp`` is added).
     Returns:
         One row per setting, native first (keys in the module docstring, plus
-        ``setting``, ``options``, ``decisions``).
+        ``setting``, ``options``, ``decisions``); a setting the scene cannot be
+        rendered with (``static_hlbvh`` over instances) is left out, said on stderr.
     Raises:
         ValueError: fewer than two frames, or a frame that cannot be applied.
+        UserError: native refuses the scene (more instances than it takes), or the
+            scene takes none of ``settings``.
     """
     from tqdm import tqdm
 
@@ -242,8 +257,12 @@ def sweep(animation, frames, settings: list[Setting], base: RenderSettings, spp:
         raise ValueError(f"frames {frames}: a sweep needs at least two (the first two are "
                          "also rendered once untimed, to compile every kernel)")
     curve = sorted({*spp_curve, spp})
-    everyone = [Setting(NATIVE, accel=NATIVE), *settings]
-    renderers = {s.label: FrameRenderer(animation, s.render_settings(base)) for s in everyone}
+    native = Setting(NATIVE, accel=NATIVE)
+    renderers = {NATIVE: FrameRenderer(animation, native.render_settings(base))}
+    settings = [s for s in settings if _renderer(animation, s, base, renderers)]
+    if not settings:
+        raise UserError(f"{animation.name}: the scene takes none of the settings asked for")
+    everyone = [native, *settings]
     cpp_path = (mi.load_dict({"type": "path", "max_depth": base.max_depth})
                 if base.integrator == "path" else None)
     cold, runs, images = {}, {s.label: [] for s in everyone}, {}
@@ -472,7 +491,7 @@ def run(args) -> int:
                 "tolerance": TOLERANCE, "variant": mi.variant(), "mitsuba": mi.__version__,
                 "drjit": dr.__version__, "cpu": cpu_model(), "cores": os.cpu_count()}
     result = write_sweep(out, rows, recorded, spp, curve)
-    print(f"{result['files']['html']}: {len(settings)} settings and native on "
+    print(f"{result['files']['html']}: {len(rows) - 1} settings and native on "
           f"{animation.name}; {verdict(result, animation.name, spp)}")
     return 0
 

@@ -4,8 +4,8 @@ geometry's trees are built once; when instances move, only the top level is rebu
 by the same builder (:func:`hlbvh.build`) over the instances' boxes, which is what
 HLBVH's builder is made for (few primitives, rebuilt every frame).
 
-The result is a :class:`hlbvh.kernels.two_level.TwoLevel`: the top level's slots, then
-every geometry tree's, in one array; the traversal enters an instance at its top-level
+The result is a :class:`hlbvh.kernels.two_level.TwoLevel`: every geometry tree's slots,
+then the top level's, in one array (the trees' part packed once); the traversal enters an instance at its top-level
 leaf slot with the ray in the instance's object space.
 """
 
@@ -16,9 +16,9 @@ import drjit as dr
 from .arrays import concat, namespace_of, plain
 from .build import build
 from .bvh import BVH, BuildConfig
-from .packing import packed_records
+from .packing import arrays_key, packed_records
 from .slots import SLOT
-from .two_level import TwoLevel
+from .two_level import GroupSlots, TwoLevel
 
 
 class BadTransform(ValueError):
@@ -57,7 +57,8 @@ def world_boxes(group_bvhs: list[BVH], instance_group, to_world):
 
 
 def two_level(group_bvhs: list[BVH], instance_group, to_world,
-              config: BuildConfig | None = None, previous: BVH | None = None):
+              config: BuildConfig | None = None, previous: BVH | None = None,
+              kept: TwoLevel | None = None):
     """The two-level hierarchy of instances of ``group_bvhs``.
 
     Args:
@@ -65,6 +66,8 @@ def two_level(group_bvhs: list[BVH], instance_group, to_world,
             invertible.
         config: the top level's builder config (defaults).
         previous: last frame's top-level BVH, seeding its CSD sort.
+        kept: last frame's result, whose geometry trees' slots are reused when
+            ``group_bvhs`` are the same trees.
     Returns:
         ``(TwoLevel, top-level BVH)``. Face indices in the geometry trees count over
         ``group_bvhs`` in order (a hit's ``prim`` minus the faces of the trees before
@@ -89,21 +92,34 @@ def two_level(group_bvhs: list[BVH], instance_group, to_world,
     for v in range(3):
         dr.scatter(faces, k * 3 + v, k * 3 + v)
     top = build(vertices, faces, previous=previous, config=config or BuildConfig())
-    # ---- Slots: the top level, then every geometry tree, face indices counted over them ----
-    records, root = packed_records(top)
-    parts, roots = [records], []
-    slot_base, face_base = dr.width(records) // SLOT, 0
-    top_slots = slot_base
+    # ---- Slots: every geometry tree (packed once), then the top level ----
+    groups = group_slots(group_bvhs, kept)
+    records, root = packed_records(top, groups.slots)
+    group_root = dr.gather(ns.UInt32, ns.UInt32(groups.roots), instance_group)
+    records = concat([groups.records, records])
+    dr.eval(records, group_root)
+    return TwoLevel(records=records, root=root,
+                    top_base=groups.slots, to_object=to_object, group_root=group_root,
+                    groups=groups), top
+
+
+def group_slots(group_bvhs: list[BVH], kept: TwoLevel | None = None) -> GroupSlots:
+    """The geometry trees' slots, one after the other from slot 0, face indices counted
+    over them in order; ``kept``'s when it was made of the same trees (a rigid motion
+    leaves them as they were: only the top level after them changes)."""
+    keys = tuple(arrays_key(b) for b in group_bvhs)
+    if kept is not None and kept.groups.keys == keys:
+        return kept.groups
+    parts, roots, slot_base, face_base = [], [], 0, 0
     for bvh in group_bvhs:
         records, group_root = packed_records(bvh, slot_base, face_base)
         parts.append(records)
         roots.append(group_root)
         slot_base += dr.width(records) // SLOT
         face_base += bvh.prim_count
-    group_root = dr.gather(ns.UInt32, ns.UInt32(roots), instance_group)
-    dr.eval(group_root)
-    return TwoLevel(records=concat(parts), root=root, top_slots=top_slots,
-                    to_object=to_object, group_root=group_root), top
+    records = concat(parts)
+    dr.eval(records)
+    return GroupSlots(records=records, roots=roots, slots=slot_base, keys=keys)
 
 
 def _first(x):

@@ -371,7 +371,7 @@ def _step(query: _Query, world: Ray, stack: _Stack, s: _TraceState) -> _TraceSta
         stale |= s.returning  # the step after leaving an instance only pops
         # opaque: the top level's size changes from frame to frame (see _start)
         at_instance = in_leaf & ~stale & (
-            s.cur < dr.opaque(type(s.cur), query.two_level.top_slots))
+            s.cur >= dr.opaque(type(s.cur), query.two_level.top_base))
 
     # ---- A lane in a leaf: test one triangle ----
     at_triangle = in_leaf & ~stale

@@ -26,14 +26,15 @@ assert MAX_SLOTS < RETURN_REF and RETURN_REF ^ LEAF_BIT != 0xFFFFFFFF  # any hit
 @dataclass
 class TwoLevel:
     """Slots of a two-level hierarchy, as
-    :func:`hlbvh.kernels.traversal.closest_instance_hit` and ``any_hit`` trace it: a top-level tree whose leaf slots stand for instances
-    (their face index is the instance's index), then the trees of the instances' shared
-    geometry (their face indices counted over all of them).
+    :func:`hlbvh.kernels.traversal.closest_instance_hit` and ``any_hit`` trace it: the
+    trees of the instances' shared geometry (their face indices counted over all of
+    them), then a top-level tree whose leaf slots stand for instances (their face index
+    is the instance's index).
 
     Attributes:
-        records: Float, ``SLOT`` per slot; the top level's slots first.
+        records: Float, ``SLOT`` per slot; the geometry trees' slots first.
         root: reference of the top level's root.
-        top_slots: slots of the top level (a leaf slot below this is an instance).
+        top_base: the top level's first slot (a leaf slot from here on is an instance).
         to_object: Float (12·M): each instance's world-to-object transform, rows of a
             3x4 matrix (``p_object = A p + b``, A row-major then b).
         group_root: UInt32 (M): reference of each instance's geometry tree.
@@ -41,9 +42,28 @@ class TwoLevel:
 
     records: Any
     root: int
-    top_slots: int
+    top_base: int
     to_object: Any
     group_root: Any
+    groups: GroupSlots | None = None
+
+
+@dataclass
+class GroupSlots:
+    """The geometry trees' part of :attr:`TwoLevel.records`, kept from frame to frame.
+
+    Attributes:
+        records: Float, their slots one tree after the other from slot 0.
+        roots: reference of each tree's root (Python ints).
+        slots: how many slots they take.
+        keys: the Dr.Jit variables of each tree's arrays (a refit or rebuild changes
+            them: the slots are then packed again).
+    """
+
+    records: Any
+    roots: list
+    slots: int
+    keys: tuple
 
 
 def select_ray(mask, a: Ray, b: Ray) -> Ray:

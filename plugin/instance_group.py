@@ -97,7 +97,7 @@ class InstanceGroup:
             which = mi.UInt32([self._group_of[i] for i in indices])
             try:
                 self.tree, self._top = two_level(self._bvhs, which, rows, self.config,
-                                                 previous=self._top)
+                                                 previous=self._top, kept=self.tree)
             except BadTransform as error:
                 raise ValueError(f"{_describe(shapes[indices[error.index]])}: its to_world "
                                  f"is {str(error).split(' is ', 1)[1]}") from None

@@ -55,17 +55,20 @@ def to_world_rows(instance) -> list:
 
 def _read(handles: dict, indices) -> mi.Float:
     """The table rows (:data:`ROW` floats) of the instances ``i`` in ``indices``, read
-    through their ``to_world`` handles (:func:`to_world_handle`) to the host and sent
-    back as one array: 60 us an instance, where joining their one-entry arrays on the
-    device costs a Python call per entry (~160 us an instance)."""
+    through their ``to_world`` handles (:func:`to_world_handle`) to the host entry by
+    entry and sent back as one array: a numpy view of a matrix would launch a kernel
+    per matrix, and joining one-entry arrays on the device costs a Python call per
+    entry."""
     rows = np.empty((len(indices), ROW), np.float32)
     for k, i in enumerate(indices):
         value, kind, node = handles[i]
         to_world = mi.get_property(value, kind, node)
-        m = np.asarray(to_world.matrix).reshape(4, 4)
-        it = np.asarray(to_world.inverse_transpose).reshape(4, 4)
-        rows[k, :9], rows[k, 9:12] = m[:3, :3].ravel(), m[:3, 3]
-        rows[k, 12:21], rows[k, 21:] = it[:3, :3].ravel(), it[3, :3]
+        m, it = to_world.matrix, to_world.inverse_transpose
+        dr.eval(m, it)  # one evaluation, where they are not yet
+        rows[k] = ([m[r][c][0] for r in range(3) for c in range(3)]
+                   + [m[r][3][0] for r in range(3)]
+                   + [it[r][c][0] for r in range(3) for c in range(3)]
+                   + [it[3][c][0] for c in range(3)])
     return mi.Float(rows.ravel())
 
 
@@ -140,11 +143,9 @@ class InstanceShading:
     def rows_of(self, indices) -> mi.Float:
         """The transforms of the instances ``shapes[i]``, ``i`` in ``indices``, as one
         Float of 12 an instance (the two-level builder's input)."""
-        slots = mi.UInt32([ROW * self.slots[i] for i in indices])
-        out = dr.zeros(mi.Float, 12 * len(indices))
-        k = dr.arange(mi.UInt32, len(indices)) * 12
-        for c in range(12):
-            dr.scatter(out, dr.gather(mi.Float, self._rows, slots + c), k + c)
+        k = dr.arange(mi.UInt32, 12 * len(indices))
+        slots = dr.gather(mi.UInt32, mi.UInt32([ROW * self.slots[i] for i in indices]), k // 12)
+        out = dr.gather(mi.Float, self._rows, slots + k % 12)
         dr.eval(out)
         return out
 

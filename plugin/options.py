@@ -30,7 +30,8 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
     the caller applies them."""
     add = parser.add_argument
     add("scene", action=_SceneAction,
-        help=f"a procedural scene ({', '.join(scenes.names())}), a Mitsuba XML "
+        help=f"a procedural scene ({', '.join(scenes.names())}; its options as "
+             "NAME:KEY=VALUE,..., e.g. flock:birds=200 or rigid:instanced=true), a Mitsuba XML "
              "file (with --frames-dir) or an animated USD stage (.usd, .usda, .usdc, "
              ".usdz; pip install 'hlbvh[usd]')")
     add("--camera", action=_CameraAction,
@@ -216,21 +217,27 @@ def open_animation(scene: str, frames_dir, triangles, frames, topology=None,
     camera = camera if camera is not None else getattr(scene, "camera", None)
     if camera is not None and Path(scene).suffix.lower() not in USD_SUFFIXES:
         raise UserError(f"--camera picks a camera of a USD stage; {str(scene)!r} is not one")
-    if scene in scenes.names():
+    if str(scene).partition(":")[0] in scenes.names():
         if frames_dir is not None:
             raise UserError(f"--frames-dir is for XML scenes; {scene!r} is procedural")
         if topology is not None:
             raise UserError(f"--topology is for the meshes of an XML scene's --frames-dir; "
                             f"{scene!r} is procedural")
-        options = {}
+        try:
+            name, options = scenes.parse(str(scene))
+        except ValueError as error:
+            raise UserError(str(error)) from None
         if triangles is not None:
             options["triangles"] = int_flag("--triangles", triangles, least=1)
-        default = scenes.get(scene, **options).frame_count
+        try:
+            default = scenes.get(name, **options).frame_count
+        except ValueError as error:
+            raise UserError(str(error)) from None
         # A procedural scene's motion is a function of time: frames past its own count
         # are as valid as the others.
         stop = default if stop is None else stop
-        animation = scenes.get(scene, **options, frames=max(default, stop))
-        source = {"scene": scene, "triangles": animation.triangles}
+        animation = scenes.get(name, **options, frames=max(default, stop))
+        source = {"scene": str(scene), "triangles": animation.triangles}
     elif Path(scene).suffix.lower() in USD_SUFFIXES:
         held: list[str] = []  # the stage's warnings, said once the frames are valid
         animation, source = _open_usd(scene, frames_dir, triangles, topology, camera,

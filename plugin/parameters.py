@@ -31,9 +31,12 @@ class ShapeParameters(mi.SceneParameters):
         """Mark ``key``'s object and its parents for the next ``update()``, the scene
         (the root, depth 0) excepted."""
         entry = super().set_dirty(key)
-        for depth, node in [k for k in self.nodes_to_update if k[0] == 0]:
-            if isinstance(node, mi.Scene):
-                del self.nodes_to_update[(depth, node)]
+        node = self.properties[key][2]
+        while node is not None:  # up to the root: a walk of the key's depth, per write
+            parent, depth = self.hierarchy[node]
+            if parent is None and isinstance(node, mi.Scene):
+                self.nodes_to_update.pop((depth, node), None)
+            node = parent
         return entry
 
 

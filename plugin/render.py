@@ -8,7 +8,8 @@ Usage::
     hlbvh render scene.xml --frames-dir frames/ --integrator aov --out out/mine
 
 ``SCENE`` is a procedural scene (``hlbvh.scenes.names()``: cloth, twist, fracture,
-rigid, soup; ``--triangles`` sets its size) or a Mitsuba XML file whose animated meshes
+rigid, soup, world, flock; ``--triangles`` sets its size, ``NAME:KEY=VALUE,...`` its
+own options, e.g. ``flock:birds=200``) or a Mitsuba XML file whose animated meshes
 are read from ``--frames-dir`` (see :class:`hlbvh.scenes.SequenceScene`).
 ``--frames A:B`` renders frames ``A .. B-1``, ``--frames N`` the first ``N``; the
 default is every frame of the scene (60 for procedural scenes, whose motion goes on

@@ -39,8 +39,8 @@ bit-reproducibly, see :mod:`hlbvh.scenes.normals`), calls ``params.update()`` on
 returns the ids it changed. Two scenes loaded from the same animation and given the
 same frame render bit-identically (box filter, same seed).
 
-Procedural scenes (:func:`get`, :func:`names`)
-----------------------------------------------
+Procedural scenes (:func:`get`, :func:`names`, :func:`parse`)
+-------------------------------------------------------------
 Built from numpy, seeded (``seed=0``), ``frames=60`` at 24 frames per second,
 ``triangles=200_000`` by default: the least number of triangles (animated and static
 together; any size, 2M and beyond), rounded up to what the tessellation allows.
@@ -105,6 +105,58 @@ def names() -> list[str]:
     return list(_PROCEDURAL)
 
 
+def parse(spec: str) -> tuple[str, dict]:
+    """A procedural scene's name and options from ``"name"`` or
+    ``"name:key=value,key=value"`` (the command line's SCENE, e.g.
+    ``flock:birds=200`` or ``rigid:instanced=true,objects=40``): each value typed as
+    the option's default is (``true``/``false`` for a flag). ``triangles``, ``frames``
+    and ``seed`` have their own flags and are not options here.
+
+    Raises:
+        ValueError: an unknown scene, an option the scene does not have (naming the
+            ones it has), or a value of the wrong type.
+    """
+    name, _, rest = spec.partition(":")
+    if name not in _PROCEDURAL:
+        raise ValueError(f"scene {name!r}: unknown; expected one of {names()}")
+    defaults = scene_options(name)
+    options = {}
+    for item in filter(None, (part.strip() for part in rest.split(","))) if rest else ():
+        key, equals, text = item.partition("=")
+        key = key.strip()
+        if not equals or key not in defaults:
+            raise ValueError(f"scene {spec!r}: {item!r} is not an option of {name!r}; "
+                             f"expected key=value with key one of {sorted(defaults) or 'none'}")
+        options[key] = _typed(spec, key, text.strip(), defaults[key])
+    return name, options
+
+
+def scene_options(name: str) -> dict:
+    """The options of procedural scene ``name`` beyond ``triangles``, ``frames`` and
+    ``seed``, with their defaults."""
+    import inspect
+
+    signature = inspect.signature(_PROCEDURAL[name].__init__)
+    return {key: p.default for key, p in signature.parameters.items()
+            if key not in ("self", "triangles", "frames", "seed")
+            and p.default is not inspect.Parameter.empty}
+
+
+def _typed(spec: str, key: str, text: str, default):
+    """``text`` as a value of ``default``'s type."""
+    try:
+        if isinstance(default, bool):
+            if text.lower() not in ("true", "false", "1", "0", "yes", "no"):
+                raise ValueError
+            return text.lower() in ("true", "1", "yes")
+        return int(text) if default is None else type(default)(text)  # None: a count unset
+    except ValueError:
+        kind = ("true or false" if isinstance(default, bool) else
+                "an integer" if default is None or isinstance(default, int) else
+                f"a {type(default).__name__}")
+        raise ValueError(f"scene {spec!r}: {key}={text!r}, expected {kind}") from None
+
+
 def get(name: str, **kwargs) -> AnimatedScene:
     """The procedural scene ``name`` (see :func:`names`), built with ``kwargs``
     (``triangles``, ``frames``, ``seed`` and the scene's own options).
@@ -135,4 +187,6 @@ __all__ = [
     "apply_frame",
     "get",
     "names",
+    "parse",
+    "scene_options",
 ]

@@ -129,3 +129,70 @@ def test07_rigid_instanced_moves_the_mesh_variants_bodies_by_transforms():
         assert np.abs(images["hlbvh"] - images["native"]).mean() <= 1e-4 * images["native"].mean()
     with pytest.raises(ValueError, match="instanced"):
         scenes.get("rigid", instanced="yes")
+
+
+# ---- Scene options on the command line, and the comparison harness ----
+
+
+def test08_scene_specs_carry_typed_options_and_name_bad_ones():
+    assert scenes.parse("flock") == ("flock", {})
+    assert scenes.parse("rigid:instanced=true, objects=40") == (
+        "rigid", {"instanced": True, "objects": 40})
+    assert scenes.parse("world:flag_triangles=5000") == ("world", {"flag_triangles": 5000})
+    assert scenes.scene_options("fracture") == {"pieces": 300}
+    for spec, named in (("flock:bird=3", "'bird=3'"), ("flock:birds=many", "birds='many'"),
+                        ("rigid:instanced=maybe", "true or false"), ("flock:birds", "'birds'"),
+                        ("flock:triangles=5", "'triangles=5'"), ("nest:x=1", "'nest'")):
+        with pytest.raises(ValueError, match=named):
+            scenes.parse(spec)
+
+
+def test09_the_command_line_renders_a_scene_with_its_options(tmp_path, capsys):
+    from cli_helpers import run_cli
+
+    out = tmp_path / "birds"
+    status, printed, errors = run_cli(capsys, "render", "flock:birds=3", "--triangles", "800",
+                                      "--frames", "1", "--resolution", "8", "--spp", "1",
+                                      "--out", out, "--quiet")
+    assert status == 0 and not errors
+    assert "flock:birds=3" in (out / "stats.json").read_text()
+    status, _, errors = run_cli(capsys, "render", "flock:wings=2", "--out", tmp_path / "x")
+    assert status == 2 and len(errors) == 1 and "'wings=2' is not an option" in errors[0]
+    assert not (tmp_path / "x").exists()
+
+
+def test10_bench_frame_times_the_top_level_of_an_instanced_scene(monkeypatch):
+    from hlbvh.comparison import bench_frame
+
+    def rows(spec):
+        return bench_frame.run(repeats=1, sizes=(800,), resolution=8, scenes=(spec,),
+                               spps=(1, 2), drift_frames=3, max_depth=2)
+
+    found = rows("flock:birds=6")
+    assert [r["spp"] for r in found] == [1, 2]
+    for r in found:
+        assert r["instances"] == 6 and r["scene"] == "flock:birds=6"
+        assert r["refit_min_ms"] is None and r["sah_drift_max"] is None
+        assert r["build_min_ms"] > 0 and r["seeded_min_ms"] > 0 and r["sah_fresh"] > 0
+        assert r["native_over_hlbvh"] > 0
+    table = bench_frame.format_table(found)
+    assert "6 instances" in table and "-/-" in table
+    # Past what native takes: the hlbvh side alone, the table says native refused.
+    monkeypatch.setattr(hlbvh.frame, "MOST_NATIVE_INSTANCES", 4)
+    found = rows("flock:birds=6")
+    assert all(r["native_frame_min_ms"] is None and r["native_over_hlbvh"] is None
+               and r["hlbvh_frame_min_ms"] > 0 and r["crossover_spp"] is None for r in found)
+    assert "refused" in bench_frame.format_table(found)
+
+
+def test11_a_sweep_leaves_out_what_an_instanced_scene_cannot_take(tmp_path, capsys):
+    from cli_helpers import run_cli
+
+    out = tmp_path / "sweep"
+    status, printed, errors = run_cli(capsys, "sweep", "flock:birds=4", "--triangles", "800",
+                                      "--resolution", "8", "--spp", "1", "--spp-curve", "1",
+                                      "--frames", "0:2", "--settings", "lbvh,static_hlbvh",
+                                      "--out", out, "--quiet")
+    assert status == 0
+    assert len(errors) == 1 and "static_hlbvh left out" in errors[0] and "bird_0" in errors[0]
+    assert "1 settings and native" in printed
