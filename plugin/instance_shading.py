@@ -10,8 +10,9 @@ and a scene of 10k instances does not fit in 24 GB. Here a hit inside an instanc
 expanded as Mitsuba's ``Instance`` does it (the ray taken into object space, the group
 shape's own expansion, the result taken back to world space) with the instance's
 transform gathered per lane from a table, and each group shape called directly; a hit
-on any other shape is expanded by a direct call of that shape. The kernel then holds one
-expansion per distinct shape, however many instances there are.
+on any other shape is expanded by that shape's own call. The kernel then holds one
+expansion per distinct shape, however many instances there are; past a few shapes,
+as a switch, where each lane runs its own shape's expansion alone.
 """
 
 from __future__ import annotations
@@ -20,10 +21,6 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-
-#: Most shapes outside instances expanded by a direct call each (every call runs on
-#: every lane); a scene with more leaves their hits to Mitsuba's call.
-MOST_DIRECT_SHAPES = 32
 
 _NO_SLOT = 0xFFFFFFFF
 ROW = 24  # floats a transform takes in the table: to_world's 12, its inverse transpose's 12
@@ -72,6 +69,15 @@ def _read(handles: dict, indices) -> mi.Float:
     return mi.Float(rows.ravel())
 
 
+def _positions(ids: list) -> mi.UInt32:
+    """A table from registry id to the position of that id in ``ids``
+    (:data:`_NO_SLOT` for ids not there)."""
+    table = [_NO_SLOT] * (max(ids, default=0) + 1)
+    for k, rid in enumerate(ids):
+        table[rid] = k
+    return mi.UInt32(table)
+
+
 def to_world_handle(instance) -> tuple:
     """What reads the instance's current ``to_world`` (``mi.get_property``'s
     arguments), from one traversal."""
@@ -95,8 +101,7 @@ class InstanceShading:
             ValueError when it cannot be told).
 
     Attributes:
-        usable: False when some instance's group cannot be told, or the scene has more
-            than :data:`MOST_DIRECT_SHAPES` other shapes: then
+        usable: False when some instance's group cannot be told: then
             :meth:`surface_interaction` is Mitsuba's own.
         slots: ``{index into shapes: slot}`` of every instance, its row in the table of
             transforms.
@@ -107,7 +112,7 @@ class InstanceShading:
         instances = [i for i, s in enumerate(shapes) if is_instance(s)]
         self._others = [s for s in shapes if not is_instance(s)]
         self.slots = {i: k for k, i in enumerate(instances)}
-        self.usable = bool(instances) and len(self._others) <= MOST_DIRECT_SHAPES
+        self.usable = bool(instances)
         self._children, bases, where = [], [], {}
         self._handles = {i: to_world_handle(shapes[i]) for i in instances} if self.usable else {}
         self._rows = _read(self._handles, instances) if self.usable else None
@@ -124,11 +129,8 @@ class InstanceShading:
                 self.usable = False
         if not self.usable:
             return
-        ids = [registry_id(shapes[i]) for i in instances]
-        table = [_NO_SLOT] * (max(ids) + 1)
-        for k, rid in enumerate(ids):
-            table[rid] = k
-        self._slot_of_id = mi.UInt32(table)
+        self._slot_of_id = _positions([registry_id(shapes[i]) for i in instances])
+        self._other_of_id = _positions([registry_id(s) for s in self._others])
         self._child_base = mi.UInt32(bases)
 
     def refresh(self, indices):
@@ -165,17 +167,16 @@ class InstanceShading:
         to_object = to_world.inverse()
         local_ray = to_object @ ray
         child = dr.gather(mi.UInt32, self._child_base, slot, in_instance) + pi.shape_index
-        si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ray))
-        for k, shape in enumerate(self._children):
-            mask = in_instance & (child == k)
-            si = dr.select(mask, shape.compute_surface_interaction(local_ray, pi, flags, mask), si)
+        si = _expanded(self._children, child, local_ray, pi, flags, in_instance)
         si = _to_world(si, to_world, to_object, flags)
         si.prim_index = pi.prim_index
         si.instance = pi.instance
         # ---- Hits on other shapes: each shape's own expansion ----
-        for shape in self._others:
-            mask = active & ~in_instance & (pi.shape == mi.ShapePtr(shape))
-            si = dr.select(mask, shape.compute_surface_interaction(ray, pi, flags, mask), si)
+        other = active & ~in_instance
+        which = dr.gather(mi.UInt32, self._other_of_id,
+                          dr.reinterpret_array(mi.UInt32, pi.shape), other)
+        other &= which != _NO_SLOT  # a switch must not see an index past its shapes
+        si = dr.select(other, _expanded(self._others, which, ray, pi, flags, other), si)
         return _finalized(si, ray, flags, active)
 
     def _matrices(self, slot, active) -> tuple:
@@ -191,6 +192,27 @@ class InstanceShading:
                             t[3], t[4], t[5], 0.0,
                             t[6], t[7], t[8], 0.0,
                             t[9], t[10], t[11], 1.0))
+
+
+#: Most group shapes expanded by a direct call each: every such call runs on every
+#: lane, so past a few shapes a switch (each lane runs its own shape's expansion
+#: alone) is the cheaper kernel.
+MOST_INLINE_CHILDREN = 4
+
+
+def _expanded(shapes: list, which, ray, pi, flags: int, active):
+    """``shapes[which].compute_surface_interaction(ray, pi, flags)`` per lane of
+    ``active`` (zeros elsewhere)."""
+    if len(shapes) > MOST_INLINE_CHILDREN:
+        targets = [lambda ray, pi, active, shape=shape:
+                   shape.compute_surface_interaction(ray, pi, flags, active) for shape in shapes]
+        return dr.switch(which, targets, ray, pi, active=active,
+                         label="hlbvh instance shape expansion")
+    si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ray))
+    for k, shape in enumerate(shapes):
+        mask = active & (which == k)
+        si = dr.select(mask, shape.compute_surface_interaction(ray, pi, flags, mask), si)
+    return si
 
 
 def _to_world(si, to_world, to_object, flags: int):

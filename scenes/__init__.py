@@ -51,6 +51,7 @@ name           what moves                                                      s
 ``cloth``      a flag rippled by travelling waves (coherent deformation)       pole, ground
 ``twist``      a closed bar twisting, bending and bulging (skinning-like)      ground
 ``fracture``   a torus shell bursting into ``pieces=300`` tumbling shards      ground
+               (``instanced=True``: each shard a shape group and an instance)
 ``rigid``      ``objects=240`` bodies in ``groups=8`` meshes, bouncing and      walls, columns,
                spinning (``instanced=True``: as instances of ``groups`` shape  ground
                groups, moved by their transforms)

@@ -6,9 +6,11 @@ import functools
 import math
 from dataclasses import dataclass
 
+import mitsuba as mi
 import numpy as np
 
 from . import meshes
+from .animated import FrameGeometry
 from .procedural import (
     DEFAULT_FRAMES,
     DEFAULT_TRIANGLES,
@@ -18,9 +20,12 @@ from .procedural import (
     View,
     ground,
     glossy,
+    mesh_object,
     positive_int,
 )
-from .rigid_motion import random_unit_vectors, rotate
+from .rigid_motion import random_unit_vectors, rotate, rotation_matrices
+
+SHARD_COLOUR = (0.78, 0.36, 0.20)
 
 MAJOR = 1.2  # torus radius around its axis
 MINOR = 0.45  # tube radius of the outer surface
@@ -66,10 +71,19 @@ class Fracture(ProceduralScene):
     Triangles: ``4 nu nv`` on the two surfaces plus 4 per crack edge between two quads;
     the grid is sized so both together meet the budget, usually within 1%.
 
+    With ``instanced=True`` every shard is a shape group of its own (``group_k``,
+    the shard about its rest centre) and an instance ``shard_k`` moved by its
+    ``to_world``: the same motion, the same triangles, no vertex rewritten. The shards
+    share no geometry, so instancing saves the per-frame vertex writes and rebuild but
+    not memory, and the expansion of hits grows with the number of groups (Mitsuba's
+    per instance, ours per group mesh; docs/decisions.md): the one-mesh model stays the
+    default.
+
     Args:
         pieces: about how many shards: the sites fill a ``gu x gv`` grid of at least
             ``pieces`` cells (a site no quad centre is nearest to, at tiny triangle
             budgets, gives no shard).
+        instanced: the shards as instances of one shape group each.
         others: see :class:`ProceduralScene`.
     """
 
@@ -81,12 +95,17 @@ class Fracture(ProceduralScene):
         frames: int = DEFAULT_FRAMES,
         seed: int = 0,
         pieces: int = 300,
+        instanced: bool = False,
     ):
         super().__init__(triangles, frames, seed)
         self.pieces = positive_int("pieces", pieces, least=2)
+        if not isinstance(instanced, bool):
+            raise ValueError(f"instanced={instanced!r}: expected True or False")
+        self.instanced = instanced
 
     def __repr__(self) -> str:
-        return super().__repr__()[:-1] + f", pieces={self.pieces})"
+        return super().__repr__()[:-1] + f", pieces={self.pieces}" + (
+            ", instanced=True)" if self.instanced else ")")
 
     # ---- The cracked shell -----------------------------------------------------------
 
@@ -144,6 +163,9 @@ class Fracture(ProceduralScene):
         return np.unique(site, return_inverse=True)[1].reshape(nu, nv)
 
     def triangle_counts(self) -> dict[str, int]:
+        if self.instanced:
+            counts = dict(zip(self.animated_ids(), (len(f) for _, f in self._pieces)))
+            return {**counts, "ground": 2}
         nu, nv, labels = self._layout
         return {"shards": 4 * nu * nv + 4 * _crack_edges(labels), "ground": 2}
 
@@ -235,12 +257,14 @@ class Fracture(ProceduralScene):
     # ---- The ProceduralScene hooks ---------------------------------------------------
 
     def _build_parts(self) -> dict[str, Part]:
-        return {
-            "shards": Part(self._shards.faces, glossy((0.78, 0.36, 0.20), roughness=0.3)),
-            "ground": ground(),
-        }
+        parts = {} if self.instanced else {
+            "shards": Part(self._shards.faces, glossy(SHARD_COLOUR, roughness=0.3))}
+        parts["ground"] = ground()
+        return parts
 
-    def _animated_positions(self, t: float, i: int) -> dict[str, np.ndarray]:
+    def _motion(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """At time ``t``: every vertex moved ``(V, 3)``, and each piece's turn
+        ``(P, 3, 3)`` and translation ``(P, 3)`` carrying it from its rest centre."""
         shards = self._shards
         velocity, axis, spin = self._flight
         s = max(0.0, t - EXPLOSION_START)
@@ -252,9 +276,61 @@ class Fracture(ProceduralScene):
         offsets = rotate(shards.positions - shards.centres[piece], axis[piece], (spin * tau)[piece])
         positions = centres[piece] + offsets
         # A shard that reaches the ground rests on it: lifted by its lowest vertex's depth.
-        lowest = np.minimum.reduceat(positions[:, 1], shards.starts)
-        positions[:, 1] -= np.minimum(lowest, 0.0)[piece]
-        return {"shards": positions}
+        lift = -np.minimum(np.minimum.reduceat(positions[:, 1], shards.starts), 0.0)
+        positions[:, 1] += lift[piece]
+        centres[:, 1] += lift
+        return positions, rotation_matrices(axis, spin * tau), centres
+
+    def _animated_positions(self, t: float, i: int) -> dict[str, np.ndarray]:
+        return {} if self.instanced else {"shards": self._motion(t)[0]}
+
+    # ---- The instanced variant ---------------------------------------------------------
+
+    @functools.cached_property
+    def _pieces(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each shard's ``(positions about its rest centre (n, 3), faces (m, 3))``."""
+        shards = self._shards
+        ends = list(shards.starts[1:]) + [len(shards.positions)]
+        owner = shards.piece[shards.faces[:, 0]]
+        order = np.argsort(owner, kind="stable")
+        bounds = np.searchsorted(owner[order], np.arange(len(ends) + 1))
+        return [(shards.positions[a:b] - shards.centres[k],
+                 (shards.faces[order[bounds[k]:bounds[k + 1]]] - a).astype(np.uint32))
+                for k, (a, b) in enumerate(zip(shards.starts, ends))]
+
+    def animated_ids(self) -> list[str]:
+        if self.instanced:
+            return [f"shard_{k}" for k in range(len(self._shards.starts))]
+        return super().animated_ids()
+
+    def transforms(self, t: float) -> np.ndarray:
+        """Every shard's ``to_world`` at time ``t`` (``(P, 4, 4)``): the motion of the
+        one-mesh model as transforms of the shards about their rest centres."""
+        _, turns, centres = self._motion(t)
+        m = np.zeros((len(centres), 4, 4))
+        m[:, :3, :3], m[:, :3, 3], m[:, 3, 3] = turns, centres, 1.0
+        return m
+
+    def frame(self, i: int) -> dict[str, FrameGeometry]:
+        if not self.instanced:
+            return super().frame(i)
+        i = self._check_frame_index(i)
+        return {shard: FrameGeometry(to_world=m)
+                for shard, m in zip(self.animated_ids(), self.transforms(i / FPS))}
+
+    def scene_dict(self, resolution=None, spp=None, integrator=None) -> dict:
+        """See :meth:`ProceduralScene.scene_dict`; instanced: the shape groups
+        ``group_k`` and the shards ``shard_k`` as their instances, at frame 0."""
+        scene = super().scene_dict(resolution, spp, integrator)
+        if self.instanced:
+            bsdf = glossy(SHARD_COLOUR, roughness=0.3)
+            for k, ((rest, faces), shard, m) in enumerate(
+                    zip(self._pieces, self.animated_ids(), self.transforms(0.0))):
+                scene[f"group_{k}"] = {"type": "shapegroup", f"piece_{k}": mesh_object(
+                    f"piece_{k}", rest, faces, bsdf)}
+                scene[shard] = {"type": "instance", "shape": {"type": "ref", "id": f"group_{k}"},
+                                "to_world": mi.ScalarTransform4f(m.astype(np.float32))}
+        return scene
 
     def _view(self) -> View:
         return View(origin=(0.8, 3.2, 11.0), target=(0.0, 1.8, 0.0), fov=45.0)

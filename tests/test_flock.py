@@ -10,6 +10,7 @@ import pytest
 
 from hlbvh import scenes
 from hlbvh.frame import FrameRenderer
+from hlbvh.scenes.procedural import FPS
 from hlbvh.settings import RenderSettings
 
 
@@ -139,7 +140,7 @@ def test08_scene_specs_carry_typed_options_and_name_bad_ones():
     assert scenes.parse("rigid:instanced=true, objects=40") == (
         "rigid", {"instanced": True, "objects": 40})
     assert scenes.parse("world:flag_triangles=5000") == ("world", {"flag_triangles": 5000})
-    assert scenes.scene_options("fracture") == {"pieces": 300}
+    assert scenes.scene_options("fracture") == {"pieces": 300, "instanced": False}
     for spec, named in (("flock:bird=3", "'bird=3'"), ("flock:birds=many", "birds='many'"),
                         ("rigid:instanced=maybe", "true or false"), ("flock:birds", "'birds'"),
                         ("flock:triangles=5", "'triangles=5'"), ("nest:x=1", "'nest'")):
@@ -196,3 +197,36 @@ def test11_a_sweep_leaves_out_what_an_instanced_scene_cannot_take(tmp_path, caps
     assert status == 0
     assert len(errors) == 1 and "static_hlbvh left out" in errors[0] and "bird_0" in errors[0]
     assert "1 settings and native" in printed
+
+
+def test12_fracture_instanced_moves_the_one_mesh_models_shards_by_transforms():
+    """fracture(instanced=True): each shard a group of its own and an instance; its
+    transform carries the one-mesh model's vertices; rendered as native renders it,
+    the top level alone rebuilt."""
+    kw = dict(triangles=2500, pieces=6, frames=40)
+    mesh, instanced = scenes.get("fracture", **kw), scenes.get("fracture", instanced=True, **kw)
+    shards = instanced.animated_ids()
+    assert shards == [f"shard_{k}" for k in range(len(shards))] and len(shards) >= 4
+    assert instanced.triangle_count() == mesh.triangle_count()
+    assert instanced.static_ids() == ["ground"]
+    scene = mi.load_dict(instanced.scene_dict(resolution=(16, 12), spp=1))
+    groups = hlbvh.native_group.shape_groups(scene)
+    assert len(groups) == len(shards)
+    # Frame 30 (shards in flight, some landed): the world vertices through each
+    # transform are the mesh model's
+    moved = mesh.frame(30)["shards"].positions.reshape(-1, 3)
+    scenes.apply_frame(scene, None, instanced.frame(30))
+    world = np.concatenate([(rest @ m[:3, :3].T) + m[:3, 3] for (rest, _), m in
+                            zip(instanced._pieces, instanced.transforms(30 / FPS))])
+    assert np.abs(world - moved).max() < 1e-5
+    renderers = {accel: FrameRenderer(instanced, RenderSettings(
+        resolution=(40, 30), spp=2, integrator="path", max_depth=3, accel=accel))
+        for accel in ("native", "hlbvh")}
+    for i in (0, 20, 30):
+        rendered = {a: r.render(i) for a, r in renderers.items()}
+        images = {a: np.array(image) for a, (image, _) in rendered.items()}
+        assert np.abs(images["hlbvh"] - images["native"]).mean() <= 1e-4 * images["native"].mean()
+        update = renderers["hlbvh"].integrator.accel(renderers["hlbvh"].scene).last_update
+        assert update["groups"]["dynamic"]["triangles"] == 0
+    with pytest.raises(ValueError, match="instanced"):
+        scenes.get("fracture", instanced="yes")

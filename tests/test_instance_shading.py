@@ -94,3 +94,15 @@ def test03_an_hlbvh_path_render_of_instances_equals_native():
             images[accel] = np.array(mi.render(scene, seed=3, spp=4))
         diff = np.abs(images["hlbvh"] - images["native"])
         assert diff.mean() <= 1e-4 * max(images["native"].mean(), 1e-3) + 1e-6
+
+
+def test04_many_group_shapes_expand_through_a_switch_as_mitsubas(monkeypatch):
+    """Past MOST_INLINE_CHILDREN group shapes each lane runs its own shape's expansion
+    alone (a switch): the same fields, moving instances included."""
+    import hlbvh.instance_shading as shading
+
+    monkeypatch.setattr(shading, "MOST_INLINE_CHILDREN", 0)
+    scene = mi.load_dict(_rigid_scene())
+    accel = hlbvh.SceneAccel(scene, moving=["inst_1", "inst_2"])
+    _compare(scene, accel)
+    _compare(scene, accel, mi.RayFlags.Minimal)
