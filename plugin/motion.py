@@ -46,11 +46,12 @@ class ShapeState:
     """Any other shape's bounding box and own parameters as last seen."""
 
     box: tuple
-    values: tuple
+    values: tuple  # held: their Dr.Jit variables keep their indices while held
+    identity: tuple  # what tells them apart (:func:`_identity`), taken once
 
     def moved(self, before: "ShapeState") -> bool:
         """Whether its box or any of its own parameters changed since ``before``."""
-        return self.box != before.box or _identity(self.values) != _identity(before.values)
+        return self.box != before.box or self.identity != before.identity
 
     def reshaped(self, before: "ShapeState") -> bool:
         return self.moved(before)
@@ -69,7 +70,7 @@ def shape_state(shape, handles: dict | None = None) -> MeshState | ShapeState:
                               if "." not in key]
     own = tuple(value if kind is None else mi.get_property(value, kind, node)
                 for value, kind, node in handles[id(shape)])
-    return ShapeState((tuple(box.min), tuple(box.max)), own)
+    return ShapeState((tuple(box.min), tuple(box.max)), own, _identity(own))
 
 
 def shape_states(shapes, indices, handles: dict | None = None) -> dict:

@@ -58,6 +58,7 @@ class AccelIntegrator(mi.SamplingIntegrator):
                               if name in props}
         self._policy, self._config = split_options(self.accel_options)  # parsed once
         self._accel = None
+        self._rendering = False  # inside render (see render)
 
     def update_accel(self, scene):
         """Bring the intersector of ``scene`` up to date and return it.
@@ -94,8 +95,14 @@ class AccelIntegrator(mi.SamplingIntegrator):
         a scene records the same kernel as every later one (a build inside the
         recording changes the kernel: the second render would compile it again).
         """
+        if self._rendering:  # Mitsuba's render by sensor index calls this again
+            return super().render(scene, sensor, seed, spp, develop, evaluate)
         self.update_accel(scene)
-        return super().render(scene, sensor, seed, spp, develop, evaluate)
+        self._rendering = True
+        try:
+            return super().render(scene, sensor, seed, spp, develop, evaluate)
+        finally:
+            self._rendering = False
 
     def _options_string(self) -> str:
         options = "".join(f", {k}={v!r}" for k, v in self.accel_options.items())
