@@ -76,31 +76,55 @@ def two_level(group_bvhs: list[BVH], instance_group, to_world,
         BadTransform: (a ValueError) naming the first instance whose transform is not
             invertible or not finite.
     """
+    to_object, vertices, faces = _top_input(group_bvhs, instance_group, to_world)
+    top = build(vertices, faces, previous=previous, config=config or BuildConfig())
+    return _assembled(top, group_bvhs, instance_group, to_object, kept), top
+
+
+def refit_top_level(top: BVH, group_bvhs: list[BVH], instance_group, to_world,
+                    kept: TwoLevel | None = None) -> TwoLevel:
+    """The two-level hierarchy with ``top``, the top level :func:`two_level` built over
+    the same instances in the same order, refit in place to their new boxes (the same
+    tree: cheaper than a build, slower to trace as the instances move away from where
+    it was built; ``top.stats.sah_cost`` says how much). Arguments as
+    :func:`two_level`'s.
+
+    Raises:
+        BadTransform: as :func:`two_level`.
+    """
+    to_object, vertices, _ = _top_input(group_bvhs, instance_group, to_world)
+    top.refit(vertices)
+    return _assembled(top, group_bvhs, instance_group, to_object, kept)
+
+
+def _top_input(group_bvhs, instance_group, to_world) -> tuple:
+    """``(world-to-object rows, vertices, faces)``: the inverse transforms, and one
+    proxy triangle an instance whose box is the instance's world box (the top level's
+    primitives)."""
     ns = namespace_of(instance_group)
     instance_group, to_world = plain(instance_group, "UInt32"), plain(to_world, "Float")
     M = dr.width(instance_group)
     to_object = _inverse_rows(ns, to_world, M)  # first: it names a bad transform
     lo, hi = world_boxes(group_bvhs, instance_group, to_world)
-    # ---- The top level: one proxy triangle an instance, whose box is the instance's ----
-    corners = [lo, hi, lo]
     vertices = dr.zeros(ns.Float, 9 * M)
     k = dr.arange(ns.UInt32, M)
-    for v, p in enumerate(corners):
+    for v, p in enumerate((lo, hi, lo)):
         for i in range(3):
             dr.scatter(vertices, p[i], k * 9 + 3 * v + i)
-    faces = dr.zeros(ns.UInt32, 3 * M)
-    for v in range(3):
-        dr.scatter(faces, k * 3 + v, k * 3 + v)
-    top = build(vertices, faces, previous=previous, config=config or BuildConfig())
-    # ---- Slots: every geometry tree (packed once), then the top level ----
+    faces = dr.arange(ns.UInt32, 3 * M)
+    return to_object, vertices, faces
+
+
+def _assembled(top: BVH, group_bvhs, instance_group, to_object, kept) -> TwoLevel:
+    """The slots: every geometry tree's (packed once), then the top level's."""
+    ns = namespace_of(instance_group)
     groups = group_slots(group_bvhs, kept)
     records, root = packed_records(top, groups.slots)
-    group_root = dr.gather(ns.UInt32, ns.UInt32(groups.roots), instance_group)
+    group_root = dr.gather(ns.UInt32, ns.UInt32(groups.roots), plain(instance_group, "UInt32"))
     records = concat([groups.records, records])
     dr.eval(records, group_root)
-    return TwoLevel(records=records, root=root,
-                    top_base=groups.slots, to_object=to_object, group_root=group_root,
-                    groups=groups), top
+    return TwoLevel(records=records, root=root, top_base=groups.slots, to_object=to_object,
+                    group_root=group_root, groups=groups)
 
 
 def group_slots(group_bvhs: list[BVH], kept: TwoLevel | None = None) -> GroupSlots:

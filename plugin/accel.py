@@ -223,7 +223,8 @@ class SceneAccel(_Accel):
             table = self.shading if self.shading is not None and self.shading.usable else None
             self.instances.update(self.shapes, moving_instances,
                                   moved=not set(moving_instances).isdisjoint(changed),
-                                  rows_of=table.rows_of if table else None)
+                                  rows_of=table.rows_of if table else None,
+                                  policy=self.policy)
         self._states, self._current = states, True
         traced = [g for g in (self.static, self.dynamic) if isinstance(g, MeshGroup) and g.bvh]
         if traced != self._traced or any(g.last["decision"] != "kept" for g in traced):

@@ -1,7 +1,9 @@
 """The moving instances of a scene (rigid motion), traced through our two-level
 hierarchy: one BVH per shape group they use, built once, and a top level over the
-instances' world boxes, rebuilt whenever one of them moves
-(:func:`hlbvh.kernels.instances.two_level`). The moving-instances group of
+instances' world boxes (:func:`hlbvh.kernels.instances.two_level`), brought up to
+date whenever one of them moves as the update policy says: with ``"auto"`` refit
+while its SAH cost stays within the tolerance of its last build's, rebuilt otherwise
+(as the meshes' BVHs are; a refit of 10k boxes costs a fraction of a rebuild). The moving-instances group of
 :class:`hlbvh.SceneAccel` with ``static="native"``.
 
 Mitsuba does not say which shape group an instance uses (an instance's parameters are
@@ -20,8 +22,9 @@ import numpy as np
 from hlbvh.kernels.arrays import concat
 from hlbvh.kernels.build import build
 from hlbvh.kernels.bvh import BuildConfig
-from hlbvh.kernels.instances import BadTransform, two_level
+from hlbvh.kernels.instances import BadTransform, refit_top_level, two_level
 from hlbvh.instance_shading import group_members, to_world_rows
+from hlbvh.policy import RefitOrRebuild, UpdatePolicy
 from hlbvh.scene_geometry import _describe, collect_geometry
 from hlbvh.timing import clock_ms
 
@@ -40,9 +43,11 @@ class InstanceGroup:
         indices: indices into ``scene.shapes()`` of the instances, ascending.
         tree: the :class:`hlbvh.kernels.two_level.TwoLevel` traced; None without
             instances.
-        last: what the last update did: ``decision`` (``"build"``, ``"rebuild"``:
-            the top level only, or ``"kept"``), ``ms``, ``instances``, ``groups``,
-            ``triangles`` (instanced), ``sah_cost`` None.
+        last: what the last update did: ``decision`` (``"build"``, ``"rebuild"`` or
+            ``"refit"``: the top level only, or ``"kept"``), ``ms``, ``instances``,
+            ``groups``, ``triangles`` (instanced), ``sah_cost`` (the top level's),
+            ``drift`` (a refit top level's SAH cost over its last build's; None when
+            the update did not refit).
     """
 
     name = "instances"
@@ -59,6 +64,8 @@ class InstanceGroup:
         self._top = None  # the top level's BVH of the last update
         self._prims = None  # per instanced face: (its mesh's index in its group, local)
         self._scene_index = None  # UInt32: each instance's index in scene.shapes()
+        self._built_sah = None  # the top level's SAH cost at its last build
+        self._policy = RefitOrRebuild()  # what "auto" remembers of past refits
         self.keep()
 
     @property
@@ -67,13 +74,19 @@ class InstanceGroup:
 
     def keep(self):
         self.last = dict(decision="kept", ms=0.0, instances=len(self.indices),
-                         groups=len(self._used), triangles=self.triangles, sah_cost=None)
+                         groups=len(self._used), triangles=self.triangles,
+                         sah_cost=self._sah(), drift=None)
 
-    def update(self, shapes, indices: tuple, moved: bool, rows_of=None):
+    def _sah(self):
+        return None if self._top is None else float(self._top.stats.sah_cost)
+
+    def update(self, shapes, indices: tuple, moved: bool, rows_of=None,
+               policy: UpdatePolicy | None = None):
         """Trace the instances ``shapes[i]``, ``i`` in ``indices``: their groups' BVHs
-        built for instances seen for the first time, the top level rebuilt when the
-        set changed or ``moved``. ``rows_of(indices)``: their transforms as one Float
-        (12 an instance), where the caller holds them already; read here otherwise.
+        built for instances seen for the first time, the top level built when the set
+        changed, and refit or rebuilt as ``policy`` says (default: ``"auto"``) when
+        ``moved``. ``rows_of(indices)``: their transforms as one Float (12 an
+        instance), where the caller holds them already; read here otherwise.
 
         Raises:
             ValueError: naming an instance whose group cannot be told, whose group holds
@@ -84,11 +97,14 @@ class InstanceGroup:
             self.keep()
             return
         start = clock_ms()
-        decision = "rebuild" if self.tree is not None else "build"
+        first = self.tree is None
+        same_set = indices == self.indices and not first
+        groups_before = len(self._used)
         for i in indices:
             if i not in self._group_of:
                 self._group_of[i] = self._group_position(shapes[i])
         self.indices = indices
+        chosen, drift = "build", None
         if not indices:
             self.tree, self._top = None, None
         else:
@@ -96,14 +112,33 @@ class InstanceGroup:
                     concat([v for i in indices for v in to_world_rows(shapes[i])]))
             which = mi.UInt32([self._group_of[i] for i in indices])
             try:
-                self.tree, self._top = two_level(self._bvhs, which, rows, self.config,
-                                                 previous=self._top, kept=self.tree)
+                chosen, _, drift = self._policy.update(
+                    policy or UpdatePolicy(),
+                    not same_set or len(self._used) != groups_before,
+                    lambda seed: self._build_top(which, rows, seed),
+                    lambda: self._refit_top(which, rows))
             except BadTransform as error:
                 raise ValueError(f"{_describe(shapes[indices[error.index]])}: its to_world "
                                  f"is {str(error).split(' is ', 1)[1]}") from None
         self._scene_index = mi.UInt32(list(indices))
+        decision = "build" if first else chosen
         self.last = dict(decision=decision, ms=clock_ms() - start, instances=len(indices),
-                         groups=len(self._used), triangles=self.triangles, sah_cost=None)
+                         groups=len(self._used), triangles=self.triangles,
+                         sah_cost=self._sah(), drift=drift)
+
+    def _build_top(self, which, rows, seed: bool) -> bool:
+        """A new top level (its CSD sort seeded with the last one's order when
+        ``seed``); whether the seed was used."""
+        previous = self._top if seed else None
+        self.tree, self._top = two_level(self._bvhs, which, rows, self.config,
+                                         previous=previous, kept=self.tree)
+        self._built_sah = self._top.stats.sah_cost
+        return bool(self._top.stats.csd_seeded)
+
+    def _refit_top(self, which, rows) -> float:
+        """The top level refit to the instances' new boxes; its SAH drift."""
+        self.tree = refit_top_level(self._top, self._bvhs, which, rows, kept=self.tree)
+        return self._top.stats.sah_cost / self._built_sah
 
     def hit_fields(self, prim, inst, valid):
         """Mitsuba's fields of instance hits: ``(prim_index, shape_index (the shape's

@@ -7,13 +7,9 @@ from __future__ import annotations
 from hlbvh.kernels.arrays import concat
 from hlbvh.kernels.build import build
 from hlbvh.kernels.bvh import BuildConfig
-from hlbvh.policy import UpdatePolicy
+from hlbvh.policy import RefitOrRebuild, UpdatePolicy
 from hlbvh.scene_geometry import _named_error, collect_geometry
 from hlbvh.timing import clock_ms
-
-
-#: Most updates in a row that ``"auto"`` rebuilds without trying a refit first.
-MAX_REFITS_SKIPPED = 15
 
 
 class MeshGroup:
@@ -48,8 +44,7 @@ class MeshGroup:
         self.refits = 0
         self.last = None
         self._built_indices = ()  # the meshes the tree was built over
-        # "auto": refits rejected in a row, and how many refits to skip after them
-        self._rejected = self._refits_to_skip = self._refits_skipped = 0
+        self._policy = RefitOrRebuild()  # what "auto" remembers of past refits
         self.keep()
 
     @property
@@ -76,37 +71,16 @@ class MeshGroup:
                 accelerator's first one).
         """
         start = clock_ms()
-        seeded, drift = False, None
         reshaped = reshaped or self.bvh is None or self.stale
-        if reshaped or policy.update in ("rebuild", "fresh"):
-            seeded = self._build(shapes, config, seed=policy.update != "fresh")
-        elif policy.update == "auto" and self._refits_skipped < self._refits_to_skip:
-            # Recent refits drifted past the tolerance: rebuild without trying one.
-            self._refits_skipped += 1
-            seeded = self._build(shapes, config)
-        else:
-            drift = self._refit(shapes)
-            decision = "refit"
-            rejected = policy.update == "auto" and drift > policy.refit_tolerance
-            self._back_off(rejected)
-            if rejected:
-                seeded = self._build(shapes, config)
-                decision = "rebuild"
+        chosen, seeded, drift = self._policy.update(
+            policy, reshaped, lambda seed: self._build(shapes, config, seed=seed),
+            lambda: self._refit(shapes))
         self.last = dict(
-            decision=decision, ms=clock_ms() - start, triangles=self.triangles,
+            decision=decision if chosen == "rebuild" else chosen, ms=clock_ms() - start,
+            triangles=self.triangles,
             sah_cost=None if self.bvh is None else float(self.bvh.stats.sah_cost),
             seeded=seeded, drift=drift,
         )
-
-    def _back_off(self, rejected: bool):
-        """After ``k >= 2`` refits in a row drifted past the tolerance, skip the next
-        ``2**(k-1) - 1`` refits (at most :data:`MAX_REFITS_SKIPPED`): a scene whose every
-        refit is rejected (bodies tumbling apart) pays a wasted refit only now and then,
-        one whose refits are rejected now and then (a slow drift) is not held back, and
-        one that settles is refit again soon. An accepted refit resets the count."""
-        self._rejected = self._rejected + 1 if rejected else 0
-        self._refits_to_skip = min(2 ** max(self._rejected - 1, 0) - 1, MAX_REFITS_SKIPPED)
-        self._refits_skipped = 0
 
     def keep(self):
         """Record that the last update left the group as it was."""

@@ -152,3 +152,48 @@ def split_options(options: dict) -> tuple[UpdatePolicy, BuildConfig]:
     config = BuildConfig.from_options(
         **{k: v for k, v in options.items() if k not in UPDATE_OPTIONS})
     return policy.validated(), config
+
+
+#: Most updates in a row that ``"auto"`` rebuilds without trying a refit first.
+MAX_REFITS_SKIPPED = 15
+
+
+class RefitOrRebuild:
+    """What :class:`UpdatePolicy` decides for one tree, update after update, with the
+    memory ``"auto"`` keeps (refits rejected in a row, refits to skip after them).
+    Used by the mesh groups' BVHs and by the instances' top level."""
+
+    def __init__(self):
+        self._rejected = self._refits_to_skip = self._refits_skipped = 0
+
+    def update(self, policy: UpdatePolicy, must_build: bool, build, refit) -> tuple:
+        """Build or refit the tree as ``policy`` says: ``build(seed)`` (a new tree,
+        seeded with the last one's order when ``seed``; returns whether the seed was
+        used), ``refit()`` (the same tree with new boxes; returns its SAH cost over its
+        last build's). ``must_build``: a refit cannot follow (new primitives, a first
+        build).
+
+        Returns:
+            ``(decision, seeded, drift)``: ``"rebuild"`` or ``"refit"``, whether a build
+            was seeded, a refit's drift (None without a refit).
+        """
+        if must_build or policy.update in ("rebuild", "fresh"):
+            return "rebuild", build(policy.update != "fresh"), None
+        if policy.update == "auto" and self._refits_skipped < self._refits_to_skip:
+            # Recent refits drifted past the tolerance: rebuild without trying one.
+            self._refits_skipped += 1
+            return "rebuild", build(True), None
+        drift = refit()
+        rejected = policy.update == "auto" and drift > policy.refit_tolerance
+        self._back_off(rejected)
+        return ("rebuild", build(True), drift) if rejected else ("refit", False, drift)
+
+    def _back_off(self, rejected: bool):
+        """After ``k >= 2`` refits in a row drifted past the tolerance, skip the next
+        ``2**(k-1) - 1`` refits (at most :data:`MAX_REFITS_SKIPPED`): a scene whose every
+        refit is rejected (bodies tumbling apart) pays a wasted refit only now and then,
+        one whose refits are rejected now and then (a slow drift) is not held back, and
+        one that settles is refit again soon. An accepted refit resets the count."""
+        self._rejected = self._rejected + 1 if rejected else 0
+        self._refits_to_skip = min(2 ** max(self._rejected - 1, 0) - 1, MAX_REFITS_SKIPPED)
+        self._refits_skipped = 0

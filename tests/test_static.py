@@ -392,13 +392,16 @@ def _rigid_scene() -> dict:
     return desc
 
 
-def test13_moving_instances_hit_as_natives_do():
+@pytest.mark.parametrize("mode", ["rebuild", "refit", "auto"])
+def test13_moving_instances_hit_as_natives_do(mode):
     """Instances that move are traced through our two-level hierarchy: every hit field
     (shape, shape_index, prim_index, instance, t) and shadow test as Mitsuba's, after
-    each move; only the top level is rebuilt, the still world stays built."""
+    each move, whether the top level was rebuilt or refit; only the top level is
+    brought up to date, the still world stays built."""
     scene = mi.load_dict(_rigid_scene())
     params = mi.traverse(scene)
-    accel = hlbvh.SceneAccel(scene, moving=[f"inst_{k}" for k in range(0, 12, 3)])
+    accel = hlbvh.SceneAccel(scene, moving=[f"inst_{k}" for k in range(0, 12, 3)],
+                             update=mode)
     assert accel.last_update["groups"]["instances"]["instances"] == 4
     for step in range(3):
         if step:
@@ -407,7 +410,10 @@ def test13_moving_instances_hit_as_natives_do():
                 params[key] = mi.Transform4f().translate([0.2 * step, 0.1, -0.1]) @ params[key]
             params.update()
             update = accel.update().last_update
-            assert update["groups"]["instances"]["decision"] == "rebuild"
+            top = update["groups"]["instances"]
+            assert top["decision"] in ("refit", "rebuild")
+            assert top["decision"] == mode or mode == "auto"
+            assert (top["drift"] is None) == (mode == "rebuild")
             assert update["groups"]["static"]["decision"] == "kept"
         for coherent, ray in _rays(scene):
             theirs = scene.ray_intersect_preliminary(ray, coherent)
@@ -418,3 +424,31 @@ def test13_moving_instances_hit_as_natives_do():
             assert np.mean(occluded == np.array(scene.ray_test(ray, coherent, True))) >= \
                 1 - 2 / dr.width(ray)
     assert accel.static.builds == 1
+
+
+def test13b_auto_refits_the_top_level_until_it_drifts():
+    """update="auto" on the top level: a small motion refits it (its drift reported,
+    within the tolerance); instances thrown far across each other drift past it and
+    rebuild; the policy's back-off applies as to meshes."""
+    scene = mi.load_dict(_rigid_scene())
+    params = mi.traverse(scene)
+    moving = [f"inst_{k}" for k in range(12)]
+    accel = hlbvh.SceneAccel(scene, moving=moving)
+    for key in moving:
+        params[f"{key}.to_world"] = mi.Transform4f().translate([0.01, 0, 0]) @ params[f"{key}.to_world"]
+    params.update()
+    top = accel.update().last_update["groups"]["instances"]
+    assert top["decision"] == "refit" and 1 <= top["drift"] <= accel.policy.refit_tolerance
+    # Every instance moved to where another was (the same box around them all): the
+    # tree's nodes, built for neighbours, now each span the scene
+    centres = [np.array(params[f"{key}.to_world"].translation()).ravel() for key in moving]
+    order = np.roll(np.arange(12), 5)
+    for k, key in enumerate(moving):
+        step = [float(v) for v in centres[order[k]] - centres[k]]
+        params[f"{key}.to_world"] = mi.Transform4f().translate(step) @ params[f"{key}.to_world"]
+    params.update()
+    top = accel.update().last_update["groups"]["instances"]
+    assert top["decision"] == "rebuild" and top["drift"] > accel.policy.refit_tolerance
+    ray = next(iter(_rays(scene)))[1]
+    ours, theirs = accel.ray_intersect_preliminary(ray), scene.ray_intersect_preliminary(ray)
+    assert _agreement(scene, ray, ours, theirs) >= 1 - 2 / dr.width(ray)
