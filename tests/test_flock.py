@@ -173,11 +173,11 @@ def test10_bench_frame_times_the_top_level_of_an_instanced_scene(monkeypatch):
     assert [r["spp"] for r in found] == [1, 2]
     for r in found:
         assert r["instances"] == 6 and r["scene"] == "flock:birds=6"
-        assert r["refit_min_ms"] is None and r["sah_drift_max"] is None
-        assert r["build_min_ms"] > 0 and r["seeded_min_ms"] > 0 and r["sah_fresh"] > 0
+        assert r["build_min_ms"] > 0 and r["seeded_min_ms"] > 0 and r["refit_min_ms"] > 0
+        assert r["sah_fresh"] > 0 and r["sah_drift_max"] >= r["sah_drift_last"] > 0.5
         assert r["native_over_hlbvh"] > 0
     table = bench_frame.format_table(found)
-    assert "6 instances" in table and "-/-" in table
+    assert "6 instances" in table
     # Past what native takes: the hlbvh side alone, the table says native refused.
     monkeypatch.setattr(hlbvh.frame, "MOST_NATIVE_INSTANCES", 4)
     found = rows("flock:birds=6")
