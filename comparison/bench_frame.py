@@ -99,7 +99,8 @@ ROW_KEYS = (
 
 
 def run(repeats: int = 3, sizes=(1_000_000,), resolution: int = 512, builder: str = "hlbvh",
-        scenes=SCENES, spps=SPPS, drift_frames: int = 100, max_depth: int = 8) -> list[dict]:
+        scenes=SCENES, spps=SPPS, drift_frames: int = 100, max_depth: int = 8,
+        native: bool = True) -> list[dict]:
     """Measure build, refit, SAH drift and frame time per scene, size and spp.
 
     Args:
@@ -111,6 +112,8 @@ def run(repeats: int = 3, sizes=(1_000_000,), resolution: int = 512, builder: st
         spps: samples per pixel of the frame-time runs (2 or more for a crossover).
         drift_frames: frames of the build, refit and SAH drift runs (>= 2).
         max_depth: longest path of the path tracer.
+        native: measure native's frames too (False: hlbvh's alone, native shown as not
+            run; for scenes whose native render takes minutes).
     Returns:
         One dict per (scene, size, spp) with the keys :data:`ROW_KEYS` (build and drift
         values repeat over a scene's spp rows; times in ms).
@@ -128,7 +131,7 @@ def run(repeats: int = 3, sizes=(1_000_000,), resolution: int = 512, builder: st
             render_frames = len(spps) * (repeats + 1)
             animation = get_scene(name, triangles=size,
                                    frames=max(drift_frames, render_frames), **options)
-            renderers = _renderers(animation, resolution, max_depth, builder)
+            renderers = _renderers(animation, resolution, max_depth, builder, native)
             scene = renderers["hlbvh"].scene
             build = (_top_level_runs(animation, scene, builder, drift_frames)
                      if _transforms_only(animation) else
@@ -166,11 +169,13 @@ def run(repeats: int = 3, sizes=(1_000_000,), resolution: int = 512, builder: st
 _FRAME_KEYS = ("cold_ms", "min_ms", "median_ms", "build_ms", "render_ms", "mitsuba_update_ms")
 
 
-def _renderers(animation, resolution: int, max_depth: int, builder: str) -> dict:
+def _renderers(animation, resolution: int, max_depth: int, builder: str,
+               native: bool = True) -> dict:
     """``{"hlbvh": FrameRenderer, "native": FrameRenderer}``, without native where it
-    refuses the scene (more instances than Mitsuba's renderer takes)."""
+    refuses the scene (more instances than Mitsuba's renderer takes) or not
+    ``native``."""
     renderers = {}
-    for accel in ("hlbvh", "native"):
+    for accel in ("hlbvh", "native") if native else ("hlbvh",):
         try:
             renderers[accel] = FrameRenderer(animation, RenderSettings(
                 resolution=(resolution, resolution), integrator="path",
@@ -399,8 +404,9 @@ def _number(value, width: int) -> str:
 
 
 def _ratio(value) -> str:
-    """``nat/ours``, or why there is none (native refused the scene's instances)."""
-    return f"{'refused':>8}" if value is None else f"{value:7.2f}x"
+    """``nat/ours``, or that there is none (native refused the scene's instances, or
+    was not run)."""
+    return f"{'no nat.':>8}" if value is None else f"{value:7.2f}x"
 
 
 def main(argv=None) -> int:
@@ -420,11 +426,15 @@ def main(argv=None) -> int:
                         help="frames of the build, refit and SAH drift runs")
     parser.add_argument("--builder", default="hlbvh", help="hlbvh | lbvh | sah")
     parser.add_argument("--max-depth", type=int, default=8, help="longest path")
+    parser.add_argument("--no-native", action="store_true",
+                        help="hlbvh's frames alone (native's render of some instanced scenes "
+                             "takes minutes)")
     parser.add_argument("--json", action="store_true", help="print JSON rows")
     args = parser.parse_args(argv)
     rows = run(repeats=args.repeats, sizes=args.sizes, resolution=args.resolution,
                builder=args.builder, scenes=args.scenes.split(","), spps=args.spp,
-               drift_frames=args.drift_frames, max_depth=args.max_depth)
+               drift_frames=args.drift_frames, max_depth=args.max_depth,
+               native=not args.no_native)
     print(json.dumps(rows, indent=1) if args.json else format_table(rows))
     return 0
 
