@@ -236,14 +236,7 @@ def _top_level_runs(animation, scene, builder: str, drift_frames: int) -> dict:
         ms, _ = timed(lambda: refit_top_level(refit, bvhs, which, transforms))
         refit_ms.append(ms)
         drift.append(refit.stats.sah_cost / fresh.stats.sah_cost)
-    return {
-        "build_cold_ms": fresh_ms[0], "build_min_ms": min(fresh_ms[1:]),
-        "build_median_ms": statistics.median(fresh_ms[1:]),
-        "seeded_min_ms": min(seeded_ms), "seeded_median_ms": statistics.median(seeded_ms),
-        "refit_min_ms": min(refit_ms), "refit_median_ms": statistics.median(refit_ms),
-        "sah_fresh": fresh.stats.sah_cost, "sah_drift_last": drift[-1],
-        "sah_drift_max": max(drift),
-    }
+    return _build_summary(fresh_ms, seeded_ms, refit_ms, drift, fresh.stats.sah_cost)
 
 
 def _animated_mesh(animation, scene):
@@ -285,13 +278,17 @@ def _build_runs(animation, scene, builder: str, drift_frames: int) -> dict:
         ms, _ = timed(lambda: tree.refit(vertices))
         refit_ms.append(ms)
         drift.append(tree.stats.sah_cost / fresh.stats.sah_cost)
+    return _build_summary(fresh_ms, seeded_ms, refit_ms, drift, fresh.stats.sah_cost)
+
+
+def _build_summary(fresh_ms, seeded_ms, refit_ms, drift, sah_fresh: float) -> dict:
+    """The build keys of a row: frame 0's fresh build is the cold one, the others warm."""
     return {
         "build_cold_ms": fresh_ms[0], "build_min_ms": min(fresh_ms[1:]),
         "build_median_ms": statistics.median(fresh_ms[1:]),
         "seeded_min_ms": min(seeded_ms), "seeded_median_ms": statistics.median(seeded_ms),
         "refit_min_ms": min(refit_ms), "refit_median_ms": statistics.median(refit_ms),
-        "sah_fresh": fresh.stats.sah_cost, "sah_drift_last": drift[-1],
-        "sah_drift_max": max(drift),
+        "sah_fresh": sah_fresh, "sah_drift_last": drift[-1], "sah_drift_max": max(drift),
     }
 
 

@@ -11,8 +11,9 @@ import numpy as np
 
 from . import meshes
 from .animated import FrameGeometry
-from .procedural import (DEFAULT_FRAMES, FPS, Part, ProceduralScene, View, diffuse, mesh_object,
+from .procedural import (DEFAULT_FRAMES, Part, ProceduralScene, View, diffuse, mesh_object,
                          positive_int)
+from .rigid_motion import affines
 from .world import terrain
 
 DEFAULT_BIRDS = 10_000
@@ -117,12 +118,8 @@ class Flock(ProceduralScene):
         bank = 0.35 + 0.1 * np.sin(2.3 * t + p["wobble"])
         up = np.array([0.0, 1.0, 0.0]) * np.cos(bank)[:, None] + side * np.sin(bank)[:, None]
         side = np.cross(forward, up)  # a right-handed frame: no mirroring
-        m = np.zeros((self.birds, 4, 4))
-        for column, axis in enumerate((forward, up, side)):
-            m[:, :3, column] = axis * p["size"][:, None]
-        m[:, :3, 3] = position
-        m[:, 3, 3] = 1.0
-        return m
+        return affines(np.stack([forward, up, side], axis=2) * p["size"][:, None, None],
+                       position)
 
     def animated_ids(self) -> list[str]:
         return [f"bird_{k}" for k in range(self.birds)]
@@ -131,9 +128,7 @@ class Flock(ProceduralScene):
         return ["terrain"]
 
     def frame(self, i: int) -> dict[str, FrameGeometry]:
-        i = self._check_frame_index(i)
-        matrices = self.transforms(i / FPS)
-        return {bird: FrameGeometry(to_world=m) for bird, m in zip(self.animated_ids(), matrices)}
+        return self._transform_frame(i)
 
     def _animated_positions(self, t: float, i: int) -> dict[str, np.ndarray]:
         return {}  # the birds move by their transforms (frame)

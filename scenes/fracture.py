@@ -23,7 +23,7 @@ from .procedural import (
     mesh_object,
     positive_int,
 )
-from .rigid_motion import random_unit_vectors, rotate, rotation_matrices
+from .rigid_motion import affines, random_unit_vectors, rotate, rotation_matrices
 
 SHARD_COLOUR = (0.78, 0.36, 0.20)
 
@@ -307,16 +307,10 @@ class Fracture(ProceduralScene):
         """Every shard's ``to_world`` at time ``t`` (``(P, 4, 4)``): the motion of the
         one-mesh model as transforms of the shards about their rest centres."""
         _, turns, centres = self._motion(t)
-        m = np.zeros((len(centres), 4, 4))
-        m[:, :3, :3], m[:, :3, 3], m[:, 3, 3] = turns, centres, 1.0
-        return m
+        return affines(turns, centres)
 
     def frame(self, i: int) -> dict[str, FrameGeometry]:
-        if not self.instanced:
-            return super().frame(i)
-        i = self._check_frame_index(i)
-        return {shard: FrameGeometry(to_world=m)
-                for shard, m in zip(self.animated_ids(), self.transforms(i / FPS))}
+        return self._transform_frame(i) if self.instanced else super().frame(i)
 
     def scene_dict(self, resolution=None, spp=None, integrator=None) -> dict:
         """See :meth:`ProceduralScene.scene_dict`; instanced: the shape groups

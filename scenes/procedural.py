@@ -140,6 +140,14 @@ class ProceduralScene(AnimatedScene):
             for pid, p in positions.items()
         }
 
+    def _transform_frame(self, i: int) -> dict[str, FrameGeometry]:
+        """Frame ``i`` of a scene whose animated shapes are instances moved by their
+        transforms, ``self.transforms(t)`` (``(K, 4, 4)``, in ``animated_ids()``'s
+        order)."""
+        i = self._check_frame_index(i)
+        return {shape_id: FrameGeometry(to_world=m)
+                for shape_id, m in zip(self.animated_ids(), self.transforms(i / FPS))}
+
     def scene_dict(
         self,
         resolution: tuple[int, int] | None = None,

@@ -16,7 +16,6 @@ from .animated import FrameGeometry
 from .procedural import (
     DEFAULT_FRAMES,
     DEFAULT_TRIANGLES,
-    FPS,
     Part,
     ProceduralScene,
     View,
@@ -26,7 +25,7 @@ from .procedural import (
     mesh_object,
     positive_int,
 )
-from .rigid_motion import random_unit_vectors, rotation_matrices
+from .rigid_motion import affines, random_unit_vectors, rotation_matrices
 
 HALF_SIZE = 6.0  # the courtyard spans [-HALF_SIZE, HALF_SIZE] in x and z
 WALL_HEIGHT = 2.5
@@ -246,16 +245,10 @@ class Rigid(ProceduralScene):
         """Every body's ``to_world`` at time ``t`` (``(objects, 4, 4)``): the motion
         of the mesh variant as transforms of the unit-reach prototypes."""
         centres, turns = self._poses(t)
-        m = np.zeros((self.objects, 4, 4))
-        m[:, :3, :3], m[:, :3, 3], m[:, 3, 3] = turns, centres, 1.0
-        return m
+        return affines(turns, centres)
 
     def frame(self, i: int) -> dict[str, FrameGeometry]:
-        if not self.instanced:
-            return super().frame(i)
-        i = self._check_frame_index(i)
-        return {body: FrameGeometry(to_world=m)
-                for body, m in zip(self.animated_ids(), self.transforms(i / FPS))}
+        return self._transform_frame(i) if self.instanced else super().frame(i)
 
     def scene_dict(self, resolution=None, spp=None, integrator=None) -> dict:
         """See :meth:`ProceduralScene.scene_dict`; instanced: the shape groups

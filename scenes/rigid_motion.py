@@ -26,3 +26,11 @@ def rotation_matrices(axes: np.ndarray, angles: np.ndarray) -> np.ndarray:
     ``(K, 3)``: the same rotation as :func:`rotate`, for bodies of many vertices."""
     eye = np.broadcast_to(np.eye(3), (len(angles), 3, 3))
     return np.stack([rotate(eye[:, :, k], axes, angles) for k in range(3)], axis=2)
+
+
+def affines(linear: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """``(K, 4, 4)`` affine matrices of ``(K, 3, 3)`` linear parts and ``(K, 3)``
+    translations."""
+    m = np.zeros((len(linear), 4, 4))
+    m[:, :3, :3], m[:, :3, 3], m[:, 3, 3] = linear, translation, 1.0
+    return m
