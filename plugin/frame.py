@@ -143,8 +143,11 @@ class FrameRenderer:
         return ms, accel.last_update["sah_cost"], accel.last_update["decision"]
 
     def triangle_count(self) -> int:
-        """Triangles of every mesh of the scene as it is now."""
-        return sum(s.face_count() for s in self.scene.shapes() if s.is_mesh())
+        """Triangles of every mesh of the scene as it is now, an instance's counted as
+        its shape group's primitives (each instance of a group counts them again)."""
+        return sum(s.face_count() if s.is_mesh() else
+                   s.effective_primitive_count() if s.class_name() == "Instance" else 0
+                   for s in self.scene.shapes())
 
     def channel_names(self, image) -> list[str]:
         """Names of the film's channels in ``image``: R, G, B (, A), then the AOVs."""

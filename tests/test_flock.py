@@ -173,6 +173,7 @@ def test10_bench_frame_times_the_top_level_of_an_instanced_scene(monkeypatch):
     assert [r["spp"] for r in found] == [1, 2]
     for r in found:
         assert r["instances"] == 6 and r["scene"] == "flock:birds=6"
+        assert r["triangles"] == scenes.get("flock", birds=6, triangles=800).triangle_count()
         assert r["build_min_ms"] > 0 and r["seeded_min_ms"] > 0 and r["refit_min_ms"] > 0
         assert r["sah_fresh"] > 0 and r["sah_drift_max"] >= r["sah_drift_last"] > 0.5
         assert r["native_over_hlbvh"] > 0
