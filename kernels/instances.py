@@ -29,7 +29,16 @@ class BadTransform(ValueError):
         self.index = index
 
 
-def world_boxes(group_bvhs: list[BVH], instance_group, to_world):
+def root_boxes(group_bvhs: list[BVH]) -> tuple:
+    """``(lo, hi)``: each geometry tree's root box, Array3f (one entry a tree)."""
+    ns = namespace_of(group_bvhs[0].node_count)
+    lo = ns.Array3f(*(concat([_first(b.node_min[i]) for b in group_bvhs]) for i in range(3)))
+    hi = ns.Array3f(*(concat([_first(b.node_max[i]) for b in group_bvhs]) for i in range(3)))
+    dr.eval(lo, hi)
+    return lo, hi
+
+
+def world_boxes(group_bvhs: list[BVH], instance_group, to_world, roots=None):
     """The world box of each instance: its geometry's root box through its transform.
 
     Args:
@@ -37,13 +46,13 @@ def world_boxes(group_bvhs: list[BVH], instance_group, to_world):
         instance_group: UInt32 (M): each instance's tree, an index into ``group_bvhs``.
         to_world: Float (12·M): each instance's object-to-world transform, rows of a
             3x4 matrix (``p_world = A p + b``, A row-major, then b).
+        roots: the trees' :func:`root_boxes`, where the caller keeps them.
     Returns:
         ``(lo, hi)``: Array3f (M) each.
     """
     ns = namespace_of(instance_group)
     instance_group, to_world = plain(instance_group, "UInt32"), plain(to_world, "Float")
-    lo_g = ns.Array3f(*(concat([_first(b.node_min[i]) for b in group_bvhs]) for i in range(3)))
-    hi_g = ns.Array3f(*(concat([_first(b.node_max[i]) for b in group_bvhs]) for i in range(3)))
+    lo_g, hi_g = roots if roots is not None else root_boxes(group_bvhs)
     lo_o = dr.gather(ns.Array3f, lo_g, instance_group)
     hi_o = dr.gather(ns.Array3f, hi_g, instance_group)
     m = _rows(ns, to_world, dr.width(instance_group))
@@ -76,9 +85,10 @@ def two_level(group_bvhs: list[BVH], instance_group, to_world,
         BadTransform: (a ValueError) naming the first instance whose transform is not
             invertible or not finite.
     """
-    to_object, vertices, faces = _top_input(group_bvhs, instance_group, to_world)
+    groups = group_slots(group_bvhs, kept)
+    to_object, vertices, faces = _top_input(group_bvhs, groups, instance_group, to_world)
     top = build(vertices, faces, previous=previous, config=config or BuildConfig())
-    return _assembled(top, group_bvhs, instance_group, to_object, kept), top
+    return _assembled(top, groups, instance_group, to_object), top
 
 
 def refit_top_level(top: BVH, group_bvhs: list[BVH], instance_group, to_world,
@@ -92,12 +102,13 @@ def refit_top_level(top: BVH, group_bvhs: list[BVH], instance_group, to_world,
     Raises:
         BadTransform: as :func:`two_level`.
     """
-    to_object, vertices, _ = _top_input(group_bvhs, instance_group, to_world)
+    groups = group_slots(group_bvhs, kept)
+    to_object, vertices, _ = _top_input(group_bvhs, groups, instance_group, to_world)
     top.refit(vertices)
-    return _assembled(top, group_bvhs, instance_group, to_object, kept)
+    return _assembled(top, groups, instance_group, to_object)
 
 
-def _top_input(group_bvhs, instance_group, to_world) -> tuple:
+def _top_input(group_bvhs, groups: GroupSlots, instance_group, to_world) -> tuple:
     """``(world-to-object rows, vertices, faces)``: the inverse transforms, and one
     proxy triangle an instance whose box is the instance's world box (the top level's
     primitives)."""
@@ -105,7 +116,7 @@ def _top_input(group_bvhs, instance_group, to_world) -> tuple:
     instance_group, to_world = plain(instance_group, "UInt32"), plain(to_world, "Float")
     M = dr.width(instance_group)
     to_object = _inverse_rows(ns, to_world, M)  # first: it names a bad transform
-    lo, hi = world_boxes(group_bvhs, instance_group, to_world)
+    lo, hi = world_boxes(group_bvhs, instance_group, to_world, groups.roots_box)
     vertices = dr.zeros(ns.Float, 9 * M)
     k = dr.arange(ns.UInt32, M)
     for v, p in enumerate((lo, hi, lo)):
@@ -115,10 +126,9 @@ def _top_input(group_bvhs, instance_group, to_world) -> tuple:
     return to_object, vertices, faces
 
 
-def _assembled(top: BVH, group_bvhs, instance_group, to_object, kept) -> TwoLevel:
+def _assembled(top: BVH, groups: GroupSlots, instance_group, to_object) -> TwoLevel:
     """The slots: every geometry tree's (packed once), then the top level's."""
     ns = namespace_of(instance_group)
-    groups = group_slots(group_bvhs, kept)
     records, root = packed_records(top, groups.slots)
     group_root = dr.gather(ns.UInt32, ns.UInt32(groups.roots), plain(instance_group, "UInt32"))
     records = concat([groups.records, records])
@@ -143,7 +153,8 @@ def group_slots(group_bvhs: list[BVH], kept: TwoLevel | None = None) -> GroupSlo
         face_base += bvh.prim_count
     records = concat(parts)
     dr.eval(records)
-    return GroupSlots(records=records, roots=roots, slots=slot_base, keys=keys)
+    return GroupSlots(records=records, roots=roots, slots=slot_base, keys=keys,
+                      roots_box=root_boxes(group_bvhs))
 
 
 def _first(x):

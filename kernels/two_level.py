@@ -58,12 +58,14 @@ class GroupSlots:
         slots: how many slots they take.
         keys: the Dr.Jit variables of each tree's arrays (a refit or rebuild changes
             them: the slots are then packed again).
+        roots_box: each tree's root box (:func:`hlbvh.kernels.instances.root_boxes`).
     """
 
     records: Any
     roots: list
     slots: int
     keys: tuple
+    roots_box: tuple = None
 
 
 def select_ray(mask, a: Ray, b: Ray) -> Ray:
