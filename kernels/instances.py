@@ -17,7 +17,7 @@ from .arrays import concat, namespace_of, plain
 from .build import build
 from .bvh import BVH, BuildConfig
 from .packing import arrays_key, packed_records
-from .slots import SLOT
+from .slots import NODE_SLOTS, SLOT
 from .two_level import GroupSlots, TwoLevel
 
 
@@ -85,7 +85,7 @@ def two_level(group_bvhs: list[BVH], instance_group, to_world,
         BadTransform: (a ValueError) naming the first instance whose transform is not
             invertible or not finite.
     """
-    groups = group_slots(group_bvhs, kept)
+    groups = group_slots(group_bvhs, kept, dr.width(instance_group))
     to_object, vertices, faces = _top_input(group_bvhs, groups, instance_group, to_world)
     top = build(vertices, faces, previous=previous, config=config or BuildConfig())
     return _assembled(top, groups, instance_group, to_object), top
@@ -102,7 +102,7 @@ def refit_top_level(top: BVH, group_bvhs: list[BVH], instance_group, to_world,
     Raises:
         BadTransform: as :func:`two_level`.
     """
-    groups = group_slots(group_bvhs, kept)
+    groups = group_slots(group_bvhs, kept, dr.width(instance_group))
     to_object, vertices, _ = _top_input(group_bvhs, groups, instance_group, to_world)
     top.refit(vertices)
     return _assembled(top, groups, instance_group, to_object)
@@ -127,22 +127,31 @@ def _top_input(group_bvhs, groups: GroupSlots, instance_group, to_world) -> tupl
 
 
 def _assembled(top: BVH, groups: GroupSlots, instance_group, to_object) -> TwoLevel:
-    """The slots: every geometry tree's (packed once), then the top level's."""
+    """The slots: every geometry tree's (packed once), then the top level's, written
+    into the room kept behind them (the trees' slots are not copied again)."""
     ns = namespace_of(instance_group)
     records, root = packed_records(top, groups.slots)
     group_root = dr.gather(ns.UInt32, ns.UInt32(groups.roots), plain(instance_group, "UInt32"))
-    records = concat([groups.records, records])
+    if dr.width(records) <= SLOT * groups.room:
+        dr.scatter(groups.records, records,
+                   dr.arange(ns.UInt32, dr.width(records)) + SLOT * groups.slots)
+        records = groups.records
+    else:  # (the room holds any top level over as many instances as it was made for)
+        records = concat([groups.records, records])
     dr.eval(records, group_root)
     return TwoLevel(records=records, root=root, top_base=groups.slots, to_object=to_object,
                     group_root=group_root, groups=groups)
 
 
-def group_slots(group_bvhs: list[BVH], kept: TwoLevel | None = None) -> GroupSlots:
+def group_slots(group_bvhs: list[BVH], kept: TwoLevel | None = None,
+                instances: int = 0) -> GroupSlots:
     """The geometry trees' slots, one after the other from slot 0, face indices counted
-    over them in order; ``kept``'s when it was made of the same trees (a rigid motion
-    leaves them as they were: only the top level after them changes)."""
+    over them in order, and room behind them for the top level over ``instances``
+    instances; ``kept``'s when it was made of the same trees with room enough (a rigid
+    motion leaves them as they were: only the top level after them changes)."""
     keys = tuple(arrays_key(b) for b in group_bvhs)
-    if kept is not None and kept.groups.keys == keys:
+    room = top_level_room(instances)
+    if kept is not None and kept.groups.keys == keys and kept.groups.room >= room:
         return kept.groups
     parts, roots, slot_base, face_base = [], [], 0, 0
     for bvh in group_bvhs:
@@ -151,10 +160,18 @@ def group_slots(group_bvhs: list[BVH], kept: TwoLevel | None = None) -> GroupSlo
         roots.append(group_root)
         slot_base += dr.width(records) // SLOT
         face_base += bvh.prim_count
-    records = concat(parts)
+    ns = namespace_of(group_bvhs[0].node_count)
+    records = concat(parts + [dr.zeros(ns.Float, SLOT * room)])
     dr.eval(records)
     return GroupSlots(records=records, roots=roots, slots=slot_base, keys=keys,
-                      roots_box=root_boxes(group_bvhs))
+                      roots_box=root_boxes(group_bvhs), room=room)
+
+
+def top_level_room(instances: int) -> int:
+    """Slots that hold any top level over ``instances`` instances: a leaf slot each,
+    and at most one wide node (``NODE_SLOTS``) per internal node, of which a binary
+    tree over them has fewer than ``instances``."""
+    return instances * (NODE_SLOTS + 1)
 
 
 def _first(x):

@@ -32,7 +32,9 @@ class TwoLevel:
     is the instance's index).
 
     Attributes:
-        records: Float, ``SLOT`` per slot; the geometry trees' slots first.
+        records: Float, ``SLOT`` per slot; the geometry trees' slots first, then the
+            top level's, in room kept for it (the next frame's top level is written
+            over it: the array is shared from frame to frame).
         root: reference of the top level's root.
         top_base: the top level's first slot (a leaf slot from here on is an instance).
         to_object: Float (12·M): each instance's world-to-object transform, rows of a
@@ -59,6 +61,7 @@ class GroupSlots:
         keys: the Dr.Jit variables of each tree's arrays (a refit or rebuild changes
             them: the slots are then packed again).
         roots_box: each tree's root box (:func:`hlbvh.kernels.instances.root_boxes`).
+        room: slots kept behind the trees' for the top level, which is written there.
     """
 
     records: Any
@@ -66,6 +69,7 @@ class GroupSlots:
     slots: int
     keys: tuple
     roots_box: tuple = None
+    room: int = 0
 
 
 def select_ray(mask, a: Ray, b: Ray) -> Ray:
