@@ -4,12 +4,14 @@ instance's world-space triangles, for rotated, scaled, mirrored and translated
 instances sharing groups, before and after the instances move (only the top level
 rebuilt)."""
 
+import drjit as dr
 import hlbvh
 import mitsuba as mi
 import numpy as np
 import pytest
 
 from hlbvh.kernels.instances import two_level, world_boxes
+from hlbvh.kernels.packing import packed_records
 from hlbvh.kernels.traversal import any_hit, closest_instance_hit
 from reference import brute_force, random_soup, triangle_grid
 
@@ -121,3 +123,41 @@ def test04_a_singular_transform_is_refused():
     rows[1, 0] = np.nan
     with pytest.raises(ValueError, match="^instance 1: its transform is not finite$"):
         two_level(bvhs, mi.UInt32([0, 1]), mi.Float(rows.ravel()))
+
+
+@pytest.mark.parametrize("leaf_size", [1, 4])
+def test05_the_top_level_is_written_in_place_behind_the_kept_trees(leaf_size):
+    """Frame after frame, rebuilt and refit, the top level goes into the room kept
+    behind the geometry trees' slots (no copy of them): the same records array, the
+    room enough for any top level over as many instances, the trees' slots untouched,
+    and the hits those of the new poses."""
+    from hlbvh.kernels.instances import refit_top_level, top_level_room
+    from hlbvh.kernels.slots import SLOT
+
+    rng = np.random.default_rng(11)
+    config = hlbvh.BuildConfig(leaf_size=leaf_size)
+    bvhs = [hlbvh.build(mi.Float(v.ravel()), mi.UInt32(f.ravel())) for v, f in GROUPS]
+    groups_of = [k % 2 for k in range(33)]
+    which = mi.UInt32(groups_of)
+    rows = _transforms(rng, 33)
+    tl, top = two_level(bvhs, which, mi.Float(rows.ravel()), config)
+    trees = np.array(tl.records)[:SLOT * tl.top_base]
+    assert tl.groups.room == top_level_room(33)
+    for step in range(4):
+        rows = rows.copy()
+        rows[:, 9:] += rng.uniform(-1.5, 1.5, (33, 3)).astype(np.float32)
+        if step % 2:
+            new = refit_top_level(top, bvhs, which, mi.Float(rows.ravel()), kept=tl)
+        else:
+            new, top = two_level(bvhs, which, mi.Float(rows.ravel()), config,
+                                 previous=top, kept=tl)
+        assert new.records is tl.records and new.groups is tl.groups
+        used = dr.width(packed_records(top, tl.top_base)[0]) // SLOT
+        assert used <= tl.groups.room
+        assert np.array_equal(np.array(new.records)[:SLOT * tl.top_base], trees, equal_nan=True)
+        _check(new, rows, groups_of, rng, n=1500)
+        tl = new
+    for m in (1, 2, 3, 100, 1000):  # any tree over m instances fits its room
+        lone = two_level(bvhs[:1], mi.UInt32(np.zeros(m, np.uint32)),
+                         mi.Float(_transforms(rng, m).ravel()), config)[0]
+        assert lone.records is lone.groups.records
