@@ -3,7 +3,8 @@ native builder or traversal measured side by side in one process, warm and cold.
 
     hlbvh bench build [--sizes 100000,1000000] [--repeats 5] [--json]
     hlbvh bench trace [--sizes 1000000] [--resolution 512] [--json]
-    hlbvh bench frame [...]           (see hlbvh.comparison.bench_frame)
+    hlbvh bench frame [--scenes world,flock:birds=1000] [--no-native] [...]
+                                      (see hlbvh.comparison.bench_frame)
 """
 
 from __future__ import annotations
@@ -30,6 +31,13 @@ def configure(parser) -> None:
     parser.add_argument("--builder", default=None,
                         help=f"builders, comma separated ({', '.join(BUILDERS)})")
     parser.add_argument("--resolution", default="512", help="image side in pixels (default 512)")
+    parser.add_argument("--scenes", default=None,
+                        help="bench frame: procedural scenes, comma separated, each with its "
+                             "options as NAME:KEY=VALUE+KEY=VALUE (e.g. "
+                             "flock:birds=1000,rigid:instanced=true)")
+    parser.add_argument("--no-native", action="store_true",
+                        help="bench frame: hlbvh's frames alone (native's render of "
+                             "scenes of many instances takes minutes)")
     parser.add_argument("--json", action="store_true", help="print JSON rows, not a table")
 
 
@@ -53,7 +61,29 @@ def run(args) -> int:
             if len(builders) > 1:
                 raise UserError(f"--builder {args.builder!r}: bench {args.suite} takes one builder")
             kwargs["builder"] = builders[0]
+    if args.suite != "frame" and (args.scenes is not None or args.no_native):
+        raise UserError(f"--scenes and --no-native are for bench frame, not bench {args.suite}")
+    if args.scenes is not None:
+        kwargs["scenes"] = _scene_specs(args.scenes)
+    if args.no_native:
+        kwargs["native"] = False
     module = importlib.import_module(_SUITES[args.suite])
     rows = module.run(**kwargs)
     print(json.dumps(rows, indent=1, default=str) if args.json else module.format_table(rows))
     return 0
+
+
+def _scene_specs(text: str) -> list[str]:
+    """``--scenes``: comma-separated scenes, a scene's own options joined by ``+``
+    (``rigid:instanced=true+objects=40``: commas separate scenes here), each checked."""
+    from hlbvh import scenes
+
+    specs = [part.strip().replace("+", ",") for part in text.split(",") if part.strip()]
+    if not specs:
+        raise UserError(f"--scenes {text!r}: no scene named")
+    for spec in specs:
+        try:
+            scenes.parse(spec)
+        except ValueError as error:
+            raise UserError(f"--scenes: {error}") from None
+    return specs

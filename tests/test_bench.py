@@ -276,3 +276,28 @@ def test09_readme_figures_main_and_replot(tmp_path, capsys, small_cloth):
     assert readme_figures.main(["--out", str(out), "--replot"]) == 0
     assert "drawn from" in capsys.readouterr().out
     assert all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in plots)
+
+
+def test07b_bench_frame_takes_scenes_with_options_and_no_native(capsys, monkeypatch):
+    """``--scenes`` names scenes with their options (``+`` between a scene's options),
+    ``--no-native`` runs hlbvh's frames alone; bad ones are one line, exit status 2."""
+    seen = {}
+    real = bench_frame.run
+
+    def small(**kwargs):
+        seen.update(kwargs)
+        return real(spps=(1,), drift_frames=2, **kwargs)
+
+    monkeypatch.setattr(bench_frame, "run", small)
+    status, table, errors = run_cli(capsys, "bench", "frame", "--scenes", "flock:birds=3+bird_triangles=24",
+                                    "--no-native", "--sizes", "600", "--repeats", "1",
+                                    "--resolution", "8")
+    assert status == 0 and not errors
+    assert seen["scenes"] == ["flock:birds=3,bird_triangles=24"] and seen["native"] is False
+    assert "3 instances" in table and "no nat." in table
+    for argv, named in ((["frame", "--scenes", "nest"], "'nest'"),
+                        (["frame", "--scenes", "flock:wings=2"], "'wings=2'"),
+                        (["build", "--scenes", "flock"], "bench frame"),
+                        (["trace", "--no-native"], "bench frame")):
+        status, _, errors = run_cli(capsys, "bench", *argv)
+        assert status == 2 and len(errors) == 1 and named in errors[0]

@@ -234,3 +234,19 @@ def test12_fracture_instanced_moves_the_one_mesh_models_shards_by_transforms():
         assert update["groups"]["dynamic"]["triangles"] == 0
     with pytest.raises(ValueError, match="instanced"):
         scenes.get("fracture", instanced="yes")
+
+
+def test13_compare_reports_an_instanced_scene_as_natives(tmp_path, capsys):
+    from cli_helpers import run_cli
+
+    out = tmp_path / "compare"
+    status, printed, errors = run_cli(capsys, "compare", "rigid:instanced=true+objects=6",
+                                      "--triangles", "3000", "--frames", "0:2",
+                                      "--resolution", "24", "--spp", "1", "--out", out, "--quiet")
+    assert status == 2 and "instanced='true+objects=6'" in errors[0]  # ',' between options
+    status, printed, errors = run_cli(capsys, "compare", "rigid:instanced=true,objects=6,groups=3",
+                                      "--triangles", "3000", "--frames", "0:2",
+                                      "--resolution", "24", "--spp", "1", "--out", out, "--quiet")
+    assert status == 0 and not errors
+    assert (out / "report.html").is_file() and "native vs hlbvh" in printed
+    assert "every pixel of every frame equals native's" in printed
