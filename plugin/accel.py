@@ -280,7 +280,8 @@ class SceneAccel(_Accel):
             self.static.keep()
 
     def _stale_groups(self) -> bool:
-        return any(isinstance(g, MeshGroup) and g.stale for g in (self.static, self.dynamic))
+        return any(g.stale for g in (self.static, self.dynamic)) \
+            or (self.instances is not None and self.instances.stale)
 
     def _check_current(self):
         """Refuse a query after a failed update, or when a mesh changed since the last
@@ -297,6 +298,11 @@ class SceneAccel(_Accel):
                     f"SceneAccel: {_describe(shape)} changed since the accelerator's last "
                     "update(); call update() before tracing (it would answer from the old "
                     "geometry)")
+        if self.static.stale or (self.instances is not None and self.instances.stale):
+            raise RuntimeError(
+                "SceneAccel: a shape group's meshes changed since the accelerator's last "
+                "update(); call update() before tracing (it would answer from the old "
+                "geometry)")
 
     def _join(self, traced):
         """One tree over our groups' BVHs (static first: its slots stay cached while

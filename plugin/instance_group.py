@@ -1,7 +1,9 @@
 """The moving instances of a scene (rigid motion), traced through our two-level
 hierarchy: one BVH per shape group they use, built once, and a top level over the
 instances' world boxes (:func:`hlbvh.kernels.instances.two_level`), brought up to
-date whenever one of them moves as the update policy says: with ``"auto"`` refit
+date whenever one of them moves as the update policy says (a group whose own meshes
+change, through ``params["group.mesh.vertex_positions"]``, has its BVH built again and
+the top level rebuilt): with ``"auto"`` refit
 while its SAH cost stays within the tolerance of its last build's, rebuilt otherwise
 (as the meshes' BVHs are; a refit of 10k boxes costs a fraction of a rebuild). The moving-instances group of
 :class:`hlbvh.SceneAccel` with ``static="native"``.
@@ -24,6 +26,7 @@ from hlbvh.kernels.build import build
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.kernels.instances import BadTransform, refit_top_level, two_level
 from hlbvh.instance_shading import group_members, to_world_rows
+from hlbvh.motion import buffer_states, buffers_changed
 from hlbvh.policy import RefitOrRebuild, UpdatePolicy
 from hlbvh.scene_geometry import _describe, collect_geometry
 from hlbvh.timing import clock_ms
@@ -47,7 +50,8 @@ class InstanceGroup:
             ``"refit"``: the top level only, or ``"kept"``), ``ms``, ``instances``,
             ``groups``, ``triangles`` (instanced), ``sah_cost`` (the top level's),
             ``drift`` (a refit top level's SAH cost over its last build's; None when
-            the update did not refit).
+            the update did not refit), ``groups_rebuilt`` (ids of the shape groups
+            whose own meshes changed, their BVHs built again).
     """
 
     name = "instances"
@@ -63,6 +67,9 @@ class InstanceGroup:
         self._bvhs = []  # their BVHs (object space)
         self._top = None  # the top level's BVH of the last update
         self._prims = None  # per instanced face: (its mesh's index in its group, local)
+        self._parts = []  # each used group's share of _prims
+        self._states = []  # each used group's meshes' buffers when its BVH was built
+        self._members = []  # each used group's meshes
         self._scene_index = None  # UInt32: each instance's index in scene.shapes()
         self._built_sah = None  # the top level's SAH cost at its last build
         self._policy = RefitOrRebuild()  # what "auto" remembers of past refits
@@ -75,7 +82,12 @@ class InstanceGroup:
     def keep(self):
         self.last = dict(decision="kept", ms=0.0, instances=len(self.indices),
                          groups=len(self._used), triangles=self.triangles,
-                         sah_cost=self._sah(), drift=None)
+                         sah_cost=self._sah(), drift=None, groups_rebuilt=[])
+
+    @property
+    def stale(self) -> bool:
+        """Whether a group's own meshes changed since its BVH was built."""
+        return bool(self._deformed())
 
     def _sah(self):
         return None if self._top is None else float(self._top.stats.sah_cost)
@@ -93,12 +105,17 @@ class InstanceGroup:
                 other shapes than meshes, or whose transform is singular or not finite.
         """
         indices = tuple(indices)
-        if indices == self.indices and not moved:
+        deformed = self._deformed()
+        if indices == self.indices and not moved and not deformed:
             self.keep()
             return
         start = clock_ms()
+        for k in deformed:  # a group's own meshes changed: its BVH is built again
+            self._bvhs[k], self._parts[k], self._states[k] = self._group_bvh(self._used[k])
+        if deformed:
+            self._prims = tuple(concat(list(column)) for column in zip(*self._parts))
         first = self.tree is None
-        same_set = indices == self.indices and not first
+        same_set = indices == self.indices and not first and not deformed
         groups_before = len(self._used)
         for i in indices:
             if i not in self._group_of:
@@ -124,7 +141,14 @@ class InstanceGroup:
         decision = "build" if first else chosen
         self.last = dict(decision=decision, ms=clock_ms() - start, instances=len(indices),
                          groups=len(self._used), triangles=self.triangles,
-                         sah_cost=self._sah(), drift=drift)
+                         sah_cost=self._sah(), drift=drift,
+                         groups_rebuilt=[self._used[k].id() for k in deformed])
+
+    def _deformed(self) -> list[int]:
+        """Positions of the groups whose meshes got other vertex or face buffers since
+        their BVH was built."""
+        return [k for k, (members, states) in enumerate(zip(self._members, self._states))
+                if buffers_changed(members, states)]
 
     def _build_top(self, which, rows, seed: bool) -> bool:
         """A new top level (its CSD sort seeded with the last one's order when
@@ -159,18 +183,27 @@ class InstanceGroup:
         return len(self._used) - 1
 
     def _add_group(self, group, instance):
-        """A BVH over the group's meshes in object space, and its faces' fields."""
+        """The group's BVH and its faces' fields, for the first instance of it."""
         members = group_members(group)
         if not members or not all(m.is_mesh() for m in members):
             raise ValueError(f"{_describe(instance)} moved, and its shape group holds shapes "
                              "other than meshes, which hlbvh cannot trace moving; keep it "
                              "still or render with accel='native'")
-        geometry = collect_geometry(members, list(range(len(members))))
+        bvh, part, states = self._group_bvh(group)
         self._used.append(group)
-        self._bvhs.append(build(geometry.vertices, geometry.faces, config=self.config))
-        part = (geometry.prim_shape, geometry.prim_local)
-        self._prims = part if self._prims is None else tuple(
-            concat([a, b]) for a, b in zip(self._prims, part))
+        self._members.append(members)
+        self._bvhs.append(bvh)
+        self._parts.append(part)
+        self._states.append(states)
+        self._prims = tuple(concat(list(column)) for column in zip(*self._parts))
+
+    def _group_bvh(self, group) -> tuple:
+        """``(BVH over the group's meshes in object space, its faces' (mesh in group,
+        face in mesh), the meshes' states)``."""
+        members = group_members(group)
+        geometry = collect_geometry(members, list(range(len(members))))
+        bvh = build(geometry.vertices, geometry.faces, config=self.config)
+        return bvh, (geometry.prim_shape, geometry.prim_local), buffer_states(members)
 
 
 def group_of(instance, groups: list, why: str = "is traced by hlbvh", matrix=None):

@@ -87,3 +87,16 @@ def _identity(values: tuple) -> tuple:
         indices = dr.detail.collect_indices(value)
         identity.append(tuple(indices) if indices else repr(value))
     return tuple(identity)
+
+
+def buffer_states(shapes) -> list:
+    """Each mesh's :class:`MeshState` (None for a shape without buffers): what a shape
+    group's members are compared with later, by :func:`buffers_changed`."""
+    return [MeshState(s.vertex_positions_buffer(), s.faces_buffer()) if s.is_mesh() else None
+            for s in shapes]
+
+
+def buffers_changed(shapes, states: list) -> bool:
+    """Whether a mesh among ``shapes`` got other buffers than in ``states``."""
+    return any(state is not None and now.moved(state)
+               for now, state in zip(buffer_states(shapes), states))

@@ -5,7 +5,9 @@ the static group of :class:`hlbvh.SceneAccel` with ``static="native"``.
 Why a sub-scene and not the scene itself: the scene's accelerator covers the moving
 shapes too, and our per-frame updates refresh a moved mesh without rebuilding it, so
 it may hold buffers the mesh no longer has. A sub-scene of the shapes that stay still
-is always current. It is built once, and again only when a shape leaves it.
+is always current. It is built once, and again only when a shape leaves it or a shape
+group's own meshes change (their buffers; a sub-scene is not told of its groups'
+updates).
 
 How the sub-scene is made: a ``mi.Properties("scene")`` holding the shape objects
 under keys of our own, and every shape group of the scene (an instance is traced
@@ -20,6 +22,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from hlbvh.instance_shading import group_members
+from hlbvh.motion import buffer_states, buffers_changed
 from hlbvh.scene_geometry import check_finite
 from hlbvh.timing import clock_ms
 
@@ -38,7 +42,9 @@ class NativeGroup:
         last: what the last update did: ``decision`` (``"build"``, ``"rebuild"`` or
             ``"kept"``), ``ms``, ``shapes`` (how many it traces), ``triangles`` (of its
             meshes), ``left`` (ids of the shapes whose motion made this update rebuild
-            it, empty otherwise), ``sah_cost`` None (Mitsuba's tree does not say).
+            it, empty otherwise), ``sah_cost`` None (Mitsuba's tree does not say),
+            ``groups_changed`` (ids of the shape groups whose meshes changed, which made
+            this update rebuild it).
     """
 
     name = "static"
@@ -52,6 +58,8 @@ class NativeGroup:
         self._shape_index = None  # UInt32: index into scene.shapes() per sub-scene shape
         self._built = False
         self._triangles = 0
+        self._members = [group_members(g) for g in groups]  # each group's shapes
+        self._group_states = []  # each group's meshes' buffers when the sub-scene was built
         self.keep()
 
     @property
@@ -66,11 +74,13 @@ class NativeGroup:
         Raises:
             ValueError: naming a mesh with non-finite vertex positions (first build).
         """
-        if self._built and tuple(indices) == self.indices:
+        reshaped = self._changed_groups() if self._built else []
+        if self._built and tuple(indices) == self.indices and not reshaped:
             self.keep()
             return
         start = clock_ms()
         decision = "rebuild" if self._built else "build"
+        self._group_states = [buffer_states(m) for m in self._members]
         if not self._built:
             check_finite(shapes, indices)  # later builds trace fewer of the same shapes
         self.indices = tuple(indices)
@@ -79,12 +89,25 @@ class NativeGroup:
         self._built = True
         self.builds += 1
         self.last = dict(decision=decision, ms=clock_ms() - start, shapes=len(self.indices),
-                         triangles=self._triangles, left=list(left or ()), sah_cost=None)
+                         triangles=self._triangles, left=list(left or ()), sah_cost=None,
+                         groups_changed=reshaped)
 
     def keep(self):
         """Record that the last update left the sub-scene as it was."""
         self.last = dict(decision="kept", ms=0.0, shapes=len(self.indices),
-                         triangles=self.triangles, left=[], sah_cost=None)
+                         triangles=self.triangles, left=[], sah_cost=None, groups_changed=[])
+
+    @property
+    def stale(self) -> bool:
+        """Whether a shape group's own meshes changed since the sub-scene was built."""
+        return bool(self._built and self._changed_groups())
+
+    def _changed_groups(self) -> list[str]:
+        """Ids of the shape groups whose meshes got other buffers since the sub-scene
+        was built (the sub-scene is then built again over the groups as they are)."""
+        return [g.id() for g, members, states in zip(self.groups, self._members,
+                                                     self._group_states)
+                if buffers_changed(members, states)]
 
     def preliminary(self, ray, coherent, active, reorder) -> mi.PreliminaryIntersection3f:
         """The sub-scene's closest hit, as the whole scene would report it: for a hit
@@ -125,3 +148,4 @@ def _sub_scene(shapes, indices: tuple, groups: list):
     where = {id(shapes[i]): i for i in indices}
     order = [where[id(shape)] for shape in scene.shapes()]
     return scene, mi.UInt32(order)
+
