@@ -26,7 +26,7 @@ from hlbvh.kernels.build import build
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.kernels.instances import BadTransform, refit_top_level, two_level
 from hlbvh.instance_shading import group_members, to_world_rows
-from hlbvh.motion import buffer_states, buffers_changed
+from hlbvh.motion import member_states, members_changed
 from hlbvh.policy import RefitOrRebuild, UpdatePolicy
 from hlbvh.scene_geometry import _describe, collect_geometry
 from hlbvh.timing import clock_ms
@@ -70,6 +70,7 @@ class InstanceGroup:
         self._parts = []  # each used group's share of _prims
         self._states = []  # each used group's meshes' buffers when its BVH was built
         self._members = []  # each used group's meshes
+        self._handles = {}  # their parameter handles (hlbvh.motion)
         self._scene_index = None  # UInt32: each instance's index in scene.shapes()
         self._built_sah = None  # the top level's SAH cost at its last build
         self._policy = RefitOrRebuild()  # what "auto" remembers of past refits
@@ -148,7 +149,7 @@ class InstanceGroup:
         """Positions of the groups whose meshes got other vertex or face buffers since
         their BVH was built."""
         return [k for k, (members, states) in enumerate(zip(self._members, self._states))
-                if buffers_changed(members, states)]
+                if members_changed(members, states, self._handles)]
 
     def _build_top(self, which, rows, seed: bool) -> bool:
         """A new top level (its CSD sort seeded with the last one's order when
@@ -203,7 +204,7 @@ class InstanceGroup:
         members = group_members(group)
         geometry = collect_geometry(members, list(range(len(members))))
         bvh = build(geometry.vertices, geometry.faces, config=self.config)
-        return bvh, (geometry.prim_shape, geometry.prim_local), buffer_states(members)
+        return bvh, (geometry.prim_shape, geometry.prim_local), member_states(members, self._handles)
 
 
 def group_of(instance, groups: list, why: str = "is traced by hlbvh", matrix=None):

@@ -89,14 +89,13 @@ def _identity(values: tuple) -> tuple:
     return tuple(identity)
 
 
-def buffer_states(shapes) -> list:
-    """Each mesh's :class:`MeshState` (None for a shape without buffers): what a shape
-    group's members are compared with later, by :func:`buffers_changed`."""
-    return [MeshState(s.vertex_positions_buffer(), s.faces_buffer()) if s.is_mesh() else None
-            for s in shapes]
+
+def member_states(shapes, handles: dict) -> list:
+    """Each shape's :func:`shape_state`: what a shape group's members are compared with
+    later, by :func:`members_changed` (``handles`` as :func:`shape_state`'s)."""
+    return [shape_state(shape, handles) for shape in shapes]
 
 
-def buffers_changed(shapes, states: list) -> bool:
-    """Whether a mesh among ``shapes`` got other buffers than in ``states``."""
-    return any(state is not None and now.moved(state)
-               for now, state in zip(buffer_states(shapes), states))
+def members_changed(shapes, states: list, handles: dict) -> bool:
+    """Whether a shape among ``shapes`` changed since ``states`` were taken."""
+    return any(shape_state(shape, handles).moved(before) for shape, before in zip(shapes, states))

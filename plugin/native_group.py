@@ -6,8 +6,7 @@ Why a sub-scene and not the scene itself: the scene's accelerator covers the mov
 shapes too, and our per-frame updates refresh a moved mesh without rebuilding it, so
 it may hold buffers the mesh no longer has. A sub-scene of the shapes that stay still
 is always current. It is built once, and again only when a shape leaves it or a shape
-group's own meshes change (their buffers; a sub-scene is not told of its groups'
-updates).
+group's own shapes change (a sub-scene is not told of its groups' updates).
 
 How the sub-scene is made: a ``mi.Properties("scene")`` holding the shape objects
 under keys of our own, and every shape group of the scene (an instance is traced
@@ -23,7 +22,7 @@ import drjit as dr
 import mitsuba as mi
 
 from hlbvh.instance_shading import group_members
-from hlbvh.motion import buffer_states, buffers_changed
+from hlbvh.motion import member_states, members_changed
 from hlbvh.scene_geometry import check_finite
 from hlbvh.timing import clock_ms
 
@@ -59,6 +58,7 @@ class NativeGroup:
         self._built = False
         self._triangles = 0
         self._members = [group_members(g) for g in groups]  # each group's shapes
+        self._handles = {}  # their parameter handles (hlbvh.motion)
         self._group_states = []  # each group's meshes' buffers when the sub-scene was built
         self.keep()
 
@@ -80,7 +80,7 @@ class NativeGroup:
             return
         start = clock_ms()
         decision = "rebuild" if self._built else "build"
-        self._group_states = [buffer_states(m) for m in self._members]
+        self._group_states = [member_states(m, self._handles) for m in self._members]
         if not self._built:
             check_finite(shapes, indices)  # later builds trace fewer of the same shapes
         self.indices = tuple(indices)
@@ -103,11 +103,12 @@ class NativeGroup:
         return bool(self._built and self._changed_groups())
 
     def _changed_groups(self) -> list[str]:
-        """Ids of the shape groups whose meshes got other buffers since the sub-scene
-        was built (the sub-scene is then built again over the groups as they are)."""
+        """Ids of the shape groups whose shapes changed (a mesh's buffers, another
+        shape's box or parameters) since the sub-scene was built (it is then built again
+        over the groups as they are)."""
         return [g.id() for g, members, states in zip(self.groups, self._members,
                                                      self._group_states)
-                if buffers_changed(members, states)]
+                if members_changed(members, states, self._handles)]
 
     def preliminary(self, ray, coherent, active, reorder) -> mi.PreliminaryIntersection3f:
         """The sub-scene's closest hit, as the whole scene would report it: for a hit
