@@ -1,12 +1,12 @@
 """The moving instances of a scene (rigid motion), traced through our two-level
 hierarchy: one BVH per shape group they use, built once, and a top level over the
 instances' world boxes (:func:`hlbvh.kernels.instances.two_level`), brought up to
-date whenever one of them moves as the update policy says (a group whose own meshes
-change, through ``params["group.mesh.vertex_positions"]``, has its BVH built again and
-the top level rebuilt): with ``"auto"`` refit
-while its SAH cost stays within the tolerance of its last build's, rebuilt otherwise
-(as the meshes' BVHs are; a refit of 10k boxes costs a fraction of a rebuild). The moving-instances group of
-:class:`hlbvh.SceneAccel` with ``static="native"``.
+date whenever one of them moves as the update policy says: with ``"auto"`` refit while
+its SAH cost stays within the tolerance of its last build's, rebuilt otherwise (as the
+meshes' BVHs are; a refit of 10k boxes costs a fraction of a rebuild). A group whose
+own shapes change (``params["group.mesh.vertex_positions"]``) has its BVH built again
+and the top level rebuilt. The moving-instances group of :class:`hlbvh.SceneAccel`
+with ``static="native"``.
 
 Mitsuba does not say which shape group an instance uses (an instance's parameters are
 its ``to_world`` alone), so it is found from what Mitsuba does say: the group whose box,
@@ -68,7 +68,7 @@ class InstanceGroup:
         self._top = None  # the top level's BVH of the last update
         self._prims = None  # per instanced face: (its mesh's index in its group, local)
         self._parts = []  # each used group's share of _prims
-        self._states = []  # each used group's meshes' buffers when its BVH was built
+        self._states = []  # each used group's meshes' states when its BVH was built
         self._members = []  # each used group's meshes
         self._handles = {}  # their parameter handles (hlbvh.motion)
         self._scene_index = None  # UInt32: each instance's index in scene.shapes()
@@ -146,8 +146,8 @@ class InstanceGroup:
                          groups_rebuilt=[self._used[k].id() for k in deformed])
 
     def _deformed(self) -> list[int]:
-        """Positions of the groups whose meshes got other vertex or face buffers since
-        their BVH was built."""
+        """Positions of the groups whose shapes changed (a mesh's buffers, another
+        shape's box or parameters) since their BVH was built."""
         return [k for k, (members, states) in enumerate(zip(self._members, self._states))
                 if members_changed(members, states, self._handles)]
 
