@@ -68,7 +68,7 @@ import hlbvh
 from hlbvh.comparison.crossover import crossover_spp, describe
 from hlbvh.errors import UserError
 from hlbvh.instance_group import group_of
-from hlbvh.instance_shading import group_members
+from hlbvh.instance_shading import group_members, is_instance
 from hlbvh.kernels.instances import refit_top_level, two_level
 from hlbvh.native_group import shape_groups
 from hlbvh.scene_geometry import collect_geometry
@@ -141,7 +141,7 @@ def run(repeats: int = 3, sizes=(1_000_000,), resolution: int = 512, builder: st
             frames.setdefault("native", nothing)  # native refused the scene
             crossover = (_crossover(spps, frames["hlbvh"], frames["native"])
                          if "native" in renderers else None)
-            instances = sum(s.class_name() == "Instance" for s in scene.shapes())
+            instances = sum(is_instance(s) for s in scene.shapes())
             for spp in spps:
                 ours, native = frames["hlbvh"][spp], frames["native"][spp]
                 rows.append({

@@ -369,7 +369,7 @@ def _step(query: _Query, world: Ray, stack: _Stack, s: _TraceState) -> _TraceSta
         s.entering & (s.node_t > s.t_best * TFAR_SCALE)
     if two:
         stale |= s.returning  # the step after leaving an instance only pops
-        # opaque: the top level's size changes from frame to frame (see _start)
+        # opaque: the top level's first slot moves when the groups' trees change
         at_instance = in_leaf & ~stale & (
             s.cur >= dr.opaque(type(s.cur), query.two_level.top_base))
 

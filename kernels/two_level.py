@@ -68,8 +68,8 @@ class GroupSlots:
     roots: list
     slots: int
     keys: tuple
-    roots_box: tuple = None
-    room: int = 0
+    roots_box: tuple
+    room: int
 
 
 def select_ray(mask, a: Ray, b: Ray) -> Ray:

@@ -284,9 +284,10 @@ class SceneAccel(_Accel):
             or (self.instances is not None and self.instances.stale)
 
     def _check_current(self):
-        """Refuse a query after a failed update, or when a mesh changed since the last
-        update (the trees hold its old geometry), naming the mesh. Looks at the meshes'
-        buffers only: a look at every shape would cost a traversal per query."""
+        """Refuse a query after a failed update, or when a mesh or a shape group's shape
+        changed since the last update (the trees hold its old geometry), naming the
+        mesh. Looks at the meshes' buffers and the groups' shapes only: a look at every
+        shape would cost a traversal per query."""
         if not self._current:
             raise RuntimeError("SceneAccel: its last update() failed (see the error it "
                                "raised); fix the scene and call update() before tracing")
@@ -300,7 +301,7 @@ class SceneAccel(_Accel):
                     "geometry)")
         if self.static.stale or (self.instances is not None and self.instances.stale):
             raise RuntimeError(
-                "SceneAccel: a shape group's meshes changed since the accelerator's last "
+                "SceneAccel: a shape group's shapes changed since the accelerator's last "
                 "update(); call update() before tracing (it would answer from the old "
                 "geometry)")
 

@@ -12,6 +12,7 @@ import drjit as dr
 import mitsuba as mi
 
 from hlbvh import scenes
+from hlbvh.instance_shading import is_instance
 from hlbvh.parameters import traverse
 from hlbvh.scene_geometry import scene_shapes
 from hlbvh.errors import UserError
@@ -81,7 +82,7 @@ class FrameRenderer:
         sensor = self.scene.sensors()[0]
         width, height = sensor.film().crop_size()
         check_frame_fits(int(width), int(height), int(sensor.sampler().sample_count()))
-        instances = sum(s.class_name() == "Instance" for s in self.scene.shapes())
+        instances = sum(is_instance(s) for s in self.scene.shapes())
         if settings.accel == "native" and instances > MOST_NATIVE_INSTANCES:
             raise UserError(f"the scene has {instances} instances: Mitsuba's own renderer "
                             f"compiles a call for each (more than {MOST_NATIVE_INSTANCES} "
@@ -146,7 +147,7 @@ class FrameRenderer:
         """Triangles of every mesh of the scene as it is now, an instance's counted as
         its shape group's primitives (each instance of a group counts them again)."""
         return sum(s.face_count() if s.is_mesh() else
-                   s.effective_primitive_count() if s.class_name() == "Instance" else 0
+                   s.effective_primitive_count() if is_instance(s) else 0
                    for s in self.scene.shapes())
 
     def channel_names(self, image) -> list[str]:

@@ -51,7 +51,7 @@ class InstanceGroup:
             ``groups``, ``triangles`` (instanced), ``sah_cost`` (the top level's),
             ``drift`` (a refit top level's SAH cost over its last build's; None when
             the update did not refit), ``groups_rebuilt`` (ids of the shape groups
-            whose own meshes changed, their BVHs built again).
+            whose own shapes changed, their BVHs built again).
     """
 
     name = "instances"
@@ -87,7 +87,7 @@ class InstanceGroup:
 
     @property
     def stale(self) -> bool:
-        """Whether a group's own meshes changed since its BVH was built."""
+        """Whether a group's own shapes changed since its BVH was built."""
         return bool(self._deformed())
 
     def _sah(self):
@@ -111,7 +111,7 @@ class InstanceGroup:
             self.keep()
             return
         start = clock_ms()
-        for k in deformed:  # a group's own meshes changed: its BVH is built again
+        for k in deformed:  # a group's own shapes changed: its BVH is built again
             self._bvhs[k], self._parts[k], self._states[k] = self._group_bvh(self._used[k])
         if deformed:
             self._prims = tuple(concat(list(column)) for column in zip(*self._parts))

@@ -89,7 +89,6 @@ def _identity(values: tuple) -> tuple:
     return tuple(identity)
 
 
-
 def member_states(shapes, handles: dict) -> list:
     """Each shape's :func:`shape_state`: what a shape group's members are compared with
     later, by :func:`members_changed` (``handles`` as :func:`shape_state`'s)."""

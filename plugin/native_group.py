@@ -42,7 +42,7 @@ class NativeGroup:
             ``"kept"``), ``ms``, ``shapes`` (how many it traces), ``triangles`` (of its
             meshes), ``left`` (ids of the shapes whose motion made this update rebuild
             it, empty otherwise), ``sah_cost`` None (Mitsuba's tree does not say),
-            ``groups_changed`` (ids of the shape groups whose meshes changed, which made
+            ``groups_changed`` (ids of the shape groups whose shapes changed, which made
             this update rebuild it).
     """
 
@@ -59,7 +59,7 @@ class NativeGroup:
         self._triangles = 0
         self._members = [group_members(g) for g in groups]  # each group's shapes
         self._handles = {}  # their parameter handles (hlbvh.motion)
-        self._group_states = []  # each group's meshes' buffers when the sub-scene was built
+        self._group_states = []  # each group's shapes' states when the sub-scene was built
         self.keep()
 
     @property
@@ -99,7 +99,7 @@ class NativeGroup:
 
     @property
     def stale(self) -> bool:
-        """Whether a shape group's own meshes changed since the sub-scene was built."""
+        """Whether a shape group's own shapes changed since the sub-scene was built."""
         return bool(self._built and self._changed_groups())
 
     def _changed_groups(self) -> list[str]:
@@ -149,4 +149,3 @@ def _sub_scene(shapes, indices: tuple, groups: list):
     where = {id(shapes[i]): i for i in indices}
     order = [where[id(shape)] for shape in scene.shapes()]
     return scene, mi.UInt32(order)
-
