@@ -124,8 +124,9 @@ class FrameRenderer:
         # ---- Render ----
         seed = self.settings.seed + i
         start = clock_ms()
-        image = mi.render(self.scene, seed=seed, spp=0 if spp is None else spp)
-        dr.eval(image)
+        with self.integrator.updated():  # updated above: the render need not look again
+            image = mi.render(self.scene, seed=seed, spp=0 if spp is None else spp)
+            dr.eval(image)
         render_ms = clock_ms() - start
 
         row = {

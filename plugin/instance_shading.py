@@ -53,20 +53,27 @@ def to_world_rows(instance) -> list:
 def _read(handles: dict, indices) -> mi.Float:
     """The table rows (:data:`ROW` floats) of the instances ``i`` in ``indices``, read
     through their ``to_world`` handles (:func:`to_world_handle`) to the host entry by
-    entry and sent back as one array: a numpy view of a matrix would launch a kernel
-    per matrix, and joining one-entry arrays on the device costs a Python call per
-    entry."""
-    rows = np.empty((len(indices), ROW), np.float32)
-    for k, i in enumerate(indices):
-        value, kind, node = handles[i]
-        to_world = mi.get_property(value, kind, node)
-        m, it = to_world.matrix, to_world.inverse_transpose
-        dr.eval(m, it)  # one evaluation, where they are not yet
-        rows[k] = ([m[r][c][0] for r in range(3) for c in range(3)]
-                   + [m[r][3][0] for r in range(3)]
-                   + [it[r][c][0] for r in range(3) for c in range(3)]
-                   + [it[3][c][0] for c in range(3)])
+    entry and sent back as one array: a numpy view of a matrix would launch a kernel per
+    matrix, and joining one-entry arrays on the device costs a Python call per entry.
+    The inverse transpose is read too, not computed: Mitsuba's instance uses the one its
+    transform holds, which a rotation about an axis of other than unit length leaves
+    different from the matrix's."""
+    transforms = [mi.get_property(*handles[i]) for i in indices]
+    pairs = [(t.matrix, t.inverse_transpose) for t in transforms]
+    if pairs and pairs[0][0][0][0].state not in _READ_DIRECTLY:
+        dr.eval(pairs)  # one evaluation for all, where the values are still lazy
+    rows = np.empty((len(pairs), ROW), np.float32)
+    for k, (m, it) in enumerate(pairs):
+        r0, r1, r2, i0, i1, i2, i3 = m[0], m[1], m[2], it[0], it[1], it[2], it[3]
+        rows[k] = (r0[0][0], r0[1][0], r0[2][0], r1[0][0], r1[1][0], r1[2][0],
+                   r2[0][0], r2[1][0], r2[2][0], r0[3][0], r1[3][0], r2[3][0],
+                   i0[0][0], i0[1][0], i0[2][0], i1[0][0], i1[1][0], i1[2][0],
+                   i2[0][0], i2[1][0], i2[2][0], i3[0][0], i3[1][0], i3[2][0])
     return mi.Float(rows.ravel())
+
+
+#: States whose entries are read without an evaluation first.
+_READ_DIRECTLY = (dr.VarState.Evaluated, dr.VarState.Literal)
 
 
 def _positions(ids: list) -> mi.UInt32:
@@ -138,7 +145,8 @@ class InstanceShading:
         ``indices``."""
         if not self.usable or not indices:
             return
-        offsets = [ROW * self.slots[i] + c for i in indices for c in range(ROW)]
+        slots = np.array([self.slots[i] for i in indices], np.uint32)
+        offsets = (ROW * slots[:, None] + np.arange(ROW, dtype=np.uint32)).ravel()
         dr.scatter(self._rows, _read(self._handles, indices), mi.UInt32(offsets))
         dr.eval(self._rows)
 

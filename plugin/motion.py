@@ -80,10 +80,13 @@ def shape_states(shapes, indices, handles: dict | None = None) -> dict:
 
 
 def _identity(values: tuple) -> tuple:
-    """What tells two parameter sets apart: the Dr.Jit variable indices of JIT values,
-    the values themselves otherwise."""
+    """What tells two parameter sets apart: the Dr.Jit variable indices of JIT values
+    (of a transform, its matrix's: its inverse is derived from it, and collecting both
+    doubles the cost of a look at an instance), the values themselves otherwise."""
     identity = []
     for value in values:
+        if type(value).__name__.endswith("Transform4f"):  # any variant's, affine or not
+            value = value.matrix
         indices = dr.detail.collect_indices(value)
         identity.append(tuple(indices) if indices else repr(value))
     return tuple(identity)

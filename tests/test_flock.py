@@ -80,8 +80,12 @@ def test04_an_instanced_animation_renders_as_native_rebuilding_only_the_top_leve
         assert np.abs(images["hlbvh"] - images["native"]).mean() <= 1e-4 * images["native"].mean()
         update = renderers["hlbvh"].integrator.accel(renderers["hlbvh"].scene).last_update
         groups = update["groups"]
-        # The render's own update finds nothing new; the frame's update rebuilt the top level
-        assert groups["static"]["decision"] == "kept" and groups["dynamic"]["triangles"] == 0
+        # The frame's update is the last (the render trusts it, looks at no shape again):
+        # the static world built once, the top level refit or rebuilt
+        assert groups["static"]["decision"] == ("build" if i == 0 else "kept")
+        assert groups["dynamic"]["triangles"] == 0
+        if i > 0:
+            assert groups["instances"]["decision"] in ("refit", "rebuild")
         assert groups["instances"]["instances"] == 12
     accel = renderers["hlbvh"].integrator.accel(renderers["hlbvh"].scene)
     assert accel.static.builds == 1

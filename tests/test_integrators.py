@@ -366,3 +366,23 @@ def test30_a_render_updates_the_accelerator_once(integrator, monkeypatch):
     dr.eval(mi.render(scene, spp=1))
     dr.eval(mi.render(scene, sensor=scene.sensors()[0], spp=1))
     assert len(calls) == 2
+
+
+def test31_renders_inside_updated_trust_the_last_update(monkeypatch):
+    """A caller that just updated the accelerator (a frame loop) renders inside
+    ``integrator.updated()``: no look at the shapes again; outside it, every render
+    looks (and follows a shape that moved)."""
+    desc = analytic_scene()
+    desc["integrator"] = {"type": "hlbvh_path", "accel": "hlbvh"}
+    scene = mi.load_dict(desc)
+    integrator = scene.integrator()
+    integrator.update_accel(scene)
+    calls = []
+    real = hlbvh.SceneAccel.update
+    monkeypatch.setattr(hlbvh.SceneAccel, "update", lambda self: calls.append(1) or real(self))
+    with integrator.updated():
+        inside = np.array(mi.render(scene, spp=1, seed=2))
+    assert calls == [] and not integrator._updated
+    outside = np.array(mi.render(scene, spp=1, seed=2))
+    assert calls == [1]
+    np.testing.assert_array_equal(inside, outside)

@@ -10,6 +10,8 @@ The module is reloaded by :func:`hlbvh.register` after a variant change, so that
 
 from __future__ import annotations
 
+import contextlib
+
 import drjit as dr
 import mitsuba as mi
 
@@ -59,6 +61,7 @@ class AccelIntegrator(mi.SamplingIntegrator):
         self._policy, self._config = split_options(self.accel_options)  # parsed once
         self._accel = None
         self._rendering = False  # inside render (see render)
+        self._updated = False  # inside updated() (see render)
 
     def update_accel(self, scene):
         """Bring the intersector of ``scene`` up to date and return it.
@@ -97,12 +100,26 @@ class AccelIntegrator(mi.SamplingIntegrator):
         """
         if self._rendering:  # Mitsuba's render by sensor index calls this again
             return super().render(scene, sensor, seed, spp, develop, evaluate)
-        self.update_accel(scene)
+        if self._updated:
+            self.accel(scene)
+        else:
+            self.update_accel(scene)
         self._rendering = True
         try:
             return super().render(scene, sensor, seed, spp, develop, evaluate)
         finally:
             self._rendering = False
+
+    @contextlib.contextmanager
+    def updated(self):
+        """A block whose renders trust the accelerator that :meth:`update_accel` just
+        made: the caller changes no shape inside it, so :meth:`render` skips its look at
+        every shape (for a scene of 10k instances, ~0.15 s a render)."""
+        self._updated = True
+        try:
+            yield self
+        finally:
+            self._updated = False
 
     def _options_string(self) -> str:
         options = "".join(f", {k}={v!r}" for k, v in self.accel_options.items())
