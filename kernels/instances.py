@@ -11,6 +11,8 @@ leaf slot with the ray in the instance's object space.
 
 from __future__ import annotations
 
+import dataclasses
+
 import drjit as dr
 
 from .arrays import concat, namespace_of, plain
@@ -73,7 +75,8 @@ def two_level(group_bvhs: list[BVH], instance_group, to_world,
     Args:
         group_bvhs, instance_group, to_world: as :func:`world_boxes`; every transform
             invertible.
-        config: the top level's builder config (defaults).
+        config: the top level's builder config (defaults), its leaves of one instance
+            whatever its ``leaf_size`` (:func:`top_level_config`).
         previous: last frame's top-level BVH, seeding its CSD sort.
         kept: last frame's result, whose geometry trees' slots are reused when
             ``group_bvhs`` are the same trees.
@@ -87,8 +90,16 @@ def two_level(group_bvhs: list[BVH], instance_group, to_world,
     """
     groups = group_slots(group_bvhs, kept, dr.width(instance_group))
     to_object, vertices, faces = _top_input(group_bvhs, groups, instance_group, to_world)
-    top = build(vertices, faces, previous=previous, config=config or BuildConfig())
+    top = build(vertices, faces, previous=previous, config=top_level_config(config))
     return _assembled(top, groups, instance_group, to_object), top
+
+
+def top_level_config(config: BuildConfig | None) -> BuildConfig:
+    """``config`` (or the defaults) with leaves of one instance: entering an instance
+    costs a ray transform and a few traversal steps whether the ray meets its geometry
+    or not, so every instance gets its own box, tested before the ray enters it (leaves
+    of four entered three instances in vain for one hit)."""
+    return dataclasses.replace(config or BuildConfig(), leaf_size=1)
 
 
 def refit_top_level(top: BVH, group_bvhs: list[BVH], instance_group, to_world,
