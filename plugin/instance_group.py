@@ -17,6 +17,8 @@ is refused naming it.
 
 from __future__ import annotations
 
+import re
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -210,9 +212,11 @@ class InstanceGroup:
 def group_of(instance, groups: list, why: str = "is traced by hlbvh", matrix=None):
     """The shape group of ``groups`` that ``instance`` uses: the one whose box, through
     the instance's ``to_world``, is the instance's box, and whose primitive count is the
-    instance's (Mitsuba does not expose the link). ``why`` says in errors why it is
-    asked for; ``matrix``: the instance's ``to_world`` as a 4x4 numpy array, where the
-    caller read it already.
+    instance's (Mitsuba does not expose the link); among several such groups (copies of
+    one geometry with other materials, as USD prototypes often are), the one whose id
+    the instance's description names. ``why`` says in errors why it is asked for;
+    ``matrix``: the instance's ``to_world`` as a 4x4 numpy array, where the caller read
+    it already.
 
     Raises:
         ValueError: naming the instance, when no group or several groups match.
@@ -228,11 +232,21 @@ def group_of(instance, groups: list, why: str = "is traced by hlbvh", matrix=Non
                          "matches its box and primitive count; render it with "
                          "accel='native'")
     if len(found) > 1:
+        named = [g for g in found if g.id() == _group_name(instance)]
+        found = named if len(named) == 1 else found
+    if len(found) > 1:
         raise ValueError(f"{_describe(instance)} {why}, and {len(found)} shape groups "
                          "match its box and primitive count: which it instances "
                          "cannot be told; give the groups different geometry, or "
                          "render with accel='native'")
     return found[0]
+
+
+def _group_name(instance) -> str | None:
+    """The id of the shape group ``instance`` uses, as Mitsuba's description of the
+    instance gives it (``shapegroup = ShapeGroup[name = "..."``), or None."""
+    found = re.search(r'shapegroup\s*=\s*ShapeGroup\[\s*name\s*=\s*"([^"]*)"', str(instance))
+    return found.group(1) if found else None
 
 
 def _transformed(box, matrix: np.ndarray):
