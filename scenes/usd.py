@@ -24,14 +24,21 @@ Meshes (``UsdGeom.Mesh``)
 Motion
     From the time samples: *deforming* (its points are time-sampled), *rigid* (only a
     transform, its own or an ancestor's, is), *static* (nothing is).
-    :meth:`UsdScene.animated_ids` are the deforming and rigid meshes (a rigid one gets
-    its world-space points every frame), :meth:`UsdScene.static_ids` the rest, so the
-    accelerator is told what moves and never rebuilds what does not.
+    :meth:`UsdScene.animated_ids` are the deforming meshes and the rigid instances (or,
+    not instanced, rigid meshes, which get their world-space points every frame),
+    :meth:`UsdScene.static_ids` the rest, so the accelerator is told what moves and
+    never rebuilds what does not.
 Instances
-    Each instance proxy's mesh is its own world-space mesh: hlbvh cannot move a
-    Mitsuba ``instance`` (its accelerator refuses a moving instance), so world-space
-    copies are the honest model; a prototype shared by many instances costs memory per
-    instance.
+    A mesh that moves by a transform alone (rigid), and every instance proxy's mesh,
+    is a Mitsuba ``instance`` of a ``shapegroup`` holding the mesh prim's parts in the
+    prim's own space, its ``to_world`` the prim's transform at each time code: the
+    proxies of one prototype mesh share one group (one per set of materials, where
+    bindings outside the prototype differ), so a prototype's triangles are held once,
+    and a rigid animation moves transforms only (hlbvh rebuilds its top level alone).
+    Meshes whose material emits stay world-space meshes (Mitsuba refuses area emitters
+    inside shape groups), as does everything with ``instancing=False`` (world-space
+    copies, a prototype's triangles once per instance, a rigid mesh's points rewritten
+    every frame).
 Cameras (``UsdGeom.Camera``)
     The one named by ``camera=``, else the one the stage's render settings
     (``UsdRender.Settings``) name, else the first in traversal order, else a camera
@@ -84,8 +91,10 @@ from __future__ import annotations
 import hashlib
 import math
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
+import mitsuba as mi
 import numpy as np
 
 from .animated import AnimatedScene, FrameGeometry
@@ -99,6 +108,43 @@ from .usd_prims import (DEFAULT_INTEGRATOR, DEFAULT_SPP, Sdf, UNSUPPORTED, Usd, 
                         _vertex_normals, _visibility_varies)
 
 
+@dataclass
+class _Group:
+    """A shape group: a mesh prim's parts in the prim's own space, shared by the
+    instances of one prototype mesh."""
+
+    id: str
+    parts: list  # _Mesh, local_points their object-space points
+
+    @property
+    def triangles(self) -> int:
+        return sum(len(part.faces) for part in self.parts)
+
+
+@dataclass
+class _Instance:
+    """A mesh prim rendered as an instance of a :class:`_Group`."""
+
+    id: str
+    path: Sdf.Path
+    motion: str  # "static" or "rigid"
+    group: _Group
+
+
+def _digest(array) -> str | None:
+    """A digest of a mesh's colours or texture coordinates (None stays None)."""
+    if array is None:
+        return None
+    if isinstance(array, tuple):
+        return array[0] + ":" + _digest(array[1])
+    return hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest()
+
+
+def _object_points(part) -> np.ndarray:
+    """A group part's Mitsuba vertices in its object space."""
+    return part.local_points if part.vertex_points is None else part.local_points[part.vertex_points]
+
+
 class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
     """An animated USD stage (``.usd``, ``.usda``, ``.usdc``, ``.usdz``) as an animated
     scene; what becomes what is in the module docstring.
@@ -109,6 +155,8 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             settings' camera, else the first camera, else a framing default).
         warn: called with each warning line (default: printed on stderr, prefixed
             ``hlbvh:``).
+        instancing: rigid meshes and prototypes' meshes as Mitsuba instances (see
+            the module docstring); False: every mesh in world space.
 
     Raises:
         ValueError: naming the file: it does not exist, USD cannot open it, its time
@@ -117,7 +165,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
 
     name = "usd"
 
-    def __init__(self, path, camera: str | None = None, warn=None):
+    def __init__(self, path, camera: str | None = None, warn=None, instancing: bool = True):
         self._path = Path(path)
         emit = warn or _print_warning
         pending: list[str] = []
@@ -138,10 +186,14 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         self.frames_per_second = float(self.stage.GetTimeCodesPerSecond())
         self._root = _root_transform(self.stage)
         self._ids: set[str] = set(_RESERVED)
-        self._meshes: list[_Mesh] = []
+        self._instancing = bool(instancing)
+        self._meshes: list[_Mesh] = []  # in world space
+        self._groups: dict[tuple, _Group] = {}
+        self._instances: list[_Instance] = []
+        self._shapes: list = []  # the meshes and instances, in the stage's order
         self._lights: dict = {}
         unresolved = self._collect()
-        if not self._meshes:
+        if not self._shapes:
             why = (f"; references or payloads that do not resolve: {', '.join(unresolved)}"
                    if unresolved else "")
             raise ValueError(f"{self._where}: nothing renderable (no visible UsdGeom.Mesh "
@@ -167,22 +219,28 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         return self._start + self._check_frame_index(i)
 
     def animated_ids(self) -> list[str]:
-        return [m.id for m in self._meshes if m.motion != "static"]
+        return [m.id for m in self._shapes if m.motion != "static"]
 
     def static_ids(self) -> list[str]:
-        return [m.id for m in self._meshes if m.motion == "static"]
+        return [m.id for m in self._shapes if m.motion == "static"]
 
     def motions(self) -> dict[str, str]:
-        """Each mesh id's motion: ``"static"``, ``"deforming"`` or ``"rigid"``."""
-        return {m.id: m.motion for m in self._meshes}
+        """Each mesh's or instance's id's motion: ``"static"``, ``"deforming"`` or
+        ``"rigid"``."""
+        return {m.id: m.motion for m in self._shapes}
 
     def prim_paths(self) -> dict[str, str]:
-        """Each mesh id's prim path on the stage (an instance proxy's path for
-        instanced meshes)."""
-        return {m.id: str(m.path) for m in self._meshes}
+        """Each mesh's or instance's id's prim path on the stage (an instance proxy's
+        path for instanced meshes)."""
+        return {m.id: str(m.path) for m in self._shapes}
+
+    def instance_groups(self) -> dict[str, str]:
+        """Each instance's id and the id of the shape group it instances."""
+        return {m.id: m.group.id for m in self._instances}
 
     def triangle_counts(self) -> dict[str, int]:
-        return {m.id: len(m.faces) for m in self._meshes}
+        return {m.id: m.group.triangles if isinstance(m, _Instance) else len(m.faces)
+                for m in self._shapes}
 
     def frame(self, i: int) -> dict[str, FrameGeometry]:
         """World-space points (Mitsuba's Y-up metres, float32) of every moving mesh at
@@ -195,8 +253,11 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         time = Usd.TimeCode(self.time_code(i))
         cache = UsdGeom.XformCache(time)
         frame = {}
-        for mesh in self._meshes:
+        for mesh in self._shapes:
             if mesh.motion == "static":
+                continue
+            if isinstance(mesh, _Instance):
+                frame[mesh.id] = FrameGeometry(to_world=self._to_world(mesh, cache))
                 continue
             points, faces = self._geometry(mesh, time, cache)
             if faces is None and mesh.vertex_points is None \
@@ -220,6 +281,11 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         for mesh in self._meshes:
             points, faces = self._geometry(mesh, time, cache)
             result[mesh.id] = points[faces if faces is not None else mesh.faces]
+        for instance in self._instances:
+            m = self._to_world(instance, cache)
+            result[instance.id] = np.concatenate([
+                (_object_points(part) @ m[:3, :3].T + m[:3, 3])[part.faces]
+                for part in instance.group.parts])
         return result
 
     def source_digest(self) -> str:
@@ -231,7 +297,8 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         files = [Path(layer.realPath.split("[")[0]) for layer in self.stage.GetUsedLayers()
                  if layer.realPath]
         files += [Path(name) for light in self._lights.values() for name in _filenames(light)]
-        files += [Path(name) for mesh in self._meshes for name in _filenames(mesh.bsdf)]
+        files += [Path(name) for mesh in self._meshes + self._group_parts()
+                  for name in _filenames(mesh.bsdf)]
         digest = hashlib.sha256()
         for path in sorted(set(files)):
             digest.update(str(path).encode() + b"\0")
@@ -257,12 +324,25 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         }
         time = Usd.TimeCode(self._start)
         cache = UsdGeom.XformCache(time)
-        for mesh in self._meshes:
-            points, faces = self._geometry(mesh, time, cache)
-            description[mesh.id] = _mitsuba_mesh(
-                mesh, points, mesh.faces if faces is None else faces)
+        for group in self._groups.values():
+            description[group.id] = {"type": "shapegroup", **{
+                part.id: _mitsuba_mesh(part, _object_points(part), part.faces)
+                for part in group.parts}}
+        for shape in self._shapes:
+            if isinstance(shape, _Instance):
+                description[shape.id] = {
+                    "type": "instance", "shape": {"type": "ref", "id": shape.group.id},
+                    "to_world": mi.ScalarTransform4f(
+                        self._to_world(shape, cache).astype(np.float32))}
+                continue
+            points, faces = self._geometry(shape, time, cache)
+            description[shape.id] = _mitsuba_mesh(
+                shape, points, shape.faces if faces is None else faces)
         description.update(self._lights)
         return description
+
+    def _group_parts(self) -> list:
+        return [part for group in self._groups.values() for part in group.parts]
 
     # ---- Reading the stage -------------------------------------------------------
 
@@ -369,32 +449,37 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             stats.face_varying.append(str(path))
         if scheme not in (None, UsdGeom.Tokens.none):
             stats.subdivided.append(str(path))
-        if normals is not None and motion != "static":
-            stats.moving_normals.append(str(path))
-            normals = None
         transform = self._root @ _matrix(cache.GetLocalToWorldTransform(prim))
-        if np.linalg.det(transform[:3, :3]) < 0:
-            faces = faces[:, ::-1].copy()  # a mirroring transform: keep the faces outward
-        if normals is not None:
-            normals = normals @ np.linalg.inv(transform[:3, :3])
-            length = np.linalg.norm(normals, axis=1, keepdims=True)
-            normals = normals / np.where(length > 0, length, 1)
         double_sided = bool(mesh.GetDoubleSidedAttr().Get())
         parts = [(part, chosen, *self._material(
                     part, mesh, double_sided, time, len(points),
                     None if topology_varies else source_faces[chosen]))
                  for part, chosen in self._material_parts(prim, mesh, time, topology_varies,
                                                           source_faces, len(counts))]
+        # Moved by a transform alone, or a prototype's copy: an instance of a shape group
+        # (area emitters cannot be inside one: Mitsuba refuses them there)
+        instanced = (self._instancing and motion != "deforming"
+                     and (motion == "rigid" or prim.IsInstanceProxy())
+                     and all(part[3] is None for part in parts))
+        if normals is not None and motion != "static" and not instanced:
+            stats.moving_normals.append(str(path))
+            normals = None
+        if normals is not None:
+            if not instanced:  # to world space (an instance takes them there itself)
+                normals = normals @ np.linalg.inv(transform[:3, :3])
+            length = np.linalg.norm(normals, axis=1, keepdims=True)
+            normals = normals / np.where(length > 0, length, 1)
         wanted = next((st for *_, st in parts if st is not None), None)
         uv = None if wanted is None else self._texcoords(
             prim, mesh, time, wanted, len(points), corners, topology_varies)
         vertex_points = None
         if uv is not None and uv[0] is not None:  # faceVarying: split by (point, uv)
-            vertex_points, split_faces, texcoords = uv
-            faces = split_faces if np.linalg.det(transform[:3, :3]) >= 0 \
-                else split_faces[:, ::-1].copy()
+            vertex_points, faces, texcoords = uv
         elif uv is not None:
             texcoords = uv[2]
+        if not instanced and np.linalg.det(transform[:3, :3]) < 0:
+            faces = faces[:, ::-1].copy()  # a mirroring transform: keep the faces outward
+        meshes = []
         for part, chosen, bsdf, emission, colors, st in parts:
             if st is not None and uv is None:
                 bsdf = self._material(part, mesh, double_sided, time, len(points), None,
@@ -402,17 +487,49 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             if vertex_points is not None:
                 if colors is not None and colors[0] == "vertex_color":
                     colors = (colors[0], colors[1][vertex_points])
-            self._meshes.append(_Mesh(
-                id=self._new_id(part.GetPath()), path=path, motion=motion,
+            meshes.append(_Mesh(
+                id="", path=path, motion="static" if instanced else motion,
                 faces=faces[chosen], topology_varies=topology_varies,
                 smooth=normals is not None or scheme not in (None, UsdGeom.Tokens.none),
                 bsdf=bsdf, emission=emission,
                 normals=None if normals is None
                 else normals if vertex_points is None else normals[vertex_points],
                 colors=colors, point_count=len(points),
-                local_points=points if motion == "rigid" else None,
+                local_points=points if motion == "rigid" or instanced else None,
                 vertex_points=vertex_points,
                 texcoords=None if uv is None else texcoords))
+        if instanced:
+            self._add_instance(prim, motion, parts, meshes)
+            return
+        for (part, *_), made in zip(parts, meshes):
+            made.id = self._new_id(part.GetPath())
+            self._meshes.append(made)
+            self._shapes.append(made)
+
+    def _add_instance(self, prim, motion: str, parts: list, meshes: list) -> None:
+        """An instance of the shape group of ``meshes`` (the mesh prim's parts in its own
+        space); copies of one prototype mesh with the same materials share one group."""
+        source = prim.GetPrimInPrototype() if prim.IsInstanceProxy() else prim
+        key = (str(source.GetPath()),) + tuple(
+            (part.GetName(), repr(made.bsdf), _digest(made.colors), _digest(made.texcoords))
+            for (part, *_), made in zip(parts, meshes))
+        instance_id = self._new_id(prim.GetPath())  # the id the mesh has without instancing
+        group = self._groups.get(key)
+        if group is None:
+            for (part, *_), made in zip(parts, meshes):
+                inside = part.GetPrimInPrototype() if part.IsInstanceProxy() else part
+                made.id = self._new_id(inside.GetPath())
+            group = _Group(self._new_id(Sdf.Path(f"{source.GetPath()}_group")), meshes)
+            self._groups[key] = group
+        instance = _Instance(instance_id, prim.GetPath(), motion, group)
+        self._instances.append(instance)
+        self._shapes.append(instance)
+
+    def _to_world(self, instance: "_Instance", cache) -> np.ndarray:
+        """An instance's object-to-world 4x4 (Mitsuba's Y-up metres) in ``cache``'s
+        time."""
+        return self._root @ _matrix(cache.GetLocalToWorldTransform(
+            self.stage.GetPrimAtPath(instance.path)))
 
     def _geometry(self, mesh: _Mesh, time, cache):
         """``(points (V, 3) float64 world space, faces (F, 3) or None)`` of a mesh at

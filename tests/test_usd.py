@@ -195,9 +195,10 @@ def pxr_triangles(stage_path, time):
     return result
 
 
-def mitsuba_triangles(scene):
+def mitsuba_triangles(scene, groups=None):
     """Every triangle mesh of a loaded Mitsuba scene (not the analytic shapes of area
-    lights) as ``(F, 3, 3)`` corners, by id."""
+    lights) as ``(F, 3, 3)`` corners, by id; an instance's (``groups``: its group's id,
+    by instance id) its group's meshes through its ``to_world``, read from Mitsuba."""
     params = mi.traverse(scene)
     result = {}
     for shape in scene.shapes():
@@ -205,7 +206,22 @@ def mitsuba_triangles(scene):
             points = np.array(params[f"{shape.id()}.vertex_positions"]).reshape(-1, 3)
             faces = np.array(params[f"{shape.id()}.faces"]).reshape(-1, 3)
             result[shape.id()] = points[faces]
+        elif groups and shape.id() in groups:
+            m = np.array(params[f"{shape.id()}.to_world"].matrix, np.float64).reshape(4, 4)
+            members = [k[:-len(".vertex_positions")] for k in params.keys()
+                       if k.startswith(groups[shape.id()] + ".") and k.endswith(".vertex_positions")]
+            result[shape.id()] = np.concatenate([
+                (np.array(params[f"{k}.vertex_positions"]).reshape(-1, 3) @ m[:3, :3].T
+                 + m[:3, 3])[np.array(params[f"{k}.faces"]).reshape(-1, 3)] for k in members])
     return result
+
+
+def rendered_meshes(animation):
+    """Each mesh's id and what the loader made of it: a world-space mesh, or for an
+    instance its group's first part (its BSDF, colours, texture coordinates)."""
+    meshes = {m.id: m for m in animation._meshes}
+    meshes.update({i.id: i.group.parts[0] for i in animation._instances})
+    return meshes
 
 
 @pytest.fixture(scope="module")
@@ -243,15 +259,21 @@ def test01_each_frame_holds_what_pxr_computes_world_space_and_triangulated(shot)
         changed = scenes.apply_frame(scene, params, animation.frame(i))
         assert changed == animation.animated_ids()
         expected = pxr_triangles(shot, Usd.TimeCode(1 + i))
-        ours = mitsuba_triangles(scene)
+        ours = mitsuba_triangles(scene, animation.instance_groups())
         assert set(ours) == set(paths)
         for shape_id, triangles in ours.items():
             np.testing.assert_allclose(triangles, expected[paths[shape_id]], atol=1e-5,
                                        err_msg=f"{shape_id} at frame {i}")
         for shape_id, triangles in animation.world_triangles(i).items():
             np.testing.assert_allclose(triangles, expected[paths[shape_id]], atol=1e-9)
-    # The two instances are one prototype, each in its own place.
-    tiles = mitsuba_triangles(scene)
+    # The two instances are one prototype, one shape group, each in its own place; the
+    # rigid pentagon an instance too (its frames move its transform), the emitting lamp
+    # a world-space mesh (Mitsuba refuses emitters inside shape groups)
+    groups = animation.instance_groups()
+    assert set(groups) == {"World_Tile_0_Geom", "World_Tile_1_Geom", "World_Mover_Pentagon"}
+    assert groups["World_Tile_0_Geom"] == groups["World_Tile_1_Geom"]
+    assert animation.frame(1)["World_Mover_Pentagon"].to_world is not None
+    tiles = mitsuba_triangles(scene, groups)
     np.testing.assert_allclose(tiles["World_Tile_1_Geom"] - tiles["World_Tile_0_Geom"],
                                np.broadcast_to([0.6, 0, 0], (2, 3, 3)), atol=1e-6)
     # Said once each: the control cage, the camera's first pose.
@@ -270,7 +292,7 @@ def test02_z_up_centimetres_are_y_up_metres_and_upright(tmp_path):
             x, y, z = np.moveaxis(stage_units[prim], -1, 0)
             np.testing.assert_allclose(triangles[shape_id],
                                        np.stack([x, z, -y], axis=-1) * 0.01, atol=1e-9)
-    meshes = {m.id: m for m in animation._meshes}
+    meshes = rendered_meshes(animation)
     assert meshes["Painted"].colors[0] == "vertex_color"
     np.testing.assert_allclose(meshes["Painted"].colors[1][2], [0, 0, 1])
     name, per_triangle = meshes["Banner"].colors
@@ -399,7 +421,7 @@ def test06_lights_map_to_mitsuba_emitters(shot):
 
 def test07_materials_map_to_mitsuba_bsdfs(shot):
     animation = UsdScene(shot, warn=lambda line: None)
-    meshes = {m.id: m for m in animation._meshes}
+    meshes = rendered_meshes(animation)
     flag = meshes["World_Flag"].bsdf
     assert flag["type"] == "twosided" and flag["material"]["type"] == "principled"
     assert flag["material"]["base_color"]["value"] == pytest.approx([0.2, 0.4, 0.8])
@@ -685,7 +707,7 @@ def test20_holes_left_handed_faces_subsets_and_growing_point_counts(tmp_path):
     stage.GetRootLayer().Save()
     said, warn = lines()
     animation = UsdScene(path, warn=warn)
-    meshes = {m.id: m for m in animation._meshes}
+    meshes = rendered_meshes(animation)
     # The hole (face 1) and the 2-vertex face are left out; left-handed faces reversed;
     # the subset's face is a mesh of its own with the subset's material, the rest keeps
     # the mesh's.
@@ -787,7 +809,7 @@ def test23_uv_textures_map_the_image_upright_and_split_seams(tmp_path, capsys):
     said, warn = lines()
     animation = UsdScene(path, warn=warn)
     assert not [line for line in said if "texture" in line], said
-    strip = {m.id: m for m in animation._meshes}["Strip"]
+    strip = rendered_meshes(animation)["Strip"]
     assert strip.motion == "deforming" and len(strip.vertex_points) == 8  # 6 points, 2 split
     # Mitsuba's uv are (s, 1 - t): the first quad's corners (0,0) (1,0) (1,1) (0,1) in st.
     np.testing.assert_allclose(strip.texcoords[strip.faces[0]], [[0, 1], [1, 1], [1, 0]])
@@ -806,3 +828,118 @@ def test23_uv_textures_map_the_image_upright_and_split_seams(tmp_path, capsys):
     rows[0, 0] = 0.5
     mi.Bitmap(rows).write(str(texture))
     assert UsdScene(path, warn=warn).source_digest() != digest  # the texture is hashed
+
+
+# ---- Prototypes and rigid motion as Mitsuba instances ----------------------------------
+
+
+def write_crowd(path):
+    """A ground and eight instances of one box prototype (time codes 0..2): one turned
+    and mirrored, one bound to another material on its instance prim (a second group),
+    two moving by their time-sampled transforms; a dome and a sun."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(2)
+    _quad(stage, "/Ground", [(-4, 0, -4), (4, 0, -4), (4, 0, 4), (-4, 0, 4)],
+          indices=(0, 3, 2, 1))
+    stage.CreateClassPrim("/Prototypes")
+    prototype = stage.DefinePrim("/Prototypes/Box", "Xform")
+    corners = [(x, y, z) for x in (-0.3, 0.3) for y in (0, 0.5) for z in (-0.2, 0.2)]
+    quads = (0, 1, 3, 2, 4, 6, 7, 5, 0, 4, 5, 1, 2, 3, 7, 6, 0, 2, 6, 4, 1, 5, 7, 3)
+    _quad(stage, "/Prototypes/Box/Geom", corners, counts=(4,) * 6, indices=quads)
+    red = _preview(stage, "/Looks/Red", diffuseColor=(0.8, 0.1, 0.1))
+    for k in range(8):
+        instance = UsdGeom.Xform.Define(stage, f"/Crowd/Box_{k}")
+        move = instance.AddTranslateOp()
+        turn = instance.AddRotateYOp()
+        if k in (2, 6):  # moving
+            for t in (0, 1, 2):
+                move.Set(Gf.Vec3d(-3 + 0.8 * k + 0.2 * t, 0.0, 0.3 * t), t)
+                turn.Set(25.0 * t + 10 * k, t)
+        else:
+            move.Set(Gf.Vec3d(-3 + 0.8 * k, 0.0, -0.5 * (k % 2)))
+            turn.Set(15.0 * k)
+        if k == 3:
+            instance.AddScaleOp().Set(Gf.Vec3f(-1.0, 1.2, 0.8))  # mirrored
+        instance.GetPrim().GetReferences().AddInternalReference(prototype.GetPath())
+        instance.GetPrim().SetInstanceable(True)
+        if k == 5:
+            _bind(instance, red)
+    camera = UsdGeom.Camera.Define(stage, "/Cam")
+    camera.AddTranslateOp().Set(Gf.Vec3d(0, 2.5, 7))
+    camera.AddRotateXOp().Set(-15.0)
+    UsdLux.DomeLight.Define(stage, "/Sky").CreateIntensityAttr(0.6)
+    sun = UsdLux.DistantLight.Define(stage, "/Sun")
+    sun.CreateIntensityAttr(2.0)
+    sun.AddRotateXOp().Set(-60.0)
+    stage.GetRootLayer().Save()
+    return path
+
+
+def test24_prototypes_and_rigid_motion_are_instances_of_shared_groups(tmp_path):
+    """Eight proxies of one prototype: two shape groups (the red binding outside the
+    prototype makes the second), each instance where pxr puts its mesh frame by frame
+    (turned, mirrored, moving); the frames move only the two moving instances'
+    transforms; ``instancing=False`` gives the same triangles as world-space meshes."""
+    path = write_crowd(tmp_path / "crowd.usda")
+    animation = UsdScene(path, warn=lambda line: None)
+    groups = animation.instance_groups()
+    assert len(groups) == 8 and len(set(groups.values())) == 2
+    assert groups["Crowd_Box_5_Geom"] != groups["Crowd_Box_4_Geom"] == groups["Crowd_Box_3_Geom"]
+    assert animation.animated_ids() == ["Crowd_Box_2_Geom", "Crowd_Box_6_Geom"]
+    assert animation.triangle_counts()["Crowd_Box_0_Geom"] == 12
+    flat = UsdScene(path, warn=lambda line: None, instancing=False)
+    assert flat.instance_groups() == {} and flat.motions() == animation.motions()
+    scene = mi.load_dict(animation.scene_dict(resolution=(8, 8), spp=1))
+    params = mi.traverse(scene)
+    paths = animation.prim_paths()
+    for i in range(animation.frame_count):
+        frame = animation.frame(i)
+        assert set(frame) == set(animation.animated_ids())
+        assert all(g.to_world is not None and g.positions is None for g in frame.values())
+        scenes.apply_frame(scene, params, frame)
+        expected = pxr_triangles(path, Usd.TimeCode(i))
+        ours = mitsuba_triangles(scene, groups)
+        flat_triangles = flat.world_triangles(i)
+        for shape_id, prim in paths.items():
+            np.testing.assert_allclose(ours[shape_id], expected[prim], atol=1e-5,
+                                       err_msg=f"{shape_id} at frame {i}")
+            np.testing.assert_allclose(animation.world_triangles(i)[shape_id],
+                                       expected[prim], atol=1e-9)
+            # (the world-space copy of the mirrored box has its corners reversed)
+            np.testing.assert_allclose(np.sort(flat_triangles[shape_id], axis=1),
+                                       np.sort(expected[prim], axis=1), atol=1e-9)
+
+
+def test25_an_instanced_stage_renders_as_native_rebuilding_only_the_top_level(tmp_path):
+    """Frame by frame, hlbvh's images of the instanced crowd equal native's (and the
+    world-space copies' in the mean); each frame refits or rebuilds the top level
+    alone."""
+    from hlbvh.frame import FrameRenderer
+    from hlbvh.settings import RenderSettings
+    path = write_crowd(tmp_path / "crowd.usda")
+    settings = dict(resolution=(32, 24), spp=4, max_depth=3)
+    renderers = {
+        "hlbvh": FrameRenderer(UsdScene(path, warn=lambda line: None),
+                               RenderSettings(accel="hlbvh", **settings)),
+        "native": FrameRenderer(UsdScene(path, warn=lambda line: None),
+                                RenderSettings(accel="native", **settings)),
+        "flat": FrameRenderer(UsdScene(path, warn=lambda line: None, instancing=False),
+                              RenderSettings(accel="hlbvh", **settings))}
+    for i in range(3):
+        images_ = {name: np.array(r.render(i)[0]) for name, r in renderers.items()}
+        assert images_["hlbvh"].mean() > 0.01
+        assert_close_to_native(images_["hlbvh"], images_["native"])
+        # The world-space copies are the same surfaces, but the mirrored copy's reversed
+        # corners turn its shading frame's tangents, so a BSDF sample of the same random
+        # numbers leaves in another direction: equal in the mean, not pixel for pixel.
+        assert abs(images_["hlbvh"].mean() - images_["flat"].mean()) <= \
+            0.02 * images_["flat"].mean()
+        update = renderers["hlbvh"].integrator.accel(renderers["hlbvh"].scene).last_update
+        assert update["groups"]["dynamic"]["triangles"] == 0
+        assert update["groups"]["static"]["decision"] == ("build" if i == 0 else "kept")
+        assert update["groups"]["instances"]["instances"] == 2
+        if i:
+            assert update["groups"]["instances"]["decision"] in ("refit", "rebuild")
