@@ -24,12 +24,13 @@ Meshes (``UsdGeom.Mesh``)
 Motion
     From the time samples: *deforming* (its points are time-sampled), *rigid* (only a
     transform, its own or an ancestor's, is), *static* (nothing is).
-    :meth:`UsdScene.animated_ids` are the deforming meshes and the rigid instances (or,
-    not instanced, rigid meshes, which get their world-space points every frame),
+    :meth:`UsdScene.animated_ids` are the deforming meshes and the rigid instances and
+    meshes (a rigid mesh that is not an instance gets its world-space points every frame),
     :meth:`UsdScene.static_ids` the rest, so the accelerator is told what moves and
     never rebuilds what does not.
 Instances
-    A mesh that moves by a transform alone (rigid), and every instance proxy's mesh,
+    Every instance proxy's mesh, and a mesh of at least
+    :data:`RIGID_INSTANCE_TRIANGLES` triangles that moves by a transform alone (rigid),
     is a Mitsuba ``instance`` of a ``shapegroup`` holding the mesh prim's parts in the
     prim's own space, its ``to_world`` the prim's transform at each time code: the
     proxies of one prototype mesh share one group (one per set of materials, where
@@ -106,6 +107,14 @@ from .usd_prims import (DEFAULT_INTEGRATOR, DEFAULT_SPP, Sdf, UNSUPPORTED, Usd, 
                         _matrix, _mitsuba_mesh, _open, _print_warning, _root_transform,
                         _skel_binding, _transform_varies, _triangulate, _unresolved_arcs,
                         _vertex_normals, _visibility_varies)
+
+
+#: A rigid mesh of at least this many triangles is an instance (its transform moved every
+#: frame), a smaller one a world-space mesh whose points are rewritten: each distinct
+#: group mesh adds its own expansion to every render, which outweighs rewriting and
+#: rebuilding a small mesh (300 distinct rigid meshes, measured in docs/decisions.md:
+#: even at about 2k triangles each, instances 1.6x slower at 768, faster from 4.8k).
+RIGID_INSTANCE_TRIANGLES = 2048
 
 
 @dataclass
@@ -456,10 +465,11 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
                     None if topology_varies else source_faces[chosen]))
                  for part, chosen in self._material_parts(prim, mesh, time, topology_varies,
                                                           source_faces, len(counts))]
-        # Moved by a transform alone, or a prototype's copy: an instance of a shape group
-        # (area emitters cannot be inside one: Mitsuba refuses them there)
+        # A prototype's copy, or a large mesh moved by a transform alone: an instance of
+        # a shape group (area emitters cannot be inside one: Mitsuba refuses them there)
         instanced = (self._instancing and motion != "deforming"
-                     and (motion == "rigid" or prim.IsInstanceProxy())
+                     and (prim.IsInstanceProxy()
+                          or (motion == "rigid" and len(faces) >= RIGID_INSTANCE_TRIANGLES))
                      and all(part[3] is None for part in parts))
         if normals is not None and motion != "static" and not instanced:
             stats.moving_normals.append(str(path))

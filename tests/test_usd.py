@@ -270,9 +270,10 @@ def test01_each_frame_holds_what_pxr_computes_world_space_and_triangulated(shot)
     # rigid pentagon an instance too (its frames move its transform), the emitting lamp
     # a world-space mesh (Mitsuba refuses emitters inside shape groups)
     groups = animation.instance_groups()
-    assert set(groups) == {"World_Tile_0_Geom", "World_Tile_1_Geom", "World_Mover_Pentagon"}
+    assert set(groups) == {"World_Tile_0_Geom", "World_Tile_1_Geom"}
     assert groups["World_Tile_0_Geom"] == groups["World_Tile_1_Geom"]
-    assert animation.frame(1)["World_Mover_Pentagon"].to_world is not None
+    # (the pentagon: three triangles, rewritten in world space, cheaper than a group)
+    assert animation.frame(1)["World_Mover_Pentagon"].positions is not None
     tiles = mitsuba_triangles(scene, groups)
     np.testing.assert_allclose(tiles["World_Tile_1_Geom"] - tiles["World_Tile_0_Geom"],
                                np.broadcast_to([0.6, 0, 0], (2, 3, 3)), atol=1e-6)
@@ -836,7 +837,8 @@ def test23_uv_textures_map_the_image_upright_and_split_seams(tmp_path, capsys):
 def write_crowd(path):
     """A ground and eight instances of one box prototype (time codes 0..2): one turned
     and mirrored, one bound to another material on its instance prim (a second group),
-    two moving by their time-sampled transforms; a dome and a sun."""
+    two moving by their time-sampled transforms; a 2048-triangle sheet moved by its
+    parent's transform; a dome and a sun."""
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
@@ -867,6 +869,18 @@ def write_crowd(path):
         instance.GetPrim().SetInstanceable(True)
         if k == 5:
             _bind(instance, red)
+    # A rigid mesh large enough to be an instance (RIGID_INSTANCE_TRIANGLES), not a proxy
+    flyer = UsdGeom.Xform.Define(stage, "/Flyer")
+    lift = flyer.AddTranslateOp()
+    for t in (0, 1, 2):
+        lift.Set(Gf.Vec3d(0.2 * t, 1.2 + 0.1 * t, -1.0), t)
+    flyer.AddRotateXOp().Set(70.0)
+    n = 32
+    grid = [(x / n - 0.5, 0.0, z / n - 0.5) for z in range(n + 1) for x in range(n + 1)]
+    cells = [(z * (n + 1) + x, z * (n + 1) + x + 1, (z + 1) * (n + 1) + x + 1, (z + 1) * (n + 1) + x)
+             for z in range(n) for x in range(n)]
+    _quad(stage, "/Flyer/Sheet", grid, counts=(4,) * len(cells),
+          indices=[i for cell in cells for i in cell], double_sided=True)
     camera = UsdGeom.Camera.Define(stage, "/Cam")
     camera.AddTranslateOp().Set(Gf.Vec3d(0, 2.5, 7))
     camera.AddRotateXOp().Set(-15.0)
@@ -886,10 +900,11 @@ def test24_prototypes_and_rigid_motion_are_instances_of_shared_groups(tmp_path):
     path = write_crowd(tmp_path / "crowd.usda")
     animation = UsdScene(path, warn=lambda line: None)
     groups = animation.instance_groups()
-    assert len(groups) == 8 and len(set(groups.values())) == 2
+    assert len(groups) == 9 and len(set(groups.values())) == 3
     assert groups["Crowd_Box_5_Geom"] != groups["Crowd_Box_4_Geom"] == groups["Crowd_Box_3_Geom"]
-    assert animation.animated_ids() == ["Crowd_Box_2_Geom", "Crowd_Box_6_Geom"]
+    assert animation.animated_ids() == ["Crowd_Box_2_Geom", "Crowd_Box_6_Geom", "Flyer_Sheet"]
     assert animation.triangle_counts()["Crowd_Box_0_Geom"] == 12
+    assert animation.triangle_counts()["Flyer_Sheet"] == 2048
     flat = UsdScene(path, warn=lambda line: None, instancing=False)
     assert flat.instance_groups() == {} and flat.motions() == animation.motions()
     scene = mi.load_dict(animation.scene_dict(resolution=(8, 8), spp=1))
@@ -940,6 +955,6 @@ def test25_an_instanced_stage_renders_as_native_rebuilding_only_the_top_level(tm
         update = renderers["hlbvh"].integrator.accel(renderers["hlbvh"].scene).last_update
         assert update["groups"]["dynamic"]["triangles"] == 0
         assert update["groups"]["static"]["decision"] == ("build" if i == 0 else "kept")
-        assert update["groups"]["instances"]["instances"] == 2
+        assert update["groups"]["instances"]["instances"] == 3
         if i:
             assert update["groups"]["instances"]["decision"] in ("refit", "rebuild")
