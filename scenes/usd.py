@@ -470,13 +470,16 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         instanced = (self._instancing and motion != "deforming"
                      and (prim.IsInstanceProxy()
                           or (motion == "rigid" and len(faces) >= RIGID_INSTANCE_TRIANGLES))
-                     and all(part[3] is None for part in parts))
+                     and all(part[3] is None for part in parts)
+                     and self._invertible(prim, motion))
         if normals is not None and motion != "static" and not instanced:
             stats.moving_normals.append(str(path))
             normals = None
         if normals is not None:
             if not instanced:  # to world space (an instance takes them there itself)
-                normals = normals @ np.linalg.inv(transform[:3, :3])
+                linear = transform[:3, :3]
+                normals = normals @ (np.linalg.inv(linear) if np.linalg.det(linear) != 0
+                                     else np.linalg.pinv(linear))
             length = np.linalg.norm(normals, axis=1, keepdims=True)
             normals = normals / np.where(length > 0, length, 1)
         wanted = next((st for *_, st in parts if st is not None), None)
@@ -534,6 +537,21 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         instance = _Instance(instance_id, prim.GetPath(), motion, group)
         self._instances.append(instance)
         self._shapes.append(instance)
+
+    def _invertible(self, prim, motion: str) -> bool:
+        """Whether the prim's transform can be an instance's at every frame: finite and
+        invertible (an animation that scales a prop to nothing to hide it keeps the
+        prop a world-space mesh, whose triangles then collapse; an instance's transform
+        must be invertible)."""
+        times = range(self.frame_count) if motion == "rigid" else range(1)
+        caches = self.__dict__.setdefault("_frame_caches", {})
+        for i in times:
+            if i not in caches:
+                caches[i] = UsdGeom.XformCache(Usd.TimeCode(self._start + i))
+            m = _matrix(caches[i].GetLocalToWorldTransform(prim))
+            if not np.isfinite(m).all() or abs(np.linalg.det(m[:3, :3])) <= 1e-30:
+                return False
+        return True
 
     def _to_world(self, instance: "_Instance", cache) -> np.ndarray:
         """An instance's object-to-world 4x4 (Mitsuba's Y-up metres) in ``cache``'s

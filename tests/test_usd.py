@@ -958,3 +958,30 @@ def test25_an_instanced_stage_renders_as_native_rebuilding_only_the_top_level(tm
         assert update["groups"]["instances"]["instances"] == 3
         if i:
             assert update["groups"]["instances"]["decision"] in ("refit", "rebuild")
+
+
+def test26_a_prop_scaled_to_nothing_stays_a_world_space_mesh(tmp_path):
+    """An animation that hides a prop by scaling it to 0 (and a proxy placed at scale
+    0): an instance's transform must be invertible, so these stay world-space meshes,
+    whose triangles collapse, and every frame renders."""
+    from hlbvh.frame import FrameRenderer
+    from hlbvh.settings import RenderSettings
+    path = write_crowd(tmp_path / "crowd.usda")
+    stage = Usd.Stage.Open(str(path))
+    hide = UsdGeom.Xformable(stage.GetPrimAtPath("/Flyer")).AddScaleOp(opSuffix="hide")
+    for t, scale in ((0, 1.0), (1, 0.0), (2, 1.0)):
+        hide.Set(Gf.Vec3f(scale, scale, scale), t)
+    UsdGeom.Xformable(stage.GetPrimAtPath("/Crowd/Box_7")).AddScaleOp(opSuffix="hide").Set(
+        Gf.Vec3f(0.0, 1.0, 1.0))
+    stage.GetRootLayer().Save()
+    animation = UsdScene(path, warn=lambda line: None)
+    groups = animation.instance_groups()
+    assert "Flyer_Sheet" not in groups and "Crowd_Box_7_Geom" not in groups
+    assert len(groups) == 7 and animation.motions()["Flyer_Sheet"] == "rigid"
+    collapsed = animation.world_triangles(1)["Flyer_Sheet"].reshape(-1, 3)
+    assert np.ptp(collapsed, axis=0).max() < 1e-9  # every corner at the prop's origin
+    renderer = FrameRenderer(animation, RenderSettings(resolution=(16, 12), spp=1,
+                                                       accel="hlbvh"))
+    for i in range(animation.frame_count):
+        image, _ = renderer.render(i)
+        assert np.isfinite(np.array(image)).all()
