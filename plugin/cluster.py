@@ -51,7 +51,7 @@ from distributed.comm.addressing import parse_address, parse_host_port
 
 from hlbvh.errors import UserError
 from hlbvh.frame import FrameRenderer, available_memory
-from hlbvh.options import open_animation
+from hlbvh.options import open_animation, usd_scene_string, usd_stage
 from hlbvh.output import (Statistics, frame_images_complete, output_directory, output_lock,
                           read_row, recorded_settings, remove_stale_files, row_files, row_path,
                           write_frame, write_row)
@@ -104,7 +104,10 @@ class SceneSpec:
         (and ``--camera``, which a :class:`hlbvh.options.SceneArgument` carries) and the
         frame range, files made absolute (a worker's working directory is its own)."""
         camera = getattr(scene, "camera", None)
-        if Path(scene).suffix.lower() in (".xml", ".usd", ".usda", ".usdc", ".usdz"):
+        stage = usd_stage(scene)
+        if stage is not None:
+            scene = usd_scene_string(stage[0].resolve(), stage[1])
+        elif Path(scene).suffix.lower() == ".xml":
             scene = str(Path(scene).resolve())
         if frames_dir is not None:
             frames_dir = str(Path(frames_dir).resolve())

@@ -33,7 +33,8 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
         help=f"a procedural scene ({', '.join(scenes.names())}; its options as "
              "NAME:KEY=VALUE,..., e.g. flock:birds=200 or rigid:instanced=true), a Mitsuba XML "
              "file (with --frames-dir) or an animated USD stage (.usd, .usda, .usdc, "
-             ".usdz; pip install 'hlbvh[usd]')")
+             ".usdz; pip install 'hlbvh[usd]'; STAGE:instancing=false renders every mesh "
+             "in world space, no Mitsuba instances)")
     add("--camera", action=_CameraAction,
         help="of a USD stage: the prim path of the camera to render through (default: "
              "the stage's render settings' camera, else its first camera)")
@@ -215,7 +216,8 @@ def open_animation(scene: str, frames_dir, triangles, frames, topology=None,
     """
     start, stop = parse_frames(frames)
     camera = camera if camera is not None else getattr(scene, "camera", None)
-    if camera is not None and Path(scene).suffix.lower() not in USD_SUFFIXES:
+    stage = usd_stage(scene)
+    if camera is not None and stage is None:
         raise UserError(f"--camera picks a camera of a USD stage; {str(scene)!r} is not one")
     if str(scene).partition(":")[0] in scenes.names():
         if frames_dir is not None:
@@ -238,9 +240,9 @@ def open_animation(scene: str, frames_dir, triangles, frames, topology=None,
         stop = default if stop is None else stop
         animation = scenes.get(name, **options, frames=max(default, stop))
         source = {"scene": str(scene), "triangles": animation.triangles}
-    elif Path(scene).suffix.lower() in USD_SUFFIXES:
+    elif stage is not None:
         held: list[str] = []  # the stage's warnings, said once the frames are valid
-        animation, source = _open_usd(scene, frames_dir, triangles, topology, camera,
+        animation, source = _open_usd(stage, scene, frames_dir, triangles, topology, camera,
                                       held.append)
         stop = animation.frame_count if stop is None else stop
         if stop > animation.frame_count:
@@ -281,11 +283,47 @@ def open_animation(scene: str, frames_dir, triangles, frames, topology=None,
 #: Suffixes of the USD stages :func:`open_animation` opens as :class:`hlbvh.scenes.usd.UsdScene`.
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 
+#: The options a USD stage takes after its path (``shot.usda:instancing=false``), with
+#: their defaults: :class:`hlbvh.scenes.usd.UsdScene`'s arguments.
+USD_OPTIONS = {"instancing": True}
 
-def _open_usd(scene: str, frames_dir, triangles, topology, camera, warn) -> tuple:
-    """``(animation, source)`` of a USD stage: a :class:`hlbvh.scenes.usd.UsdScene`
-    (imported here, ``pxr`` being an optional extra) and what identifies it (with the
-    camera when ``--camera`` names one, so a resume through another is refused)."""
+
+def usd_stage(scene) -> tuple[Path, dict] | None:
+    """``(path, options)`` of a USD stage named by SCENE (``shot.usda`` or
+    ``shot.usda:instancing=false``), None for any other scene.
+
+    Raises:
+        UserError: an option the stage does not take, or a value that is not
+            ``true``/``false``.
+    """
+    match = re.fullmatch(r"(.*?\.(?:usd|usda|usdc|usdz))(?::(.*))?", str(scene), re.IGNORECASE)
+    if not match:
+        return None
+    options = {}
+    for item in filter(None, (part.strip() for part in (match.group(2) or "").split(","))):
+        key, equals, value = (part.strip() for part in item.partition("="))
+        if not equals or key not in USD_OPTIONS:
+            raise UserError(f"scene {str(scene)!r}: {item!r} is not an option of a USD "
+                            f"stage; expected key=value with key one of {sorted(USD_OPTIONS)}")
+        if value.lower() not in ("true", "false"):
+            raise UserError(f"scene {str(scene)!r}: {key}={value!r}: expected true or false")
+        options[key] = value.lower() == "true"
+    return Path(match.group(1)), options
+
+
+def usd_scene_string(path, options: dict) -> str:
+    """SCENE of a stage at ``path`` with ``options`` (the inverse of :func:`usd_stage`)."""
+    extra = ",".join(f"{k}={str(v).lower()}" for k, v in sorted(options.items()))
+    return f"{path}:{extra}" if extra else str(path)
+
+
+def _open_usd(stage: tuple, scene: str, frames_dir, triangles, topology, camera,
+              warn) -> tuple:
+    """``(animation, source)`` of a USD stage (``stage``: :func:`usd_stage`'s path and
+    options): a :class:`hlbvh.scenes.usd.UsdScene` (imported here, ``pxr`` being an
+    optional extra) and what identifies it (with its options, and the camera when
+    ``--camera`` names one, so a resume through others is refused)."""
+    path, options = stage
     for flag, value in (("--frames-dir", frames_dir), ("--triangles", triangles),
                         ("--topology", topology)):
         if value is not None:
@@ -296,10 +334,11 @@ def _open_usd(scene: str, frames_dir, triangles, topology, camera, warn) -> tupl
     except ImportError as error:
         raise UserError(f"scene {scene!r}: {error}") from None
     try:
-        animation = UsdScene(str(scene), camera=camera, warn=warn)
+        animation = UsdScene(str(path), camera=camera, warn=warn, **options)
     except ValueError as error:
         raise UserError(str(error)) from None
-    source = {"scene": str(Path(scene).resolve()), "scene_sha256": animation.source_digest()}
+    source = {"scene": usd_scene_string(path.resolve(), options),
+              "scene_sha256": animation.source_digest()}
     if camera is not None:
         source["camera"] = camera
     return animation, source

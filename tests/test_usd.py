@@ -985,3 +985,29 @@ def test26_a_prop_scaled_to_nothing_stays_a_world_space_mesh(tmp_path):
     for i in range(animation.frame_count):
         image, _ = renderer.render(i)
         assert np.isfinite(np.array(image)).all()
+
+
+def test27_stage_options_on_the_command_line(tmp_path, capsys, monkeypatch):
+    """SCENE ``stage.usda:instancing=false`` renders the world-space model and is on
+    record (a resume with another model is refused, as for another stage); a cluster's
+    spec carries it; an unknown option or value is one line."""
+    path = write_crowd(tmp_path / "crowd.usda")
+    flat = f"{path}:instancing=false"
+    animation, source, _ = open_animation(flat, None, None, "0:1")
+    assert animation.instance_groups() == {} and source["scene"] == f"{path.resolve()}:instancing=false"
+    assert open_animation(str(path), None, None, "0:1")[0].instance_groups()
+    spec = cluster.SceneSpec.of(flat, None, None, range(0, 1))
+    assert spec.scene == source["scene"]
+    status, _, err = run_cli(capsys, "render", flat, "--frames", "0:1", "--out",
+                             tmp_path / "out", *TINY)
+    assert status == 0, err
+    document, _ = read_stats(tmp_path / "out")
+    assert document["settings"]["scene"].endswith(":instancing=false")
+    status, _, err = run_cli(capsys, "render", path, "--frames", "0:1", "--out",
+                             tmp_path / "out", *TINY)
+    assert status == 2 and len(err) == 1, err
+    for bad, said in ((f"{path}:instance=false", "'instance=false' is not an option"),
+                      (f"{path}:instancing=maybe", "expected true or false")):
+        status, _, err = run_cli(capsys, "render", bad, "--frames", "0:1", "--out",
+                                 tmp_path / "bad", *TINY)
+        assert status == 2 and len(err) == 1 and said in err[0], err
