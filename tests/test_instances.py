@@ -97,8 +97,12 @@ def test02_moving_instances_rebuild_only_the_top_level():
     tl, top = two_level(bvhs, mi.UInt32(groups_of), mi.Float(rows.ravel()))
     rows = rows.copy()
     rows[:, 9:] += rng.uniform(-0.5, 0.5, (20, 3)).astype(np.float32)  # every instance moves
-    tl2, top2 = two_level(bvhs, mi.UInt32(groups_of), mi.Float(rows.ravel()), previous=top)
+    tl2, top2 = two_level(bvhs, mi.UInt32(groups_of), mi.Float(rows.ravel()), previous=top,
+                          config=hlbvh.BuildConfig(leaf_size=4))
     assert top2 is not top and top2.prim_count == 20
+    # Every top-level leaf holds one instance, whatever the config's leaf size (a ray
+    # enters an instance only past a test of its own box)
+    assert top2.stats.leaf_count == 20 and top2.stats.leaf_histogram == [20]
     _check(tl2, rows, groups_of, rng)
 
 
