@@ -73,10 +73,18 @@ Materials
     diffuse colour: per point or per face as a Mitsuba mesh attribute
     (``vertex_color``, ``face_color``), its mean for other interpolations (said),
     else grey.
+Point instancers (``UsdGeom.PointInstancer``)
+    Each mesh of each prototype is a shape group (in the prototype root's space) and
+    each point an instance of its prototype's groups, its ``to_world`` the instancer's
+    transform through the point's position, orientation and scale at each time code
+    (the points move with their frames when any of those is time-sampled). Points
+    hidden at the first frame (``invisibleIds``, inactive ids) or scaled to nothing at
+    some frame are left out; an instancer whose number of points changes over time, or
+    that names no prototype, is not rendered (each said once). Needs ``instancing``.
 Not supported
-    Curves, points, volumes, implicit shapes (Sphere, Cube, ...), point instancers,
-    NURBS, UsdSkel skinning that is not baked (the rest points render), references and
-    payloads that do not resolve: one warning line each on stderr, with the prim's path.
+    Curves, points, volumes, implicit shapes (Sphere, Cube, ...), NURBS, UsdSkel
+    skinning that is not baked (the rest points render), references and payloads that do
+    not resolve: one warning line each on stderr, with the prim's path.
 
 A stage that cannot be opened, has nothing renderable or a bad time range is one
 ``ValueError`` naming the file.
@@ -135,9 +143,11 @@ class _Instance:
     """A mesh prim rendered as an instance of a :class:`_Group`."""
 
     id: str
-    path: Sdf.Path
+    path: Sdf.Path  # the mesh prim's, or the point instancer's
     motion: str  # "static" or "rigid"
     group: _Group
+    point: tuple | None = None  # a point instancer's: (its instance index, the mesh's
+    #                             transform into its prototype root's space)
 
 
 def _digest(array) -> str | None:
@@ -384,6 +394,9 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
                 self._add_mesh(prim, time, cache, stats)
             elif prim.IsA(UsdLux.BoundableLightBase) or prim.IsA(UsdLux.NonboundableLightBase):
                 self._add_light(prim, time, cache)
+            elif prim.IsA(UsdGeom.PointInstancer):
+                self._add_point_instancer(prim, time, cache, stats)
+                prims.PruneChildren()  # its prototypes render through it
             elif kind in UNSUPPORTED or (kind and prim.IsA(UsdGeom.Gprim)):
                 self._warn(f"{self._where}: {prim.GetPath()}: a {kind} is not supported; "
                            f"it is not rendered")
@@ -426,7 +439,10 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         self._ids.add(candidate)
         return candidate
 
-    def _add_mesh(self, prim, time, cache, stats: _Stats) -> None:
+    def _add_mesh(self, prim, time, cache, stats: _Stats, group_only: bool = False):
+        """A mesh prim as world-space meshes or an instance of its shape group; with
+        ``group_only`` (a point instancer's prototype) only the group's parts and
+        meshes are made and returned (None: not renderable in a group)."""
         mesh = UsdGeom.Mesh(prim)
         path = prim.GetPath()
         if prim.HasAPI(_skel_binding()):
@@ -444,7 +460,11 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         if len(points) == 0 or len(faces) == 0:
             self._warn(f"{self._where}: {path}: a mesh without points or faces; it is not "
                        f"rendered")
-            return
+            return None
+        if group_only and motion != "static":
+            self._warn(f"{self._where}: {path}: a point instancer's prototype whose points "
+                       f"are time-sampled renders its first frame's points")
+            motion = "static"
         counts = np.array(mesh.GetFaceVertexCountsAttr().Get(time) or [], dtype=np.int64)
         if (counts < 3).any():
             self._warn(f"{self._where}: {path}: {int((counts < 3).sum())} face(s) of fewer "
@@ -467,11 +487,16 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
                                                           source_faces, len(counts))]
         # A prototype's copy, or a large mesh moved by a transform alone: an instance of
         # a shape group (area emitters cannot be inside one: Mitsuba refuses them there)
-        instanced = (self._instancing and motion != "deforming"
-                     and (prim.IsInstanceProxy()
-                          or (motion == "rigid" and len(faces) >= RIGID_INSTANCE_TRIANGLES))
-                     and all(part[3] is None for part in parts)
-                     and self._invertible(prim, motion))
+        emits = any(part[3] is not None for part in parts)
+        if group_only and emits:
+            self._warn(f"{self._where}: {path}: a point instancer's prototype whose material "
+                       f"emits is not rendered (Mitsuba refuses emitters in shape groups)")
+            return None
+        instanced = group_only or (
+            self._instancing and motion != "deforming" and not emits
+            and (prim.IsInstanceProxy()
+                 or (motion == "rigid" and len(faces) >= RIGID_INSTANCE_TRIANGLES))
+            and self._invertible(prim, motion))
         if normals is not None and motion != "static" and not instanced:
             stats.moving_normals.append(str(path))
             normals = None
@@ -511,22 +536,24 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
                 local_points=points if motion == "rigid" or instanced else None,
                 vertex_points=vertex_points,
                 texcoords=None if uv is None else texcoords))
+        if group_only:
+            return self._group(prim, parts, meshes)
         if instanced:
-            self._add_instance(prim, motion, parts, meshes)
-            return
+            instance_id = self._new_id(path)  # first: the id the mesh has without instancing
+            self._add(_Instance(instance_id, path, motion, self._group(prim, parts, meshes)))
+            return None
         for (part, *_), made in zip(parts, meshes):
             made.id = self._new_id(part.GetPath())
             self._meshes.append(made)
             self._shapes.append(made)
 
-    def _add_instance(self, prim, motion: str, parts: list, meshes: list) -> None:
-        """An instance of the shape group of ``meshes`` (the mesh prim's parts in its own
-        space); copies of one prototype mesh with the same materials share one group."""
+    def _group(self, prim, parts: list, meshes: list) -> _Group:
+        """The shape group of ``meshes`` (the mesh prim's parts in its own space): copies
+        of one prototype mesh with the same materials share one."""
         source = prim.GetPrimInPrototype() if prim.IsInstanceProxy() else prim
         key = (str(source.GetPath()),) + tuple(
             (part.GetName(), repr(made.bsdf), _digest(made.colors), _digest(made.texcoords))
             for (part, *_), made in zip(parts, meshes))
-        instance_id = self._new_id(prim.GetPath())  # the id the mesh has without instancing
         group = self._groups.get(key)
         if group is None:
             for (part, *_), made in zip(parts, meshes):
@@ -534,7 +561,9 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
                 made.id = self._new_id(inside.GetPath())
             group = _Group(self._new_id(Sdf.Path(f"{source.GetPath()}_group")), meshes)
             self._groups[key] = group
-        instance = _Instance(instance_id, prim.GetPath(), motion, group)
+        return group
+
+    def _add(self, instance: "_Instance") -> None:
         self._instances.append(instance)
         self._shapes.append(instance)
 
@@ -556,8 +585,97 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
     def _to_world(self, instance: "_Instance", cache) -> np.ndarray:
         """An instance's object-to-world 4x4 (Mitsuba's Y-up metres) in ``cache``'s
         time."""
-        return self._root @ _matrix(cache.GetLocalToWorldTransform(
+        m = self._root @ _matrix(cache.GetLocalToWorldTransform(
             self.stage.GetPrimAtPath(instance.path)))
+        if instance.point is None:
+            return m
+        index, relative = instance.point
+        return m @ self._point_transforms(instance.path, cache.GetTime())[index] @ relative
+
+    def _point_transforms(self, path, time) -> np.ndarray:
+        """``(N, 4, 4)``: each instance of the point instancer at ``path`` from its
+        prototype root's space to the instancer's at ``time`` (every instance, masked
+        or not, so indices stay the authored ones); the last time's kept."""
+        kept = self.__dict__.setdefault("_points_at", {})
+        key = (str(path), time.GetValue())
+        if key not in kept:
+            instancer = UsdGeom.PointInstancer(self.stage.GetPrimAtPath(path))
+            xforms = instancer.ComputeInstanceTransformsAtTime(
+                time, time, UsdGeom.PointInstancer.IncludeProtoXform,
+                UsdGeom.PointInstancer.IgnoreMask)
+            kept.pop(next((k for k in kept if k[0] == key[0]), None), None)
+            kept[key] = np.array(xforms, np.float64).reshape(-1, 4, 4).transpose(0, 2, 1)
+        return kept[key]
+
+    def _add_point_instancer(self, prim, time, cache, stats: _Stats) -> None:
+        """A ``UsdGeom.PointInstancer``: a shape group per mesh of each prototype, and
+        for each point an instance of each of its prototype's groups, its transform the
+        point's (position, orientation, scale) at each frame. Points hidden at the first
+        frame (invisible or inactive ids), or whose transform is singular at some frame,
+        are left out (said); an instancer whose count of points changes over time, or
+        whose points name no prototype, is not rendered (said)."""
+        path = prim.GetPath()
+        if not self._instancing:
+            self._warn(f"{self._where}: {path}: a PointInstancer renders through Mitsuba "
+                       f"instances, which instancing=False turns off; it is not rendered")
+            return
+        instancer = UsdGeom.PointInstancer(prim)
+        indices = np.array(instancer.GetProtoIndicesAttr().Get(time) or [], np.int64)
+        targets = instancer.GetPrototypesRel().GetTargets()
+        if not len(indices):
+            self._warn(f"{self._where}: {path}: a PointInstancer without points at the first "
+                       f"frame; nothing of it renders")
+            return
+        if ((indices < 0) | (indices >= len(targets))).any():
+            self._warn(f"{self._where}: {path}: a PointInstancer whose protoIndices name "
+                       f"no prototype (it has {len(targets)}); it is not rendered")
+            return
+        counts = {len(self._point_transforms(path, Usd.TimeCode(self._start + i)))
+                  for i in range(self.frame_count)}
+        if counts != {len(indices)}:
+            self._warn(f"{self._where}: {path}: a PointInstancer whose number of points "
+                       f"changes over time is not supported; it is not rendered")
+            return
+        members = []  # per prototype: (group, the mesh's transform into the root's space)
+        for target in targets:
+            root = self.stage.GetPrimAtPath(target)
+            found = []
+            if root:
+                into_root = np.linalg.inv(_matrix(cache.GetLocalToWorldTransform(root)))
+                predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
+                for inside in Usd.PrimRange(root, predicate):
+                    if inside.IsA(UsdGeom.Mesh) and self._renders(
+                            inside, UsdGeom.Imageable(inside), time):
+                        group = self._add_mesh(inside, time, cache, stats, group_only=True)
+                        if group is not None:
+                            found.append((group, into_root @ _matrix(
+                                cache.GetLocalToWorldTransform(inside))))
+            members.append(found)
+        shown = np.ones(len(indices), bool)
+        mask = instancer.ComputeMaskAtTime(time)
+        if len(mask):
+            shown &= np.array(mask, bool)
+        for i in range(self.frame_count):
+            m = self._point_transforms(path, Usd.TimeCode(self._start + i))
+            shown &= np.isfinite(m).all(axis=(1, 2)) & (
+                np.abs(np.linalg.det(np.nan_to_num(m[:, :3, :3]))) > 1e-30)
+        left = int((~shown).sum())
+        if left:
+            self._warn(f"{self._where}: {path}: {left} of its {len(indices)} points are not "
+                       f"rendered (hidden at the first frame, or scaled to nothing at some "
+                       f"frame)")
+        attributes = [instancer.GetPositionsAttr(), instancer.GetOrientationsAttr(),
+                      instancer.GetScalesAttr(), instancer.GetProtoIndicesAttr()]
+        if hasattr(instancer, "GetOrientationsfAttr"):  # newer USD: float orientations
+            attributes.append(instancer.GetOrientationsfAttr())
+        moving = _transform_varies(prim) or any(a.GetNumTimeSamples() > 1 for a in attributes)
+        for i in np.flatnonzero(shown):
+            made = members[indices[i]]
+            for j, (group, relative) in enumerate(made):
+                suffix = f"_{i}" if len(made) == 1 else f"_{i}_{j}"
+                self._add(_Instance(self._new_id(Sdf.Path(f"{path}{suffix}")), path,
+                                    "rigid" if moving else "static", group,
+                                    point=(int(i), relative)))
 
     def _geometry(self, mesh: _Mesh, time, cache):
         """``(points (V, 3) float64 world space, faces (F, 3) or None)`` of a mesh at

@@ -42,7 +42,7 @@ GREY = (0.5, 0.5, 0.5)
 
 #: Prim types hlbvh does not render, named in their warning.
 UNSUPPORTED = ("BasisCurves", "NurbsCurves", "HermiteCurves", "Points", "Volume",
-               "OpenVDBAsset", "Field3DAsset", "NurbsPatch", "PointInstancer", "Sphere",
+               "OpenVDBAsset", "Field3DAsset", "NurbsPatch", "Sphere",
                "Cube", "Cylinder", "Cone", "Capsule", "Plane", "TetMesh")
 
 #: Dict keys of the scene description that no shape id may take.

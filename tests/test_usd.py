@@ -1011,3 +1011,122 @@ def test27_stage_options_on_the_command_line(tmp_path, capsys, monkeypatch):
         status, _, err = run_cli(capsys, "render", bad, "--frames", "0:1", "--out",
                                  tmp_path / "bad", *TINY)
         assert status == 2 and len(err) == 1 and said in err[0], err
+
+
+def write_points(path):
+    """A PointInstancer (time codes 0..2) of two prototypes: a box with its own
+    translate, and a pair of quads in an Xform; six points turned, scaled and moving,
+    one invisible, one scaled to nothing at the second frame."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(2)
+    _quad(stage, "/Ground", [(-4, 0, -4), (4, 0, -4), (4, 0, 4), (-4, 0, 4)],
+          indices=(0, 3, 2, 1))
+    base = UsdGeom.Xform.Define(stage, "/Field")
+    base.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.2, -0.5))
+    instancer = UsdGeom.PointInstancer.Define(stage, "/Field/Rocks")
+    box = UsdGeom.Xform.Define(stage, "/Field/Rocks/Protos/Box")
+    box.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.1, 0.0))
+    corners = [(x, y, z) for x in (-0.2, 0.2) for y in (0, 0.3) for z in (-0.1, 0.1)]
+    quads = (0, 1, 3, 2, 4, 6, 7, 5, 0, 4, 5, 1, 2, 3, 7, 6, 0, 2, 6, 4, 1, 5, 7, 3)
+    _quad(stage, "/Field/Rocks/Protos/Box/Geom", corners, counts=(4,) * 6, indices=quads)
+    UsdGeom.Xform.Define(stage, "/Field/Rocks/Protos/Pair")
+    _quad(stage, "/Field/Rocks/Protos/Pair/A", [(0, 0, 0), (0.3, 0, 0), (0.3, 0.3, 0), (0, 0.3, 0)],
+          double_sided=True)
+    side = _quad(stage, "/Field/Rocks/Protos/Pair/B",
+                 [(0, 0, 0), (0, 0, 0.3), (0, 0.3, 0.3), (0, 0.3, 0)], double_sided=True)
+    UsdGeom.Xformable(side).AddTranslateOp().Set(Gf.Vec3d(0.3, 0.0, 0.0))
+    instancer.CreatePrototypesRel().SetTargets(["/Field/Rocks/Protos/Box",
+                                                "/Field/Rocks/Protos/Pair"])
+    instancer.CreateProtoIndicesAttr([0, 1, 0, 1, 0, 1])
+    for t in (0, 1, 2):
+        instancer.CreatePositionsAttr().Set(
+            [Gf.Vec3f(-2.0 + 0.8 * k + 0.1 * t, 0.0, 0.2 * k - 0.05 * t) for k in range(6)], t)
+        instancer.CreateOrientationsAttr().Set(
+            [Gf.Quath(Gf.Rotation(Gf.Vec3d(0, 1, 0), 30.0 * k + 20.0 * t).GetQuat())
+             for k in range(6)], t)
+        instancer.CreateScalesAttr().Set(
+            [Gf.Vec3f(0.0 if (k == 4 and t == 1) else 1.0 + 0.2 * k) for k in range(6)], t)
+    instancer.CreateInvisibleIdsAttr([2])
+    camera = UsdGeom.Camera.Define(stage, "/Cam")
+    camera.AddTranslateOp().Set(Gf.Vec3d(0, 2.0, 6))
+    camera.AddRotateXOp().Set(-15.0)
+    UsdLux.DomeLight.Define(stage, "/Sky").CreateIntensityAttr(0.7)
+    stage.GetRootLayer().Save()
+    return path
+
+
+def _point_triangles(path, time):
+    """Each rendered point's prototype triangles in world space, by (point, mesh path),
+    composed here from the instancer's attributes: parents, position, orientation,
+    scale, the prototype root's own transform, the mesh's inside it."""
+    stage = Usd.Stage.Open(str(path))
+    instancer = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Field/Rocks"))
+    world = np.array(instancer.ComputeLocalToWorldTransform(time)).T
+    targets = instancer.GetPrototypesRel().GetTargets()
+    result = {}
+    for k, (index, p, q, s) in enumerate(zip(
+            instancer.GetProtoIndicesAttr().Get(time), instancer.GetPositionsAttr().Get(time),
+            instancer.GetOrientationsAttr().Get(time), instancer.GetScalesAttr().Get(time))):
+        if index >= len(targets):
+            continue
+        point = np.eye(4)
+        point[:3, :3] = np.array(Gf.Matrix3d(Gf.Rotation(Gf.Quatd(q)))).T * np.array(s)
+        point[:3, 3] = p
+        root = stage.GetPrimAtPath(targets[index])
+        root_world = np.array(UsdGeom.Xformable(root).ComputeLocalToWorldTransform(time)).T
+        local = np.array(UsdGeom.Xformable(root).GetLocalTransformation(time)).T
+        for prim in Usd.PrimRange(root):
+            if prim.IsA(UsdGeom.Mesh):
+                mesh = UsdGeom.Mesh(prim)
+                inside = np.linalg.inv(root_world) @ np.array(
+                    UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time)).T
+                m = world @ point @ local @ inside
+                v = np.array(mesh.GetPointsAttr().Get(time), np.float64) @ m[:3, :3].T + m[:3, 3]
+                faces = np.array(mesh.GetFaceVertexIndicesAttr().Get(time)).reshape(-1, 4)
+                result[(k, str(prim.GetPath()))] = np.concatenate(
+                    [v[faces[:, [0, 1, 2]]], v[faces[:, [0, 2, 3]]]])
+    return result
+
+
+def test28_a_point_instancer_renders_its_points_as_instances(tmp_path):
+    """Each visible point is an instance of its prototype's groups (the pair's two
+    meshes two instances), where the instancer's attributes put it frame by frame; the
+    hidden and vanishing points are left out, said once; the frames move the
+    points' transforms only, and hlbvh's images equal native's."""
+    from hlbvh.frame import FrameRenderer
+    from hlbvh.settings import RenderSettings
+    path = write_points(tmp_path / "points.usda")
+    said, warn = lines()
+    animation = UsdScene(path, warn=warn)
+    groups = animation.instance_groups()
+    assert len(groups) == 7 and len(set(groups.values())) == 3  # points 0, 1, 3, 5 (pairs x2)
+    assert sum("2 of its 6 points are not rendered" in line for line in said) == 1
+    assert set(animation.animated_ids()) == set(groups)
+    assert animation.static_ids() == ["Ground"]  # the prototypes render only as points
+    for i in range(animation.frame_count):
+        expected = _point_triangles(path, Usd.TimeCode(i))
+        ours = animation.world_triangles(i)
+        for k, mesh in ((0, "Box/Geom"), (1, "Pair/A"), (1, "Pair/B"), (5, "Pair/B")):
+            key = (f"Field_Rocks_{k}" if mesh == "Box/Geom"
+                   else f"Field_Rocks_{k}_{0 if mesh.endswith('A') else 1}")
+            got = ours[key]
+            want = expected[(k, f"/Field/Rocks/Protos/{mesh}")]
+            # (orientations are half-precision quaternions, not of unit length: pxr and
+            # this composition normalise them differently, 3e-4 apart at most here)
+            np.testing.assert_allclose(np.sort(got.reshape(-1, 3), axis=0),
+                                       np.sort(want.reshape(-1, 3), axis=0), atol=1e-3,
+                                       err_msg=f"point {k} {mesh} at frame {i}")
+    settings = dict(resolution=(32, 24), spp=4, max_depth=3)
+    renderers = {accel: FrameRenderer(UsdScene(path, warn=lambda line: None),
+                                      RenderSettings(accel=accel, **settings))
+                 for accel in ("hlbvh", "native")}
+    for i in range(animation.frame_count):
+        images_ = {a: np.array(r.render(i)[0]) for a, r in renderers.items()}
+        assert images_["hlbvh"].mean() > 0.01
+        assert_close_to_native(images_["hlbvh"], images_["native"])
+        update = renderers["hlbvh"].integrator.accel(renderers["hlbvh"].scene).last_update
+        assert update["groups"]["dynamic"]["triangles"] == 0
+        assert update["groups"]["instances"]["instances"] == 7
