@@ -272,11 +272,12 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         time = Usd.TimeCode(self.time_code(i))
         cache = UsdGeom.XformCache(time)
         frame = {}
+        moved = self._transforms([m for m in self._instances if m.motion != "static"], cache)
         for mesh in self._shapes:
             if mesh.motion == "static":
                 continue
             if isinstance(mesh, _Instance):
-                frame[mesh.id] = FrameGeometry(to_world=self._to_world(mesh, cache))
+                frame[mesh.id] = FrameGeometry(to_world=moved[mesh.id])
                 continue
             points, faces = self._geometry(mesh, time, cache)
             if faces is None and mesh.vertex_points is None \
@@ -300,8 +301,9 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         for mesh in self._meshes:
             points, faces = self._geometry(mesh, time, cache)
             result[mesh.id] = points[faces if faces is not None else mesh.faces]
+        placed = self._transforms(self._instances, cache)
         for instance in self._instances:
-            m = self._to_world(instance, cache)
+            m = placed[instance.id]
             result[instance.id] = np.concatenate([
                 (_object_points(part) @ m[:3, :3].T + m[:3, 3])[part.faces]
                 for part in instance.group.parts])
@@ -347,12 +349,12 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             description[group.id] = {"type": "shapegroup", **{
                 part.id: _mitsuba_mesh(part, _object_points(part), part.faces)
                 for part in group.parts}}
+        placed = self._transforms(self._instances, cache)
         for shape in self._shapes:
             if isinstance(shape, _Instance):
                 description[shape.id] = {
                     "type": "instance", "shape": {"type": "ref", "id": shape.group.id},
-                    "to_world": mi.ScalarTransform4f(
-                        self._to_world(shape, cache).astype(np.float32))}
+                    "to_world": mi.ScalarTransform4f(placed[shape.id].astype(np.float32))}
                 continue
             points, faces = self._geometry(shape, time, cache)
             description[shape.id] = _mitsuba_mesh(
@@ -582,15 +584,26 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
                 return False
         return True
 
-    def _to_world(self, instance: "_Instance", cache) -> np.ndarray:
-        """An instance's object-to-world 4x4 (Mitsuba's Y-up metres) in ``cache``'s
-        time."""
-        m = self._root @ _matrix(cache.GetLocalToWorldTransform(
-            self.stage.GetPrimAtPath(instance.path)))
-        if instance.point is None:
-            return m
-        index, relative = instance.point
-        return m @ self._point_transforms(instance.path, cache.GetTime())[index] @ relative
+    def _transforms(self, instances: list, cache) -> dict:
+        """Each instance's object-to-world 4x4 (Mitsuba's Y-up metres) in ``cache``'s
+        time, by id; a point instancer's points in one batch."""
+        result, points = {}, {}
+        for instance in instances:
+            if instance.point is None:
+                result[instance.id] = self._placement(instance.path, cache)
+            else:
+                points.setdefault(str(instance.path), []).append(instance)
+        for path, chosen in points.items():
+            index = np.array([m.point[0] for m in chosen])
+            relative = np.stack([m.point[1] for m in chosen])
+            placed = (self._placement(path, cache)
+                      @ self._point_transforms(path, cache.GetTime())[index] @ relative)
+            result.update(zip((m.id for m in chosen), placed))
+        return result
+
+    def _placement(self, path, cache) -> np.ndarray:
+        """The prim at ``path``'s local-to-world 4x4 in Mitsuba's Y-up metres."""
+        return self._root @ _matrix(cache.GetLocalToWorldTransform(self.stage.GetPrimAtPath(path)))
 
     def _point_transforms(self, path, time) -> np.ndarray:
         """``(N, 4, 4)``: each instance of the point instancer at ``path`` from its
