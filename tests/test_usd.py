@@ -834,11 +834,8 @@ def test23_uv_textures_map_the_image_upright_and_split_seams(tmp_path, capsys):
 # ---- Prototypes and rigid motion as Mitsuba instances ----------------------------------
 
 
-def write_crowd(path):
-    """A ground and eight instances of one box prototype (time codes 0..2): one turned
-    and mirrored, one bound to another material on its instance prim (a second group),
-    two moving by their time-sampled transforms; a 2048-triangle sheet moved by its
-    parent's transform; a dome and a sun."""
+def _grounded_stage(path):
+    """A new Y-up stage in metres, time codes 0..2, with an 8 m ground."""
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
@@ -846,11 +843,27 @@ def write_crowd(path):
     stage.SetEndTimeCode(2)
     _quad(stage, "/Ground", [(-4, 0, -4), (4, 0, -4), (4, 0, 4), (-4, 0, 4)],
           indices=(0, 3, 2, 1))
+    return stage
+
+
+def _box(stage, path, half):
+    """A closed box mesh of six quads, ``2 half.x`` by ``half.y`` (from y = 0) by
+    ``2 half.z``."""
+    hx, hy, hz = half
+    corners = [(x, y, z) for x in (-hx, hx) for y in (0, hy) for z in (-hz, hz)]
+    quads = (0, 1, 3, 2, 4, 6, 7, 5, 0, 4, 5, 1, 2, 3, 7, 6, 0, 2, 6, 4, 1, 5, 7, 3)
+    return _quad(stage, path, corners, counts=(4,) * 6, indices=quads)
+
+
+def write_crowd(path):
+    """A ground and eight instances of one box prototype (time codes 0..2): one turned
+    and mirrored, one bound to another material on its instance prim (a second group),
+    two moving by their time-sampled transforms; a 2048-triangle sheet moved by its
+    parent's transform; a dome and a sun."""
+    stage = _grounded_stage(path)
     stage.CreateClassPrim("/Prototypes")
     prototype = stage.DefinePrim("/Prototypes/Box", "Xform")
-    corners = [(x, y, z) for x in (-0.3, 0.3) for y in (0, 0.5) for z in (-0.2, 0.2)]
-    quads = (0, 1, 3, 2, 4, 6, 7, 5, 0, 4, 5, 1, 2, 3, 7, 6, 0, 2, 6, 4, 1, 5, 7, 3)
-    _quad(stage, "/Prototypes/Box/Geom", corners, counts=(4,) * 6, indices=quads)
+    _box(stage, "/Prototypes/Box/Geom", (0.3, 0.5, 0.2))
     red = _preview(stage, "/Looks/Red", diffuseColor=(0.8, 0.1, 0.1))
     for k in range(8):
         instance = UsdGeom.Xform.Define(stage, f"/Crowd/Box_{k}")
@@ -1017,21 +1030,13 @@ def write_points(path):
     """A PointInstancer (time codes 0..2) of two prototypes: a box with its own
     translate, and a pair of quads in an Xform; six points turned, scaled and moving,
     one invisible, one scaled to nothing at the second frame."""
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    stage.SetStartTimeCode(0)
-    stage.SetEndTimeCode(2)
-    _quad(stage, "/Ground", [(-4, 0, -4), (4, 0, -4), (4, 0, 4), (-4, 0, 4)],
-          indices=(0, 3, 2, 1))
+    stage = _grounded_stage(path)
     base = UsdGeom.Xform.Define(stage, "/Field")
     base.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.2, -0.5))
     instancer = UsdGeom.PointInstancer.Define(stage, "/Field/Rocks")
     box = UsdGeom.Xform.Define(stage, "/Field/Rocks/Protos/Box")
     box.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.1, 0.0))
-    corners = [(x, y, z) for x in (-0.2, 0.2) for y in (0, 0.3) for z in (-0.1, 0.1)]
-    quads = (0, 1, 3, 2, 4, 6, 7, 5, 0, 4, 5, 1, 2, 3, 7, 6, 0, 2, 6, 4, 1, 5, 7, 3)
-    _quad(stage, "/Field/Rocks/Protos/Box/Geom", corners, counts=(4,) * 6, indices=quads)
+    _box(stage, "/Field/Rocks/Protos/Box/Geom", (0.2, 0.3, 0.1))
     UsdGeom.Xform.Define(stage, "/Field/Rocks/Protos/Pair")
     _quad(stage, "/Field/Rocks/Protos/Pair/A", [(0, 0, 0), (0.3, 0, 0), (0.3, 0.3, 0), (0, 0.3, 0)],
           double_sided=True)
