@@ -643,9 +643,9 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             self._warn(f"{self._where}: {path}: a PointInstancer whose protoIndices name "
                        f"no prototype (it has {len(targets)}); it is not rendered")
             return
-        counts = {len(self._point_transforms(path, Usd.TimeCode(self._start + i)))
-                  for i in range(self.frame_count)}
-        if counts != {len(indices)}:
+        placed = [self._point_transforms(path, Usd.TimeCode(self._start + i))
+                  for i in range(self.frame_count)]  # every frame's, read once
+        if {len(m) for m in placed} != {len(indices)}:
             self._warn(f"{self._where}: {path}: a PointInstancer whose number of points "
                        f"changes over time is not supported; it is not rendered")
             return
@@ -668,8 +668,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         mask = instancer.ComputeMaskAtTime(time)
         if len(mask):
             shown &= np.array(mask, bool)
-        for i in range(self.frame_count):
-            m = self._point_transforms(path, Usd.TimeCode(self._start + i))
+        for m in placed:
             shown &= np.isfinite(m).all(axis=(1, 2)) & (
                 np.abs(np.linalg.det(np.nan_to_num(m[:, :3, :3]))) > 1e-30)
         left = int((~shown).sum())
