@@ -643,12 +643,18 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             self._warn(f"{self._where}: {path}: a PointInstancer whose protoIndices name "
                        f"no prototype (it has {len(targets)}); it is not rendered")
             return
-        placed = [self._point_transforms(path, Usd.TimeCode(self._start + i))
-                  for i in range(self.frame_count)]  # every frame's, read once
-        if {len(m) for m in placed} != {len(indices)}:
-            self._warn(f"{self._where}: {path}: a PointInstancer whose number of points "
-                       f"changes over time is not supported; it is not rendered")
-            return
+        shown = np.ones(len(indices), bool)
+        mask = instancer.ComputeMaskAtTime(time)
+        if len(mask):
+            shown &= np.array(mask, bool)
+        for i in range(self.frame_count):  # one frame's transforms held at a time
+            m = self._point_transforms(path, Usd.TimeCode(self._start + i))
+            if len(m) != len(indices):
+                self._warn(f"{self._where}: {path}: a PointInstancer whose number of points "
+                           f"changes over time is not supported; it is not rendered")
+                return
+            shown &= np.isfinite(m).all(axis=(1, 2)) & (
+                np.abs(np.linalg.det(np.nan_to_num(m[:, :3, :3]))) > 1e-30)
         members = []  # per prototype: (group, the mesh's transform into the root's space)
         for target in targets:
             root = self.stage.GetPrimAtPath(target)
@@ -664,13 +670,6 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
                             found.append((group, into_root @ _matrix(
                                 cache.GetLocalToWorldTransform(inside))))
             members.append(found)
-        shown = np.ones(len(indices), bool)
-        mask = instancer.ComputeMaskAtTime(time)
-        if len(mask):
-            shown &= np.array(mask, bool)
-        for m in placed:
-            shown &= np.isfinite(m).all(axis=(1, 2)) & (
-                np.abs(np.linalg.det(np.nan_to_num(m[:, :3, :3]))) > 1e-30)
         left = int((~shown).sum())
         if left:
             self._warn(f"{self._where}: {path}: {left} of its {len(indices)} points are not "
