@@ -480,7 +480,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             stats.face_varying.append(str(path))
         if scheme not in (None, UsdGeom.Tokens.none):
             stats.subdivided.append(str(path))
-        transform = self._root @ _matrix(cache.GetLocalToWorldTransform(prim))
+        transform = self._placement(prim, cache)
         double_sided = bool(mesh.GetDoubleSidedAttr().Get())
         parts = [(part, chosen, *self._material(
                     part, mesh, double_sided, time, len(points),
@@ -601,9 +601,12 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             result.update(zip((m.id for m in chosen), placed))
         return result
 
-    def _placement(self, path, cache) -> np.ndarray:
-        """The prim at ``path``'s local-to-world 4x4 in Mitsuba's Y-up metres."""
-        return self._root @ _matrix(cache.GetLocalToWorldTransform(self.stage.GetPrimAtPath(path)))
+    def _placement(self, prim, cache) -> np.ndarray:
+        """The local-to-world 4x4 of ``prim`` (or of the prim at that path) in Mitsuba's
+        Y-up metres."""
+        if not isinstance(prim, Usd.Prim):
+            prim = self.stage.GetPrimAtPath(prim)
+        return self._root @ _matrix(cache.GetLocalToWorldTransform(prim))
 
     def _point_transforms(self, path, time) -> np.ndarray:
         """``(N, 4, 4)``: each instance of the point instancer at ``path`` from its
@@ -696,7 +699,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             local = mesh.local_points
         else:
             local = _array(UsdGeom.Mesh(prim).GetPointsAttr().Get(time), 3)
-        transform = self._root @ _matrix(cache.GetLocalToWorldTransform(prim))
+        transform = self._placement(prim, cache)
         points = local @ transform[:3, :3].T + transform[:3, 3]
         if mesh.vertex_points is not None:
             points = points[mesh.vertex_points]
