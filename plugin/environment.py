@@ -75,8 +75,11 @@ def find_libllvm() -> str | None:
 def ensure_llvm() -> str | None:
     """Export DRJIT_LIBLLVM_PATH before drjit loads; return the path in use.
 
-    Raises LLVMNotFoundError with an install hint when no suitable library exists.
-    Does nothing (returns the user's value) when DRJIT_LIBLLVM_PATH is already set.
+    Returns None when no suitable library exists: a machine with a GPU and no libLLVM
+    runs on Dr.Jit's CUDA backend alone, and :func:`check_backend` (after Dr.Jit is
+    imported) raises LLVMNotFoundError with the install hint only when neither backend
+    works. A DRJIT_LIBLLVM_PATH the user set is always respected, and refused when it
+    names no file.
     """
     user = os.environ.get("DRJIT_LIBLLVM_PATH")
     if user:
@@ -89,7 +92,7 @@ def ensure_llvm() -> str | None:
         return None  # too late to choose; check_backend() tells whether it works
     path = find_libllvm()
     if path is None:
-        raise LLVMNotFoundError(f"hlbvh found no usable libLLVM: {INSTALL_HINT}.")
+        return None  # CUDA may still work: check_backend() decides
     os.environ["DRJIT_LIBLLVM_PATH"] = path
     return path
 
@@ -109,9 +112,14 @@ def check_backend() -> None:
         return
     if dr.has_backend(dr.JitBackend.CUDA):
         return
+    chosen = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if chosen is None:
+        raise LLVMNotFoundError(
+            f"hlbvh found no usable libLLVM and no CUDA device: {INSTALL_HINT}."
+        )
     raise LLVMNotFoundError(
-        "Dr.Jit could not initialise its LLVM backend with "
-        f"{os.environ.get('DRJIT_LIBLLVM_PATH')!r}: {INSTALL_HINT}."
+        f"Dr.Jit could not initialise its LLVM backend with {chosen!r} and found no "
+        f"CUDA device: {INSTALL_HINT}."
     )
 
 

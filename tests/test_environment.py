@@ -31,13 +31,23 @@ def test03_a_missing_user_path_fails_with_an_install_hint():
     assert "libllvm19" in r.stderr and "DRJIT_LIBLLVM_PATH" in r.stderr
 
 
-def test04_no_llvm_on_the_system_fails_with_one_clear_sentence(monkeypatch):
+def test04_no_llvm_on_the_system_leaves_the_choice_to_the_backends(monkeypatch):
+    """No libLLVM >= 16 on the system: import goes on (a CUDA-only machine runs on its
+    GPU), and check_backend() says what to install only when CUDA does not work either."""
     monkeypatch.setattr(environment, "candidates", lambda: [(15, "/usr/lib/libLLVM-15.so")])
     monkeypatch.delenv("DRJIT_LIBLLVM_PATH", raising=False)
     monkeypatch.setitem(sys.modules, "drjit", None)
     del sys.modules["drjit"]
-    with pytest.raises(environment.LLVMNotFoundError, match="apt-get install libllvm19"):
-        environment.ensure_llvm()
+    assert environment.ensure_llvm() is None
+    assert "DRJIT_LIBLLVM_PATH" not in os.environ
+
+
+def test04b_without_llvm_or_cuda_the_check_says_what_to_install(monkeypatch):
+    monkeypatch.delenv("DRJIT_LIBLLVM_PATH", raising=False)
+    _backends(monkeypatch, llvm=False, cuda=False)
+    with pytest.raises(environment.LLVMNotFoundError,
+                       match="no usable libLLVM and no CUDA device.*apt-get install libllvm19"):
+        environment.check_backend()
 
 
 def test05_doctor_reports_versions_and_runs_a_kernel():
