@@ -9,6 +9,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 from hlbvh.scene_geometry import collect_geometry
+from meshes import empty_mesh_loads
 
 T = mi.ScalarTransform4f
 
@@ -148,6 +149,7 @@ def test06_scene_without_geometry_misses_everywhere():
     assert not dr.any(accel.ray_intersect(ray).is_valid())
 
 
+@pytest.mark.skipif(not empty_mesh_loads(), reason="Mitsuba's OptiX build aborts on a mesh without faces")
 def test07_meshes_without_triangles_name_the_shape():
     """Mitsuba's obj/ply loaders refuse a mesh without faces; one built in Python would
     silently vanish from the image, so the accelerator names it instead."""
