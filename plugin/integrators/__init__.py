@@ -6,7 +6,7 @@ import importlib
 import sys
 
 #: Modules of this package, ``common`` first: the others derive from its classes.
-_MODULES = ("common", "path", "aov")
+_MODULES = ("common", "path", "direct", "aov")
 
 
 def register():
