@@ -203,7 +203,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         else:
             self.frame_count = 1
         self.frames_per_second = float(self.stage.GetTimeCodesPerSecond())
-        self._root = _root_transform(self.stage)
+        self._root = _root_transform(self.stage, self._where)
         self._ids: set[str] = set(_RESERVED)
         self._instancing = bool(instancing)
         self._meshes: list[_Mesh] = []  # in world space
@@ -319,7 +319,8 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
                  if layer.realPath]
         files += [Path(name) for light in self._lights.values() for name in _filenames(light)]
         files += [Path(name) for mesh in self._meshes + self._group_parts()
-                  for name in _filenames(mesh.bsdf)]
+                  for name in _filenames({"bsdf": mesh.bsdf, "emission": mesh.emission}
+                                         if isinstance(mesh.emission, dict) else mesh.bsdf)]
         digest = hashlib.sha256()
         for path in sorted(set(files)):
             digest.update(str(path).encode() + b"\0")
@@ -522,8 +523,8 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         meshes = []
         for part, chosen, bsdf, emission, colors, st in parts:
             if st is not None and uv is None:
-                bsdf = self._material(part, mesh, double_sided, time, len(points), None,
-                                      textures=False)[0]
+                bsdf, emission = self._material(part, mesh, double_sided, time, len(points),
+                                                None, textures=False)[:2]
             if vertex_points is not None:
                 if colors is not None and colors[0] == "vertex_color":
                     colors = (colors[0], colors[1][vertex_points])

@@ -10,14 +10,15 @@ import numpy as np
 
 from .animated import checked_resolution
 from .usd_prims import (DEFAULT_WIDTH, Gf, Sdf, Usd, UsdGeom, UsdRender,
-                        _USD_TO_MITSUBA_CAMERA, _matrix, _transform_varies)
+                        _USD_TO_MITSUBA_CAMERA, _checked, _matrix, _transform_varies)
 
 
 class _Camera:
     """The camera of a USD stage, as methods of :class:`UsdScene`."""
 
     def _pick_camera(self, wanted: str | None):
-        """The camera prim to render through, or ``None`` for the framing default."""
+        """The camera prim to render through (checked by :meth:`_checked_camera`), or
+        ``None`` for the framing default."""
         if wanted is not None:
             prim = self.stage.GetPrimAtPath(wanted) if Sdf.Path.IsValidPathString(wanted) \
                 else None
@@ -25,18 +26,42 @@ class _Camera:
                 found = [str(p.GetPath()) for p in self._cameras()]
                 raise ValueError(f"{self._where}: camera {wanted!r} is not a UsdGeom.Camera "
                                  f"of the stage (its cameras: {found or 'none'})")
-            return prim
+            return self._checked_camera(prim)
         settings = UsdRender.Settings.GetStageRenderSettings(self.stage)
         if settings:
             targets = settings.GetCameraRel().GetForwardedTargets()
             if targets and self.stage.GetPrimAtPath(targets[0]).IsA(UsdGeom.Camera):
-                return self.stage.GetPrimAtPath(targets[0])
+                return self._checked_camera(self.stage.GetPrimAtPath(targets[0]))
         cameras = self._cameras()
         if cameras:
-            return cameras[0]
+            return self._checked_camera(cameras[0])
         self._warn(f"{self._where}: no UsdGeom.Camera; a default camera frames the first "
                    f"frame's meshes")
         return None
+
+    def _checked_camera(self, prim):
+        """``prim`` when its first frame's camera makes a Mitsuba sensor: focal length
+        and apertures finite and above 0, a clipping range of finite ``0 <= near <
+        far``, a finite transform that does not scale it to nothing; else a ValueError
+        naming the camera and the attribute (Mitsuba would divide by zero, render a
+        blank image or refuse the sensor)."""
+        where = f"{self._where}: camera {prim.GetPath()}"
+        camera = UsdGeom.Camera(prim)
+        time = Usd.TimeCode(self._start)
+        for name, attribute in (("focalLength", camera.GetFocalLengthAttr()),
+                                ("horizontalAperture", camera.GetHorizontalApertureAttr()),
+                                ("verticalAperture", camera.GetVerticalApertureAttr())):
+            _checked(f"{where}: {name}", float(attribute.Get(time)), least=0, strictly=True)
+        near, far = _checked(f"{where}: clippingRange",
+                             tuple(camera.GetClippingRangeAttr().Get(time)), least=0)
+        if not near < far:
+            raise ValueError(f"{where}: clippingRange is ({near:g}, {far:g}): expected "
+                             f"near < far")
+        to_world = self._root @ _matrix(camera.GetCamera(time).transform)
+        if not np.isfinite(to_world).all() or abs(np.linalg.det(to_world[:3, :3])) <= 1e-30:
+            raise ValueError(f"{where}: its transform (xformOps, its own or an "
+                             f"ancestor's) is not finite or scales it to nothing")
+        return prim
 
     def _cameras(self) -> list:
         predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
@@ -49,6 +74,10 @@ class _Camera:
         settings = UsdRender.Settings.GetStageRenderSettings(self.stage)
         if settings and settings.GetResolutionAttr().HasAuthoredValue():
             width, height = settings.GetResolutionAttr().Get()
+            if width < 1 or height < 1:
+                raise ValueError(f"{self._where}: render settings {settings.GetPath()}: "
+                                 f"resolution is ({width}, {height}): expected positive "
+                                 f"integers")
             return int(width), int(height)
         if self._camera is None:
             return DEFAULT_WIDTH, DEFAULT_WIDTH * 9 // 16

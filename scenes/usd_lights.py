@@ -8,26 +8,65 @@ import math
 import mitsuba as mi
 import numpy as np
 
-from .usd_prims import UsdLux, _FLIP_Z, _dome_pole, _matrix, _transform_varies
+from .usd_prims import (UsdLux, _FLIP_Z, _checked, _dome_pole, _matrix, _transform_varies,
+                        _unreadable_image)
+
+#: The largest radiance Mitsuba's single-precision emitters hold.
+_LARGEST = float(np.finfo(np.float32).max)
+
+
+def distant_size_factor(angle: float) -> float:
+    """UsdLux's ``sizeFactor`` of a DistantLight of angular diameter ``angle``
+    (degrees): the irradiance its disc of unit radiance gives a surface facing it,
+    ``pi sin^2(theta)`` for the half-angle ``theta`` up to 90 degrees,
+    ``pi (2 - sin^2(theta))`` past it (clipped to 180), 1 for a parallel light
+    (``angle`` 0). ``normalize`` divides the radiance by it, so that ``intensity``
+    is then that irradiance."""
+    theta = min(max(math.radians(angle) / 2, 0.0), math.pi)
+    if theta == 0:
+        return 1.0
+    sine = math.sin(theta) ** 2
+    return math.pi * (sine if theta <= math.pi / 2 else 2 - sine)
 
 
 class _Lights:
     """The lights of a USD stage, as a method of :class:`UsdScene`."""
 
     def _add_light(self, prim, time, cache) -> None:
-        """A UsdLux light as a Mitsuba emitter (or an emitting shape)."""
+        """A UsdLux light as a Mitsuba emitter (or an emitting shape), in UsdLux's
+        units: the radiance ``intensity * 2^exposure * color`` (divided by the light's
+        size with ``normalize``); a DistantLight's irradiance is that radiance over its
+        disc (:func:`distant_size_factor`).
+
+        Raises:
+            ValueError: naming the light and the attribute: an intensity, exposure,
+                colour or size that is not finite or is negative, or a radiance past
+                single precision.
+        """
         path = prim.GetPath()
+        where = f"{self._where}: {path}"
         kind = prim.GetTypeName()
         light = UsdLux.LightAPI(prim)
         if any(a.GetNumTimeSamples() > 1 for a in prim.GetAttributes()) or \
                 _transform_varies(prim):
             self._warn(f"{self._where}: {path}: a time-sampled light; every frame uses its "
                        f"first frame's")
-        intensity = float(light.GetIntensityAttr().Get(time) or 0.0)
-        exposure = float(light.GetExposureAttr().Get(time) or 0.0)
+        intensity = _checked(f"{where}: inputs:intensity",
+                             float(light.GetIntensityAttr().Get(time) or 0.0), least=0)
+        exposure = _checked(f"{where}: inputs:exposure",
+                            float(light.GetExposureAttr().Get(time) or 0.0))
         color = light.GetColorAttr().Get(time)
-        color = np.array([1.0, 1.0, 1.0] if color is None else list(color), dtype=np.float64)
-        radiance = intensity * 2.0 ** exposure * color
+        color = _checked(f"{where}: inputs:color", np.array(
+            [1.0, 1.0, 1.0] if color is None else list(color), dtype=np.float64), least=0)
+        try:
+            power = intensity * 2.0 ** exposure
+        except OverflowError:
+            power = math.inf
+        if not power * float(color.max()) <= _LARGEST:
+            raise ValueError(f"{where}: inputs:intensity {intensity:g} * 2^inputs:exposure "
+                             f"{exposure:g} * inputs:color is past single precision "
+                             f"({_LARGEST:.3g})")
+        radiance = power * color
         normalize = bool(light.GetNormalizeAttr().Get(time))
         if light.GetEnableColorTemperatureAttr().Get(time):
             self._warn(f"{self._where}: {path}: its colour temperature is not applied "
@@ -45,15 +84,22 @@ class _Lights:
             return {"type": "rgb", "value": [float(v) for v in value]}
 
         if kind == "DistantLight":
+            # Mitsuba's directional light is parallel: the disc's irradiance, without
+            # its soft shadows.
+            angle = _checked(f"{where}: inputs:angle",
+                             float(UsdLux.DistantLight(prim).GetAngleAttr().Get(time)), least=0)
+            irradiance = radiance if normalize else radiance * distant_size_factor(angle)
             direction = rotation @ np.array([0.0, 0.0, -1.0])
             self._lights[key] = {"type": "directional", "direction": direction.tolist(),
-                                 "irradiance": rgb(radiance)}
+                                 "irradiance": rgb(irradiance)}
         elif kind in ("DomeLight", "DomeLight_1"):
             dome = UsdLux.DomeLight(prim) if kind == "DomeLight" else UsdLux.DomeLight_1(prim)
             texture = dome.GetTextureFileAttr().Get(time)
             layout = dome.GetTextureFormatAttr().Get(time)
-            if texture is not None and texture.resolvedPath and layout in (
-                    None, UsdLux.Tokens.automatic, UsdLux.Tokens.latlong):
+            latlong = layout in (None, UsdLux.Tokens.automatic, UsdLux.Tokens.latlong)
+            resolved = texture.resolvedPath if texture is not None else ""
+            problem = _unreadable_image(resolved) if latlong and resolved else None
+            if resolved and latlong and problem is None:
                 if not np.allclose(color, 1.0):
                     self._warn(f"{self._where}: {path}: a textured dome's colour is "
                                f"ignored (Mitsuba's envmap takes a scale only)")
@@ -63,22 +109,29 @@ class _Lights:
                 to_world = np.eye(4)
                 to_world[:3, :3] = rotation @ _dome_pole(dome, kind, self.stage)
                 self._lights[key] = {"type": "envmap", "filename": texture.resolvedPath,
-                                     "scale": intensity * 2.0 ** exposure,
+                                     "scale": power,
                                      "to_world": mi.ScalarTransform4f(to_world.tolist())}
             else:
                 if texture is not None and texture.path:
-                    why = (f"is in the {layout} layout, not latlong" if texture.resolvedPath
-                           else "does not resolve")
+                    why = (problem or f"is in the {layout} layout, not latlong"
+                           if resolved else "does not resolve")
                     self._warn(f"{self._where}: {path}: texture {texture.path!r} {why}; "
                                f"the dome is a constant colour")
                 self._lights[key] = {"type": "constant", "radiance": rgb(radiance)}
         elif kind == "SphereLight":
             sphere = UsdLux.SphereLight(prim)
-            radius = float(sphere.GetRadiusAttr().Get(time) or 0.0) * float(scale.mean())
+            radius = _checked(f"{where}: inputs:radius",
+                              float(sphere.GetRadiusAttr().Get(time) or 0.0), least=0) \
+                * float(scale.mean())
             centre = transform[:3, 3].tolist()
             if bool(sphere.GetTreatAsPointAttr().Get(time)) or radius <= 0:
-                power_radius = max(radius, 0.0)
-                factor = 1.0 if normalize or power_radius == 0 else math.pi * power_radius ** 2
+                # A point of the sphere's power: a sphere of radiance L seen from afar is a
+                # disc of area pi r^2, an intensity of L pi r^2 in every direction (L / 4
+                # with normalize, whatever the radius).
+                factor = 0.25 if normalize else math.pi * radius ** 2
+                if factor == 0:
+                    self._warn(f"{where}: a SphereLight of radius 0 without inputs:normalize "
+                               f"emits nothing (UsdLux: radiance times its area)")
                 self._lights[key] = {"type": "point", "position": centre,
                                      "intensity": rgb(radiance * factor)}
             else:
@@ -90,13 +143,17 @@ class _Lights:
         elif kind in ("RectLight", "DiskLight"):
             if kind == "RectLight":
                 rect = UsdLux.RectLight(prim)
-                half = np.array([float(rect.GetWidthAttr().Get(time)) / 2,
-                                 float(rect.GetHeightAttr().Get(time)) / 2, 1.0])
+                half = np.array([_checked(f"{where}: inputs:width",
+                                          float(rect.GetWidthAttr().Get(time)), 0, True) / 2,
+                                 _checked(f"{where}: inputs:height",
+                                          float(rect.GetHeightAttr().Get(time)), 0, True) / 2,
+                                 1.0])
                 area = 4 * half[0] * half[1] * scale[0] * scale[1]
                 if rect.GetTextureFileAttr().Get(time):
                     self._warn(f"{self._where}: {path}: a rect light's texture is not read")
             else:
-                r = float(UsdLux.DiskLight(prim).GetRadiusAttr().Get(time))
+                r = _checked(f"{where}: inputs:radius",
+                             float(UsdLux.DiskLight(prim).GetRadiusAttr().Get(time)), 0, True)
                 half = np.array([r, r, 1.0])
                 area = math.pi * r * r * scale[0] * scale[1]
             if normalize and area > 0:

@@ -7,8 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .usd_prims import (GREY, PREVIEW_DEFAULTS, UsdGeom, UsdShade, _array, _two_sided,
-                        _uv_texture)
+from .usd_prims import (GREY, PREVIEW_DEFAULTS, UsdGeom, UsdShade, _array, _checked,
+                        _connected_shader, _two_sided, _uv_texture)
+
+#: UsdPreviewSurface inputs whose ``UsdUVTexture`` becomes a Mitsuba ``bitmap``.
+TEXTURED_INPUTS = ("diffuseColor", "emissiveColor")
 
 
 class _Materials:
@@ -84,11 +87,22 @@ class _Materials:
 
     def _material(self, prim, mesh, double_sided: bool, time, point_count: int,
                   source_faces, textures: bool = True) -> tuple:
-        """``(bsdf, emission, colors, st)``: the mesh's BSDF dict, emitted radiance
-        (``None``: none), the colour attribute its BSDF reads (``None``: none; see
-        :meth:`_display_color`) and the primvar of texture coordinates a bitmap of it
-        reads (``None``: none; ``textures=False``: the textured inputs' authored values
-        instead)."""
+        """``(bsdf, emission, colors, st)``: the mesh's BSDF dict, its emission
+        (``None``: none; an RGB radiance, or a bitmap's dict for a textured
+        emissiveColor), the colour attribute its BSDF reads (``None``: none; see
+        :meth:`_display_color`) and the primvar of texture coordinates its bitmaps
+        read (``None``: none; ``textures=False``: no bitmaps, see
+        :meth:`_unread_input`).
+
+        Inputs connected to a shader: diffuseColor and emissiveColor to a
+        ``UsdUVTexture`` read its file; diffuseColor to a ``UsdPrimvarReader_float3``
+        reads that primvar per point or face; others keep their authored value (said,
+        naming each).
+
+        Raises:
+            ValueError: an input that is not finite, or a negative colour, naming the
+                shader and the input.
+        """
         material, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
         shader = None
         if material:
@@ -100,32 +114,63 @@ class _Materials:
                            f"{prim.GetPath()} renders grey")
                 shader = None
         if shader is None:
-            color = self._display_color(prim, mesh, time, point_count, source_faces)
-            if isinstance(color, tuple) and isinstance(color[0], str):
-                reflectance = {"type": "mesh_attribute", "name": color[0]}
-                colors = color
-            else:
-                reflectance, colors = {"type": "rgb", "value": list(color)}, None
+            color = self._display_color(prim, mesh, time, point_count, source_faces) or GREY
+            reflectance, colors = self._reflectance(color)
             bsdf = {"type": "diffuse", "reflectance": reflectance}
             return (_two_sided(bsdf) if double_sided else bsdf), None, colors, None
-        values, textured = {}, []
+        values, connected = {}, []
         for name, default in PREVIEW_DEFAULTS.items():
             shader_input = shader.GetInput(name)
             value = shader_input.Get(time) if shader_input else None
             if shader_input and shader_input.HasConnectedSource():
-                textured.append(name)
-            values[name] = default if value is None else (
-                tuple(float(v) for v in value) if isinstance(default, tuple) else float(value))
-        base_color = {"type": "rgb", "value": list(values["diffuseColor"])}
-        st = None
-        if textures and "diffuseColor" in textured:
-            bitmap = _uv_texture(shader.GetInput("diffuseColor"), time)
-            if bitmap is not None:
-                base_color, st = bitmap
-                textured.remove("diffuseColor")
-        if textured:
-            self._warn_once(f"{self._where}: {material.GetPath()}: textured inputs "
-                            f"({', '.join(textured)}) are not read; their authored values "
+                connected.append(name)
+            values[name] = _checked(
+                f"{self._where}: {shader.GetPath()}: inputs:{name}",
+                default if value is None else tuple(float(v) for v in value)
+                if isinstance(default, tuple) else float(value),
+                least=0 if isinstance(default, tuple) else None)
+        base_color, colors, st = {"type": "rgb", "value": list(values["diffuseColor"])}, None, None
+        emission = values["emissiveColor"] if any(c > 0 for c in values["emissiveColor"]) \
+            else None
+        dropped = []
+        for name in connected:
+            source = _connected_shader(shader.GetInput(name))
+            kind = str(source.GetIdAttr().Get()) if source else ""
+            if name in TEXTURED_INPUTS and kind == "UsdUVTexture":
+                bitmap, wanted, why = _uv_texture(source, time) if textures else \
+                    (None, None, "is not mapped")
+                if bitmap is None:
+                    value = self._unread_input(material, name, values[name], source, why, time)
+                elif st not in (None, wanted):
+                    value = self._unread_input(material, name, values[name], source,
+                                               f"is read over {wanted!r}, not {st!r}", time)
+                else:
+                    value, st = bitmap, wanted
+                if name == "diffuseColor":
+                    base_color = value if isinstance(value, dict) else \
+                        {"type": "rgb", "value": list(value)}
+                else:
+                    emission = value if isinstance(value, dict) or any(
+                        c > 0 for c in value) else None
+            elif name == "diffuseColor" and kind.startswith("UsdPrimvarReader_float"):
+                varname = source.GetInput("varname")
+                varname = str(varname.Get(time) or "") if varname else ""
+                color = self._display_color(prim, mesh, time, point_count, source_faces,
+                                            varname) if varname else None
+                if color is None:
+                    fallback = source.GetInput("fallback")
+                    color = (tuple(float(v) for v in fallback.Get(time))[:3]
+                             if fallback and fallback.Get(time) is not None
+                             else values[name])
+                    self._warn_once(f"{self._where}: {prim.GetPath()}: has no primvar "
+                                    f"{varname!r} that {source.GetPath()} reads; "
+                                    f"diffuseColor is {tuple(round(c, 4) for c in color)}")
+                base_color, colors = self._reflectance(color)
+            else:
+                dropped.append(f"{name} ({kind or 'a connection'})")
+        if dropped:
+            self._warn_once(f"{self._where}: {material.GetPath()}: connected inputs "
+                            f"{', '.join(dropped)} are not read; their authored values "
                             f"are used")
         bsdf = {"type": "principled",
                 "base_color": base_color,
@@ -138,21 +183,50 @@ class _Materials:
             opacity = 1.0 if opacity >= values["opacityThreshold"] else 0.0
         if opacity < 1:
             bsdf = {"type": "mask", "opacity": opacity, "bsdf": bsdf}
-        emission = values["emissiveColor"]
-        return bsdf, (emission if any(c > 0 for c in emission) else None), None, st
+        return bsdf, emission, colors, st
 
-    def _display_color(self, prim, mesh, time, point_count: int, source_faces):
-        """The ``displayColor`` primvar: one colour ``(r, g, b)`` when it is constant
-        (grey without one); per point (``vertex``/``varying``) or per face
+    def _unread_input(self, material, name: str, authored: tuple, texture, why: str,
+                      time) -> tuple:
+        """The value of input ``name`` whose ``UsdUVTexture`` is not read (``why``
+        says why; said once per material and input): the texture's ``fallback`` where
+        authored; else black for emissiveColor (UsdUVTexture's own fallback: an
+        unread texture does not make a mesh glow) and the input's authored value for
+        the others."""
+        fallback = texture.GetInput("fallback")
+        if fallback and fallback.HasAuthoredValue():
+            value = tuple(float(v) for v in fallback.Get(time))[:3]
+        elif name == "emissiveColor":
+            value = (0.0, 0.0, 0.0)
+        else:
+            value = authored
+        if why != "is not mapped":
+            self._warn_once(f"{self._where}: {material.GetPath()}: inputs:{name}'s texture "
+                            f"{texture.GetPath()} {why}; {name} is "
+                            f"{tuple(round(c, 4) for c in value)}")
+        return value
+
+    @staticmethod
+    def _reflectance(color) -> tuple:
+        """``(texture dict, colors)`` of :meth:`_display_color`'s colour: an ``rgb``,
+        or a ``mesh_attribute`` with the attribute the mesh then holds."""
+        if isinstance(color, tuple) and isinstance(color[0], str):
+            return {"type": "mesh_attribute", "name": color[0]}, color
+        return {"type": "rgb", "value": list(color)}, None
+
+    def _display_color(self, prim, mesh, time, point_count: int, source_faces,
+                       name: str = "displayColor"):
+        """The colour primvar ``name``: one colour ``(r, g, b)`` when it is constant
+        (``None`` without one, or when it does not hold colours); per point (``vertex``/``varying``) or per face
         (``uniform``) as a Mitsuba mesh attribute ``("vertex_color", (V, 3))`` or
         ``("face_color", (F, 3))`` (per triangle); other interpolations, or a mesh whose
         topology is time-sampled (``source_faces`` ``None``), get the mean colour
         (said)."""
-        primvar = mesh.GetDisplayColorPrimvar()
+        primvar = UsdGeom.PrimvarsAPI(mesh).GetPrimvar(name)
         value = primvar.ComputeFlattened(time) if primvar and primvar.HasValue() else None
-        if value is None or len(value) == 0:
-            return GREY
-        colors = _array(value, 3)
+        if value is None or len(value) == 0 or np.ndim(value[0]) != 1 or len(value[0]) != 3:
+            return None  # none, or not of colours
+        colors = _checked(f"{self._where}: {prim.GetPath()}: primvars:{name}",
+                          _array(value, 3), least=0)
         if len(colors) == 1 or np.all(colors == colors[0]):
             return tuple(float(c) for c in colors[0])
         interpolation = primvar.GetInterpolation()
@@ -162,6 +236,6 @@ class _Materials:
         if interpolation == UsdGeom.Tokens.uniform and source_faces is not None \
                 and len(source_faces) and len(colors) > int(source_faces.max()):
             return ("face_color", colors[source_faces])
-        self._warn(f"{self._where}: {prim.GetPath()}: displayColor of interpolation "
+        self._warn(f"{self._where}: {prim.GetPath()}: {name} of interpolation "
                    f"{interpolation!r} varies over the mesh; its mean colour is used")
         return tuple(float(c) for c in colors.mean(axis=0))

@@ -5,6 +5,7 @@ normals, textures)."""
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import sys
@@ -68,7 +69,7 @@ class _Mesh:
     topology_varies: bool             # faces given every frame
     smooth: bool                      # vertex normals
     bsdf: dict
-    emission: tuple | None
+    emission: tuple | dict | None    # an RGB radiance, or a bitmap texture's dict
     local_points: np.ndarray | None = None     # (V, 3) float64, rigid meshes
     normals: np.ndarray | None = None           # (V, 3) authored world-space normals
     colors: tuple | None = None                 # ("vertex_color" | "face_color", (N, 3))
@@ -120,10 +121,38 @@ def _unresolved_arcs(stage) -> list[tuple[str, str]]:
         found.setdefault(path, text.split(" for ")[0][:200])
     return list(found.items())
 
-def _root_transform(stage) -> np.ndarray:
-    """The stage's units and up axis to Mitsuba's Y-up metres, a 4x4 matrix."""
+def _checked(what: str, value, least: float | None = None, strictly: bool = False):
+    """``value`` (a number, a vector or an array of them) when every component is
+    finite and, with ``least``, at least ``least`` (above it with ``strictly``); else
+    a ValueError naming ``what`` (the stage, the prim and the attribute) and the first
+    value that fails, so that a NaN, an infinity or a negative size never reaches
+    Mitsuba (where it becomes NaN pixels, a blank image or a RuntimeError)."""
+    values = np.asarray(value, dtype=np.float64).reshape(-1)
+    bad = ~np.isfinite(values)
+    if least is not None:
+        bad |= (values <= least) if strictly else (values < least)
+    if bad.any():
+        expected = "finite" if least is None else \
+            f"finite and {'>' if strictly else '>='} {least:g}"
+        if values.size == 1:
+            shown = f"is {values[0]:g}"
+        elif values.size <= 4:
+            shown = "is (" + ", ".join(f"{v:g}" for v in values) + ")"
+        else:
+            first = int(np.flatnonzero(bad)[0])
+            shown = f"holds {values[first]:g} (value {first} of {values.size})"
+        raise ValueError(f"{what} {shown}: expected {expected} values")
+    return value
+
+def _root_transform(stage, where: str) -> np.ndarray:
+    """The stage's units and up axis to Mitsuba's Y-up metres, a 4x4 matrix.
+
+    Raises:
+        ValueError: ``metersPerUnit`` is not a finite number above 0.
+    """
     root = np.eye(4)
-    root[:3, :3] *= float(UsdGeom.GetStageMetersPerUnit(stage))
+    root[:3, :3] *= _checked(f"{where}: metersPerUnit",
+                             float(UsdGeom.GetStageMetersPerUnit(stage)), least=0, strictly=True)
     if UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z:
         root[:3, :3] = _Z_UP_TO_Y_UP @ root[:3, :3]
     return root
@@ -154,11 +183,15 @@ def _triangulate(mesh, time, point_count: int, path, where: str, with_faces: boo
     (``(F, 3)``, positions in ``faceVertexIndices``, where faceVarying values sit).
 
     Raises:
-        ValueError: indices that do not add up to the face counts, or that point past
-            the last point.
+        ValueError: a negative face count, indices that do not add up to the face
+            counts, or that point past the last point.
     """
     counts = np.array(mesh.GetFaceVertexCountsAttr().Get(time) or [], dtype=np.int64)
     indices = np.array(mesh.GetFaceVertexIndicesAttr().Get(time) or [], dtype=np.int64)
+    if (counts < 0).any():
+        first = int(np.flatnonzero(counts < 0)[0])
+        raise ValueError(f"{where}: mesh {path}: faceVertexCounts holds {counts[first]} "
+                         f"(face {first}): a face has 0 or more vertices")
     if counts.sum() != len(indices):
         raise ValueError(f"{where}: mesh {path}: faceVertexCounts add up to {counts.sum()} "
                          f"but faceVertexIndices holds {len(indices)}")
@@ -233,17 +266,23 @@ def _dome_pole(dome, kind: str, stage) -> np.ndarray:
 _WRAPS = {"repeat": "repeat", "mirror": "mirror", "clamp": "clamp", "black": "clamp",
           "useMetadata": "repeat"}
 
-def _uv_texture(shader_input, time):
-    """``(bitmap texture dict, st primvar name)`` of a UsdPreviewSurface input
-    connected to a ``UsdUVTexture`` whose file resolves (its ``st`` read by a
-    ``UsdPrimvarReader_float2``, ``st`` by default), else ``None``."""
-    texture = _connected_shader(shader_input)
-    if texture is None or texture.GetIdAttr().Get() != "UsdUVTexture":
-        return None
+def _uv_texture(texture, time) -> tuple:
+    """``(bitmap texture dict or None, st primvar name, why not)`` of a
+    ``UsdUVTexture`` shader: its file as a Mitsuba ``bitmap`` over the primvar its
+    ``st`` is read from (a ``UsdPrimvarReader_float2``'s, ``st`` by default); no bitmap
+    when the file is not given, does not resolve, or is not an image Mitsuba reads
+    (``why not`` says which)."""
     file_input = texture.GetInput("file")
     asset = file_input.Get(time) if file_input else None
-    if asset is None or not asset.resolvedPath or "[" in asset.resolvedPath:
-        return None  # missing, or inside a .usdz package Mitsuba cannot read from
+    if asset is None or not asset.path:
+        return None, None, "has no file"
+    if not asset.resolvedPath:
+        return None, None, f"{asset.path!r} does not resolve"
+    if "[" in asset.resolvedPath:
+        return None, None, f"{asset.path!r} is inside a .usdz package"
+    problem = _unreadable_image(asset.resolvedPath)
+    if problem is not None:
+        return None, None, f"{asset.path!r} {problem}"
     name = "st"
     reader = _connected_shader(texture.GetInput("st"))
     if reader is not None and reader.GetInput("varname"):
@@ -251,7 +290,32 @@ def _uv_texture(shader_input, time):
     wrap = texture.GetInput("wrapS")
     wrap = str(wrap.Get(time)) if wrap and wrap.Get(time) else "useMetadata"
     return {"type": "bitmap", "filename": asset.resolvedPath,
-            "wrap_mode": _WRAPS.get(wrap, "repeat")}, name
+            "wrap_mode": _WRAPS.get(wrap, "repeat")}, name, None
+
+@functools.lru_cache(maxsize=256)
+def _image_problem(path: str, stamp: tuple) -> str | None:
+    """Why Mitsuba cannot read the image at ``path`` (``stamp``: its size and
+    modification time, so a changed file is read again), or ``None`` when it can: a
+    texture that is a folder or not an image is said and left out before the scene
+    loads, where Mitsuba would raise."""
+    if not os.path.isfile(path):
+        return "is not a file"
+    try:
+        mi.Bitmap(path)
+    except RuntimeError as error:
+        reason = " ".join(str(error).split())
+        return f"is not an image Mitsuba reads ({reason[:120]})"
+    return None
+
+
+def _unreadable_image(path: str) -> str | None:
+    """:func:`_image_problem` of ``path`` at its current size and modification time."""
+    try:
+        stat = os.stat(path)
+    except OSError:
+        return "cannot be read"
+    return _image_problem(path, (stat.st_size, stat.st_mtime_ns))
+
 
 def _filenames(description: dict) -> list[str]:
     """Every ``filename`` a Mitsuba description dict names, nested ones included."""
@@ -280,8 +344,9 @@ def _mitsuba_mesh(mesh: _Mesh, points: np.ndarray, faces: np.ndarray) -> mi.Mesh
     props = mi.Properties()
     props["bsdf"] = mi.load_dict(mesh.bsdf)
     if mesh.emission is not None:
-        props["emitter"] = mi.load_dict({"type": "area", "radiance": {
-            "type": "rgb", "value": [float(c) for c in mesh.emission]}})
+        radiance = mesh.emission if isinstance(mesh.emission, dict) else {
+            "type": "rgb", "value": [float(c) for c in mesh.emission]}
+        props["emitter"] = mi.load_dict({"type": "area", "radiance": radiance})
     shape = mi.Mesh(mesh.id, len(points), len(faces), props=props,
                     has_vertex_normals=mesh.smooth,
                     has_vertex_texcoords=mesh.texcoords is not None)

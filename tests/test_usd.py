@@ -113,6 +113,7 @@ def write_shot(path):
     sun.CreateIntensityAttr(1.5)
     sun.CreateExposureAttr(1.0)
     sun.CreateColorAttr(Gf.Vec3f(1.0, 0.9, 0.8))
+    sun.CreateNormalizeAttr(True)  # its intensity is the irradiance
     sun.AddRotateXOp().Set(-50.0)
     UsdLux.DomeLight.Define(stage, "/World/Lights/Sky").CreateIntensityAttr(0.2)
     sphere = UsdLux.SphereLight.Define(stage, "/World/Lights/Bulb")
