@@ -6,7 +6,7 @@ import importlib
 import sys
 
 #: Modules of this package, ``common`` first: the others derive from its classes.
-_MODULES = ("common", "path", "direct", "aov")
+_MODULES = ("common", "path", "direct", "volpath", "aov")
 
 
 def register():

@@ -126,6 +126,19 @@ class AccelIntegrator(mi.SamplingIntegrator):
         return f"accel={self.accel_name!r}{options}"
 
 
+def depth_properties(props) -> tuple[int, int]:
+    """``max_depth`` and ``rr_depth`` of a path-tracing integrator, read and checked
+    as Mitsuba's ``MonteCarloIntegrator`` reads them: ``max_depth`` -1 (the default,
+    unbounded, returned as 2^32 - 1) or >= 0; ``rr_depth`` > 0 (default 5)."""
+    max_depth = props.get("max_depth", -1)
+    if max_depth < -1:
+        raise ValueError(f"max_depth={max_depth}: expected -1 (unbounded) or a value >= 0")
+    rr_depth = props.get("rr_depth", 5)
+    if rr_depth <= 0:
+        raise ValueError(f"rr_depth={rr_depth}: expected a value > 0")
+    return (max_depth if max_depth != -1 else 0xFFFFFFFF), rr_depth
+
+
 def mis_weight(pdf_a, pdf_b):
     """Power heuristic (exponent 2) of sampling technique a against b; 0 where it is
     not finite. Detached: MIS weights carry no derivative."""

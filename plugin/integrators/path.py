@@ -6,7 +6,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .common import AccelIntegrator, mis_weight, skip_area_emitters, spec_fma
+from .common import (AccelIntegrator, depth_properties, mis_weight, skip_area_emitters,
+                     spec_fma)
 
 
 class PathIntegrator(AccelIntegrator):
@@ -75,13 +76,7 @@ class PathIntegrator(AccelIntegrator):
 
     def __init__(self, props):
         super().__init__(props)
-        max_depth = props.get("max_depth", -1)
-        if max_depth < -1:
-            raise ValueError(f"max_depth={max_depth}: expected -1 (unbounded) or a value >= 0")
-        self.max_depth = max_depth if max_depth != -1 else 0xFFFFFFFF
-        self.rr_depth = props.get("rr_depth", 5)
-        if self.rr_depth <= 0:
-            raise ValueError(f"rr_depth={self.rr_depth}: expected a value > 0")
+        self.max_depth, self.rr_depth = depth_properties(props)
 
     @dr.syntax
     def sample(self, scene, sampler, ray, medium=None, active=True):
