@@ -4,15 +4,20 @@ that a later look compares with, without comparing any geometry.
 * A mesh's state is its vertex and face buffers themselves: a ``params[...]``
   assignment gives the mesh new Dr.Jit variables, so their indices differ. Holding the
   arrays keeps their indices from being given to other arrays meanwhile.
-* Any other shape's state is its bounding box and its own parameters (``to_world``
-  and the like, as ``mi.traverse(shape)`` lists them, without its BSDF's or other
-  children's), held the same way. The box alone would miss a motion that keeps it (an
-  instance turned by 90 degrees about a symmetric group).
+* Any other shape's state is its bounding box and the values of its own parameters
+  (``to_world`` and the like, as ``mi.traverse(shape)`` lists them, without its BSDF's
+  or other children's), copied to the host. The box alone would miss a motion that
+  keeps it (an instance turned by 90 degrees, or mirrored, about a symmetric group);
+  the parameters' Dr.Jit variables would too: Mitsuba writes a new transform into the
+  variables its shape already holds, so their indices stay the same from one write to
+  the next while their values change.
 
 A look costs two method calls per mesh and, per other shape, a read of each of its own
 parameters through handles that one ``mi.traverse`` of the shape gave the first time
-(a traversal per look would cost ~30 us a shape, 0.3 s for 10k instances), and no
-kernel.
+(a traversal per look would cost ~30 us a shape, 0.3 s for 10k instances): a
+transform's twelve affine entries, read one by one from the host (evaluated and literal
+variables are read without a kernel), a small array's values, a large one's variable
+indices (a texture or a buffer is replaced, not written in place).
 """
 
 from __future__ import annotations
@@ -46,8 +51,8 @@ class ShapeState:
     """Any other shape's bounding box and own parameters as last seen."""
 
     box: tuple
-    values: tuple  # held: their Dr.Jit variables keep their indices while held
-    identity: tuple  # what tells them apart (:func:`_identity`), taken once
+    identity: tuple  # what tells its parameters apart (:func:`_identity`), taken once
+    held: tuple  # its large JIT parameters, held so that their indices stay theirs
 
     def moved(self, before: "ShapeState") -> bool:
         """Whether its box or any of its own parameters changed since ``before``."""
@@ -70,7 +75,7 @@ def shape_state(shape, handles: dict | None = None) -> MeshState | ShapeState:
                               if "." not in key]
     own = tuple(value if kind is None else mi.get_property(value, kind, node)
                 for value, kind, node in handles[id(shape)])
-    return ShapeState((tuple(box.min), tuple(box.max)), own, _identity(own))
+    return ShapeState((tuple(box.min), tuple(box.max)), _identity(own), own)
 
 
 def shape_states(shapes, indices, handles: dict | None = None) -> dict:
@@ -80,16 +85,48 @@ def shape_states(shapes, indices, handles: dict | None = None) -> dict:
 
 
 def _identity(values: tuple) -> tuple:
-    """What tells two parameter sets apart: the Dr.Jit variable indices of JIT values
-    (of a transform, its matrix's: its inverse is derived from it, and collecting both
-    doubles the cost of a look at an instance), the values themselves otherwise."""
+    """What tells two parameter sets apart, as host values that a later write cannot
+    change: a transform's affine entries (its inverse is derived from them), the values
+    of a JIT array of at most :data:`_READ_LIMIT` entries, the variable indices of a
+    larger one (kept theirs by the state holding the array), anything else as it is."""
     identity = []
     for value in values:
         if type(value).__name__.endswith("Transform4f"):  # any variant's, affine or not
-            value = value.matrix
+            identity.append(_entries(value.matrix))
+            continue
         indices = dr.detail.collect_indices(value)
-        identity.append(tuple(indices) if indices else repr(value))
+        if not indices:
+            identity.append(repr(value))
+        elif dr.width(value) * len(indices) <= _READ_LIMIT:
+            identity.append(_entries(value))
+        else:
+            identity.append(tuple(indices))
     return tuple(identity)
+
+
+#: The largest JIT parameter (entries times fields) a look reads by value.
+_READ_LIMIT = 64
+
+#: Variable states whose entries the host reads without launching a kernel.
+_READ_DIRECTLY = (dr.VarState.Evaluated, dr.VarState.Literal)
+
+
+def _entries(value) -> tuple:
+    """The entries of a JIT array or matrix as host floats, evaluated first (one kernel
+    for all of them) if some are still lazy. A 4x4 matrix gives its first three rows
+    (an affine transform's last row is 0 0 0 1)."""
+    rows = [value[r] for r in range(3)] if dr.is_matrix_v(value) else [value]
+    leaves = [leaf for row in rows for leaf in _leaves(row)]
+    if any(leaf.state not in _READ_DIRECTLY for leaf in leaves):
+        dr.eval(leaves)
+    return tuple(leaf[k] for leaf in leaves for k in range(dr.width(leaf)))
+
+
+def _leaves(value) -> list:
+    """The flat JIT arrays a (possibly nested) Dr.Jit array is made of."""
+    if dr.depth_v(value) <= 1:
+        return [value]
+    return [leaf for k in range(len(value)) for leaf in _leaves(value[k])]
 
 
 def member_states(shapes, handles: dict) -> list:

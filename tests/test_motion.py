@@ -1,0 +1,155 @@
+"""Motion is seen however a shape is written: an instance turned or mirrored so that
+its world box stays the same, through ``mi.traverse`` and ``hlbvh.traverse``, with
+scalar and JIT transforms and through the animation loaders' ``apply_frame``; the same
+values written again are no motion. After each write the accelerator's hits equal those
+of a scene loaded afresh with the new transform (Mitsuba's own query over it)."""
+
+import drjit as dr
+import hlbvh
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from hlbvh.motion import shape_state
+from hlbvh.scenes.animated import FrameGeometry, apply_frame
+
+T = mi.ScalarTransform4f
+
+
+def _l_plate() -> mi.Mesh:
+    """An L-shaped plate in [-1, 1]^2 (z = 0): a turn by 90 degrees about z, or a
+    mirror in x, keeps its box and moves most of its surface."""
+    squares = [(-1, -1), (0, -1), (-1, 0)]  # three of the four unit squares
+    v, f = [], []
+    for x, y in squares:
+        b = len(v)
+        v += [(x, y, 0), (x + 1, y, 0), (x + 1, y + 1, 0), (x, y + 1, 0)]
+        f += [(b, b + 1, b + 2), (b, b + 2, b + 3)]
+    mesh = mi.Mesh("plate", len(v), len(f))
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(np.array(v, np.float32).ravel())
+    params["faces"] = mi.UInt32(np.array(f, np.uint32).ravel())
+    params.update()
+    return mesh
+
+
+def _scene_dict(to_world=None) -> dict:
+    d = {"type": "scene",
+         "group": {"type": "shapegroup", "plate": _l_plate()},
+         "inst": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"}},
+         "floor": {"type": "rectangle", "to_world": T().translate([0, 0, -2]).scale(4)}}
+    if to_world is not None:
+        d["inst"]["to_world"] = to_world
+    return d
+
+
+def _rays() -> mi.Ray3f:
+    """A grid of rays straight down over the plate's box."""
+    xs = (np.arange(24) + 0.5) / 24 * 2 - 1
+    x, y = np.meshgrid(xs, xs)
+    n = x.size
+    return mi.Ray3f(mi.Point3f(mi.Float(x.ravel()), mi.Float(y.ravel()), dr.full(mi.Float, 3, n)),
+                    mi.Vector3f(0, 0, -1))
+
+
+def _assert_hits_as_loaded(accel, matrix):
+    """The accelerator's closest hits equal Mitsuba's over a scene loaded with the
+    instance at ``matrix``: the same shape (plate or floor) at the same t."""
+    reference = mi.load_dict(_scene_dict(T(matrix.tolist())))
+    ray = _rays()
+    ours, theirs = accel.ray_intersect_preliminary(ray), reference.ray_intersect_preliminary(ray)
+    on_plate = np.array(theirs.instance != None)  # noqa: E711 (JIT pointer compare)
+    assert 0 < on_plate.sum() < dr.width(ray)
+    np.testing.assert_array_equal(np.array(ours.instance != None), on_plate)  # noqa: E711
+    np.testing.assert_allclose(np.array(ours.t), np.array(theirs.t), rtol=1e-6)
+
+
+TURNS = [T().rotate([0, 0, 1], a).matrix for a in (90, 180, 270)] + [
+    T().scale([-1, 1, 1]).matrix,            # mirrored in x: same box
+    T().scale([1, 1, -1]).matrix,            # mirrored in z (normals flipped): same box
+    T().rotate([0, 0, 1], 90).matrix,        # back to an earlier pose
+]
+
+
+def _write(params, how, matrix):
+    if how == "scalar":
+        params["inst.to_world"] = T(np.asarray(matrix).tolist())
+    elif how == "scalar_affine":
+        params["inst.to_world"] = mi.ScalarAffineTransform4f(np.asarray(matrix, np.float32))
+    elif how == "jit":
+        params["inst.to_world"] = mi.Transform4f(np.asarray(matrix, np.float32))
+    params.update()
+
+
+@pytest.mark.parametrize("traverse", ["mi", "hlbvh"])
+@pytest.mark.parametrize("how", ["scalar", "scalar_affine", "jit", "apply_frame"])
+def test01_a_turn_or_mirror_that_keeps_the_box_is_seen(traverse, how):
+    scene = mi.load_dict(_scene_dict())
+    accel = hlbvh.SceneAccel(scene, moving=["inst"])
+    params = mi.traverse(scene) if traverse == "mi" else hlbvh.traverse(scene)
+    box = scene.shapes()[[s.id() for s in scene.shapes()].index("inst")].bbox()
+    exact = 0  # poses whose box is the first one's to the bit (the mirrors)
+    for matrix in TURNS:
+        matrix = np.array(matrix, np.float64)
+        if how == "apply_frame":
+            apply_frame(scene, params, {"inst": FrameGeometry(to_world=matrix)})
+        else:
+            _write(params, how, matrix)
+        inst = scene.shapes()[[s.id() for s in scene.shapes()].index("inst")]
+        np.testing.assert_allclose([inst.bbox().min, inst.bbox().max], [box.min, box.max],
+                                   atol=1e-6)  # the box says nothing
+        exact += inst.bbox() == box
+        assert accel.changed()
+        accel.update()
+        assert accel.last_update["decision"] != "kept", matrix
+        _assert_hits_as_loaded(accel, matrix)
+    assert exact >= 2
+
+
+@pytest.mark.parametrize("traverse", ["mi", "hlbvh"])
+def test02_the_same_transform_written_again_is_no_motion(traverse):
+    scene = mi.load_dict(_scene_dict())
+    accel = hlbvh.SceneAccel(scene, moving=["inst"])
+    params = mi.traverse(scene) if traverse == "mi" else hlbvh.traverse(scene)
+    turn = np.array(TURNS[0], np.float32)
+    _write(params, "scalar_affine", turn)
+    accel.update()
+    assert accel.last_update["decision"] != "kept"
+    _write(params, "jit", turn)
+    assert not accel.changed()
+    accel.update()
+    assert accel.last_update["decision"] == "kept"
+    _assert_hits_as_loaded(accel, turn)
+
+
+def test03_a_shape_state_holds_values_not_the_variables_mitsuba_writes_into():
+    """Mitsuba writes a new transform into the variables the instance already holds:
+    a state taken before the write must still tell the old pose."""
+    scene = mi.load_dict(_scene_dict())
+    inst = scene.shapes()[[s.id() for s in scene.shapes()].index("inst")]
+    params = mi.traverse(scene)
+    handles = {}
+    _write(params, "scalar_affine", np.array(TURNS[0], np.float32))
+    before = shape_state(inst, handles)
+    _write(params, "scalar_affine", np.array(TURNS[1], np.float32))
+    after = shape_state(inst, handles)
+    assert after.moved(before)
+    assert not shape_state(inst, handles).moved(after)
+
+
+def test04_a_sphere_whose_radius_is_written_in_place_is_seen():
+    """Another shape's own scalar parameter (a sphere's radius and centre), written
+    through its parameters, is motion too."""
+    scene = mi.load_dict({"type": "scene", "ball": {"type": "sphere", "radius": 0.5}})
+    accel = hlbvh.SceneAccel(scene, moving=["ball"])
+    params = mi.traverse(scene)
+    keys = [k for k in params.keys() if k.startswith("ball.")]
+    assert keys
+    ray = mi.Ray3f(mi.Point3f(0, 0, 5), mi.Vector3f(0, 0, -1))
+    t0 = accel.ray_intersect_preliminary(ray).t[0]
+    params["ball.to_world"] = T().scale(0.25)
+    params.update()
+    assert accel.changed()
+    accel.update()
+    t1 = accel.ray_intersect_preliminary(ray).t[0]
+    assert abs(t0 - 4.5) < 1e-5 and abs(t1 - 4.75) < 1e-5
