@@ -65,7 +65,7 @@ class AOVIntegrator(AccelIntegrator):
         return list(CHANNELS)
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
-        accel = self.accel(scene)
+        accel = self.sample_accel(scene)
         ray = mi.Ray3f(ray)
         pi = accel.ray_intersect_preliminary(ray, True, active)
         si = accel.surface_interaction(pi, ray, mi.RayFlags.All, active)

@@ -90,6 +90,17 @@ class AccelIntegrator(mi.SamplingIntegrator):
             return self._accel
         return self.update_accel(scene)
 
+    def sample_accel(self, scene):
+        """The intersector a ``sample()`` traces: inside this integrator's
+        :meth:`render` (or an :meth:`updated` block), the one it brought up to date
+        (:meth:`accel`); otherwise brought up to date here (:meth:`update_accel`).
+        The second case is a wrapper integrator's render (Mitsuba's ``moment``,
+        ``aov``, ``stokes``), which calls this integrator's ``sample()`` directly, so
+        a render through the wrapper follows the shapes that moved since the last."""
+        if self._rendering or self._updated:
+            return self.accel(scene)
+        return self.update_accel(scene)
+
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         """Bring the intersector up to date (:meth:`update_accel`), then render as
         Mitsuba's sampling integrator does.

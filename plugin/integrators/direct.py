@@ -87,7 +87,7 @@ class DirectIntegrator(AccelIntegrator):
         self.frac_emitter = float(np.float32(self.emitter_samples) / np.float32(total))
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
-        accel = self.accel(scene)
+        accel = self.sample_accel(scene)
         active = mi.Bool(active)
         si = accel.ray_intersect(ray, mi.RayFlags.All, True, active)
         result = mi.Spectrum(0.0)

@@ -82,7 +82,7 @@ class PathIntegrator(AccelIntegrator):
     def sample(self, scene, sampler, ray, medium=None, active=True):
         if dr.hint(self.max_depth == 0, mode="scalar"):
             return mi.Spectrum(0.0), mi.Bool(False), []
-        accel = self.accel(scene)
+        accel = self.sample_accel(scene)
         bsdf_ctx = mi.BSDFContext()
 
         # --------------------- Configure loop state ----------------------

@@ -73,7 +73,7 @@ class VolpathIntegrator(AccelIntegrator):
 
     @dr.syntax
     def sample(self, scene, sampler, ray, medium=None, active=True):
-        accel = self.accel(scene)
+        accel = self.sample_accel(scene)
         ray = mi.Ray3f(ray)  # ray differentials are not used
         active = mi.Bool(active)
         valid_ray = mi.Bool(not self.hide_emitters and scene.environment() is not None)
