@@ -38,6 +38,9 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
     add("--camera", action=_CameraAction,
         help="of a USD stage: the prim path of the camera to render through (default: "
              "the stage's render settings' camera, else its first camera)")
+    add("--no-default-light", action=_NoDefaultLightAction, nargs=0,
+        help="of a USD stage without UsdLux lights: no default sky and sun (by default "
+             "they light it, as a DCC's viewport does; STAGE:default_light=false)")
     add("--frames-dir", help="directory of per-frame meshes <dir>/<shape id>/frame_0001.ply "
                              "(with an XML scene)")
     add("--topology", help="of the meshes of --frames-dir: fixed (default: only positions "
@@ -65,24 +68,30 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
 
 
 class SceneArgument(str):
-    """The SCENE string, carrying ``camera`` (``--camera``): the options that qualify
-    SCENE travel with it to :func:`open_animation` and to the cluster's
-    :class:`hlbvh.cluster.SceneSpec`, whichever command parsed them."""
+    """The SCENE string, carrying ``camera`` (``--camera``) and ``default_light``
+    (False with ``--no-default-light``): the options that qualify SCENE travel with it
+    to :func:`open_animation` and to the cluster's :class:`hlbvh.cluster.SceneSpec`,
+    whichever command parsed them."""
 
     camera: str | None = None
+    default_light: bool = True
 
     @classmethod
-    def of(cls, scene: str, camera: str | None) -> SceneArgument:
+    def of(cls, scene: str, camera: str | None, default_light: bool = True) -> SceneArgument:
         argument = cls(scene)
         argument.camera = camera
+        argument.default_light = default_light
         return argument
 
 
 class _SceneAction(argparse.Action):
-    """SCENE as a :class:`SceneArgument` with the ``--camera`` parsed before it."""
+    """SCENE as a :class:`SceneArgument` with the ``--camera`` and
+    ``--no-default-light`` parsed before it."""
 
     def __call__(self, parser, namespace, value, option_string=None):
-        setattr(namespace, self.dest, SceneArgument.of(value, getattr(namespace, "camera", None)))
+        setattr(namespace, self.dest, SceneArgument.of(
+            value, getattr(namespace, "camera", None),
+            not getattr(namespace, "no_default_light", False)))
 
 
 class _CameraAction(argparse.Action):
@@ -92,7 +101,18 @@ class _CameraAction(argparse.Action):
         setattr(namespace, self.dest, value)
         scene = getattr(namespace, "scene", None)
         if isinstance(scene, str):
-            namespace.scene = SceneArgument.of(scene, value)
+            namespace.scene = SceneArgument.of(scene, value,
+                                               getattr(scene, "default_light", True))
+
+
+class _NoDefaultLightAction(argparse.Action):
+    """``--no-default-light``, also set on a SCENE parsed before it."""
+
+    def __call__(self, parser, namespace, value, option_string=None):
+        setattr(namespace, self.dest, True)
+        scene = getattr(namespace, "scene", None)
+        if isinstance(scene, str):
+            namespace.scene = SceneArgument.of(scene, getattr(scene, "camera", None), False)
 
 
 def out_flag(text: str | None, default: Path) -> Path:
@@ -219,6 +239,9 @@ def open_animation(scene: str, frames_dir, triangles, frames, topology=None,
     stage = usd_stage(scene)
     if camera is not None and stage is None:
         raise UserError(f"--camera picks a camera of a USD stage; {str(scene)!r} is not one")
+    if not getattr(scene, "default_light", True) and stage is None:
+        raise UserError(f"--no-default-light is for USD stages without lights; "
+                        f"{str(scene)!r} is not a USD stage")
     if str(scene).partition(":")[0] in scenes.names():
         if frames_dir is not None:
             raise UserError(f"--frames-dir is for XML scenes; {scene!r} is procedural")
@@ -284,8 +307,9 @@ def open_animation(scene: str, frames_dir, triangles, frames, topology=None,
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 
 #: The options a USD stage takes after its path (``shot.usda:instancing=false``), with
-#: their defaults: :class:`hlbvh.scenes.usd.UsdScene`'s arguments.
-USD_OPTIONS = {"instancing": True}
+#: their defaults: :class:`hlbvh.scenes.usd.UsdScene`'s arguments
+#: (``--no-default-light`` is ``default_light=false``).
+USD_OPTIONS = {"instancing": True, "default_light": True}
 
 
 def usd_stage(scene) -> tuple[Path, dict] | None:
@@ -293,8 +317,8 @@ def usd_stage(scene) -> tuple[Path, dict] | None:
     ``shot.usda:instancing=false``), None for any other scene.
 
     Raises:
-        UserError: an option the stage does not take, or a value that is not
-            ``true``/``false``.
+        UserError: an option the stage does not take, given twice, or a value that is
+            not ``true``/``false``.
     """
     match = re.fullmatch(r"(.*?\.(?:usd|usda|usdc|usdz))(?::(.*))?", str(scene), re.IGNORECASE)
     if not match:
@@ -307,7 +331,11 @@ def usd_stage(scene) -> tuple[Path, dict] | None:
                             f"stage; expected key=value with key one of {sorted(USD_OPTIONS)}")
         if value.lower() not in ("true", "false"):
             raise UserError(f"scene {str(scene)!r}: {key}={value!r}: expected true or false")
+        if key in options:
+            raise UserError(f"scene {str(scene)!r}: {key} is given twice; give it once")
         options[key] = value.lower() == "true"
+    if not getattr(scene, "default_light", True):
+        options["default_light"] = False
     return Path(match.group(1)), options
 
 

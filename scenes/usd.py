@@ -6,8 +6,9 @@ into an :class:`hlbvh.scenes.AnimatedScene`.
 What a stage becomes
 --------------------
 Frames
-    Frame ``i`` is time code ``startTimeCode + i``, up to ``endTimeCode`` included;
-    a stage without an authored range has one frame, at its start time code.
+    Frame ``i`` is time code ``startTimeCode + i``, up to ``endTimeCode`` included,
+    as pxr reports them (an ``endTimeCode`` authored alone starts at 0); a stage
+    without an authored ``endTimeCode`` has one frame, at its start time code.
 Units and axes
     Everything is converted to Mitsuba's Y-up metres: positions are scaled by
     ``metersPerUnit`` and a Z-up stage is turned Z -> Y (``(x, y, z) -> (x, z, -y)``),
@@ -50,7 +51,8 @@ Cameras (``UsdGeom.Camera``)
     first frame (said once).
 Lights (``UsdLux``)
     ``intensity * 2**exposure * color`` (divided by the light's area with
-    ``normalize``): DistantLight -> ``directional`` (that irradiance), DomeLight ->
+    ``normalize``), UsdLux's radiance: DistantLight -> ``directional`` of the
+    irradiance of that radiance over its disc (``angle``), DomeLight ->
     ``constant``, or ``envmap`` with its latlong ``texture:file`` (OpenEXR's layout,
     as Mitsuba's; the pole +Y, or DomeLight_1's ``poleAxis``; the colour then ignored,
     said), SphereLight -> a ``sphere`` area light (``point`` with ``treatAsPoint``),
@@ -65,11 +67,12 @@ Materials
     ``UsdPreviewSurface`` bound with ``UsdShade.MaterialBindingAPI``: diffuseColor,
     roughness, metallic to ``principled``; opacity below 1 through a ``mask``
     (``opacityThreshold`` makes it a cutout); emissiveColor to an ``area`` emitter on
-    the mesh. A diffuseColor read from a ``UsdUVTexture`` (its file on disk, not
-    inside a .usdz) becomes a ``bitmap`` over the mesh's texture coordinates (the
-    ``UsdPrimvarReader_float2``'s primvar, ``st`` by default; per point, or faceVarying
-    with the points split where their uv differ); other textured inputs keep their
-    authored value (said once per material). Without a material the ``displayColor`` primvar gives a
+    the mesh. A diffuseColor or emissiveColor read from a ``UsdUVTexture`` becomes a
+    ``bitmap`` over the mesh's texture coordinates (the ``UsdPrimvarReader_float2``'s
+    primvar, ``st`` by default; per point, or faceVarying with the points split where
+    their uv differ); a diffuseColor from a ``UsdPrimvarReader_float3`` reads its
+    primvar as ``displayColor`` is read; other connected inputs keep their authored
+    value (said once per material, naming them). Without a material the ``displayColor`` primvar gives a
     diffuse colour: per point or per face as a Mitsuba mesh attribute
     (``vertex_color``, ``face_color``), its mean for other interpolations (said),
     else grey.
@@ -82,9 +85,14 @@ Point instancers (``UsdGeom.PointInstancer``)
     some frame are left out; an instancer whose number of points changes over time, or
     that names no prototype, is not rendered (each said once). Needs ``instancing``.
 Not supported
-    Curves, points, volumes, implicit shapes (Sphere, Cube, ...), NURBS, UsdSkel
-    skinning that is not baked (the rest points render), references and payloads that do
-    not resolve: one warning line each on stderr, with the prim's path.
+    Curves, points, volumes, implicit shapes (Sphere, Cube, ...), NURBS, references
+    and payloads that do not resolve: one warning line each on stderr, with the prim's
+    path. UsdSkel skinning is pxr's own (``UsdSkelBakeSkinning`` into the session layer,
+    in memory), but over meshes whose points are time-sampled (already baked); where
+    pxr cannot bake it the rest points render (said).
+No light
+    A stage without UsdLux lights is said, and lit by a default sky and sun
+    (``default_light=False``: not).
 
 A stage that cannot be opened, has nothing renderable or a bad time range is one
 ``ValueError`` naming the file.
@@ -97,9 +105,11 @@ they share (pxr, the constants, the prim helpers) is in ``usd_prims``.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 import re
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -110,10 +120,11 @@ from .animated import AnimatedScene, FrameGeometry
 from .usd_camera import _Camera
 from .usd_lights import _Lights
 from .usd_materials import _Materials
-from .usd_prims import (DEFAULT_INTEGRATOR, DEFAULT_SPP, Sdf, UNSUPPORTED, Usd, UsdGeom,
+from .usd_prims import (DEFAULT_INTEGRATOR, DEFAULT_SPP, Gf, Sdf, UNSUPPORTED, Usd, UsdGeom,
                         UsdLux, _Mesh, _RESERVED, _Stats, _array, _filenames, _has_normals,
-                        _matrix, _mitsuba_mesh, _open, _print_warning, _root_transform,
-                        _skel_binding, _transform_varies, _triangulate, _unresolved_arcs,
+                        _bake_skinning, _matrix, _mitsuba_mesh, _open, _print_warning,
+                        _root_transform,
+                        _skel_binding, _stderr_captured, _transform_varies, _triangulate, _unresolved_arcs,
                         _vertex_normals, _visibility_varies)
 
 
@@ -123,6 +134,71 @@ from .usd_prims import (DEFAULT_INTEGRATOR, DEFAULT_SPP, Sdf, UNSUPPORTED, Usd, 
 #: rebuilding a small mesh (300 distinct rigid meshes, measured in docs/decisions.md:
 #: even at about 2k triangles each, instances 1.6x slower at 768, faster from 4.8k).
 RIGID_INSTANCE_TRIANGLES = 2048
+
+#: The most frames a stage's time range may hold: frame ``i`` renders with seed
+#: ``--seed + i``, and seeds are 32-bit.
+MAX_FRAMES = 2**32
+
+#: The largest time code magnitude taken: past it, float64 time codes no longer step by
+#: 1, so ``startTimeCode + i`` would not name distinct frames.
+MAX_TIME_CODE = 2.0**52
+
+
+def _check_time_codes(stage, where: str) -> None:
+    """Refuse a stage whose start or end time code is not finite, lies past
+    :data:`MAX_TIME_CODE`, or whose range holds more than :data:`MAX_FRAMES` frames, in
+    one short line (such a range cannot be counted or rendered frame by frame)."""
+    start, end = float(stage.GetStartTimeCode()), float(stage.GetEndTimeCode())
+    for name, value in (("startTimeCode", start), ("endTimeCode", end)):
+        if not math.isfinite(value) or abs(value) > MAX_TIME_CODE:
+            raise ValueError(f"{where}: {name} {value:.6g}: expected a finite time code "
+                             f"within +-2^52 (frame i is at startTimeCode + i)")
+    if end - start >= MAX_FRAMES:
+        raise ValueError(f"{where}: startTimeCode..endTimeCode {start:.6g}..{end:.6g} holds "
+                         f"more than 2^32 frames (a frame's seed is 32-bit)")
+
+
+def _usd_quiet(method):
+    """``method`` of a :class:`UsdScene` with USD's own diagnostics (multi-line C++
+    output on stderr) said as one warning line per distinct message, once per stage,
+    and numpy's floating-point warnings off (the values that matter are checked and
+    named); lines already ours (``hlbvh: ...``) pass through unchanged."""
+    @functools.wraps(method)
+    def wrapped(self, *args, **kwargs):
+        with np.errstate(all="ignore"), _stderr_captured() as said:
+            result = method(self, *args, **kwargs)
+        for line in said:
+            if line.startswith("hlbvh: "):
+                print(line, file=sys.stderr)
+            elif line.strip():
+                text = " ".join(line.split(" -- ", 1)[-1].split())
+                self._warn_once(f"{self._where}: USD says: {text[:300]}")
+        return result
+    return wrapped
+
+
+def _transform_attributes(prim) -> list:
+    """The xformOp attributes of ``prim`` and of its ancestors: what its world
+    transform is computed from."""
+    found = []
+    while prim and not prim.IsPseudoRoot():
+        xformable = UsdGeom.Xformable(prim)
+        if xformable:
+            found += [op.GetAttr() for op in xformable.GetOrderedXformOps()]
+        prim = prim.GetParent()
+    return found
+
+
+def _sample_times(attributes, first: float, last: float) -> list[float]:
+    """``first``, ``last`` and every time sample of ``attributes`` between them,
+    sorted: the time codes where the attributes take their authored values (between
+    two samples a value is interpolated, outside them held), so a check made there
+    costs what the stage authors, not how many frames its range holds."""
+    times = {first, last}
+    interval = Gf.Interval(first, last)
+    for attribute in attributes:
+        times.update(attribute.GetTimeSamplesInInterval(interval))
+    return sorted(times)
 
 
 @dataclass
@@ -176,6 +252,8 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             ``hlbvh:``).
         instancing: rigid meshes and prototypes' meshes as Mitsuba instances (see
             the module docstring); False: every mesh in world space.
+        default_light: light a stage without UsdLux lights by a default sky and sun
+            (:data:`hlbvh.scenes.usd_lights.DEFAULT_LIGHTS`; said either way).
 
     Raises:
         ValueError: naming the file: it does not exist, USD cannot open it, its time
@@ -184,7 +262,8 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
 
     name = "usd"
 
-    def __init__(self, path, camera: str | None = None, warn=None, instancing: bool = True):
+    def __init__(self, path, camera: str | None = None, warn=None, instancing: bool = True,
+                 default_light: bool = True):
         self._path = Path(path)
         emit = warn or _print_warning
         pending: list[str] = []
@@ -193,8 +272,11 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         if not self._path.is_file():
             raise ValueError(f"{self._where}: no such file")
         self.stage = _open(self._path, self._where)
+        _check_time_codes(self.stage, self._where)
         self._start = float(self.stage.GetStartTimeCode())
-        if self.stage.HasAuthoredTimeCodeRange():
+        # pxr's range: an endTimeCode authored alone runs from time code 0 to it
+        # (HasAuthoredTimeCodeRange needs both); a startTimeCode alone is one frame.
+        if self.stage.HasAuthoredMetadata("endTimeCode"):
             end = float(self.stage.GetEndTimeCode())
             if end < self._start:
                 raise ValueError(f"{self._where}: endTimeCode {end:g} is before "
@@ -203,6 +285,8 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         else:
             self.frame_count = 1
         self.frames_per_second = float(self.stage.GetTimeCodesPerSecond())
+        self._skinned = _bake_skinning(self.stage, self._start,
+                                       self._start + self.frame_count - 1)
         self._root = _root_transform(self.stage, self._where)
         self._ids: set[str] = set(_RESERVED)
         self._instancing = bool(instancing)
@@ -212,6 +296,8 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         self._shapes: list = []  # the meshes and instances, in the stage's order
         self._lights: dict = {}
         unresolved = self._collect()
+        if not self._lights:
+            self._add_default_lights(default_light)
         if not self._shapes:
             why = (f"; references or payloads that do not resolve: {', '.join(unresolved)}"
                    if unresolved else "")
@@ -261,36 +347,52 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         return {m.id: m.group.triangles if isinstance(m, _Instance) else len(m.faces)
                 for m in self._shapes}
 
+    @_usd_quiet
     def frame(self, i: int) -> dict[str, FrameGeometry]:
         """World-space points (Mitsuba's Y-up metres, float32) of every moving mesh at
-        frame ``i``'s time code; faces too where the mesh's topology is time-sampled.
+        frame ``i``'s time code; faces too where the mesh's topology is time-sampled,
+        where its point count or its transform's mirroring differs from the first
+        frame's, and for every later call once a mesh was given faces (the loaded mesh
+        then holds that frame's faces, so whichever frames came before, the frame
+        applied is the same).
 
         Raises:
-            ValueError: ``i`` outside ``0 .. frame_count - 1``; a mesh whose point
-                count changes while its faces do not.
+            ValueError: naming the stage, the prim and the frame: ``i`` outside
+                ``0 .. frame_count - 1``; a mesh whose point count changes while its
+                faces do not; points or a transform that are not finite; an instance
+                whose transform is singular at this frame.
         """
         time = Usd.TimeCode(self.time_code(i))
+        at = self._at(i)
         cache = UsdGeom.XformCache(time)
         frame = {}
-        moved = self._transforms([m for m in self._instances if m.motion != "static"], cache)
+        given = self.__dict__.setdefault("_faces_given", set())
+        moving = [m for m in self._instances if m.motion != "static"]
+        moved = self._transforms(moving, cache)
+        for instance in moving:
+            self._check_instance_transform(instance, moved[instance.id], at)
         for mesh in self._shapes:
             if mesh.motion == "static":
                 continue
             if isinstance(mesh, _Instance):
                 frame[mesh.id] = FrameGeometry(to_world=moved[mesh.id])
                 continue
-            points, faces = self._geometry(mesh, time, cache)
+            points, faces = self._geometry(mesh, time, cache, at)
             if faces is None and mesh.vertex_points is None \
                     and len(points) <= int(mesh.faces.max(initial=0)):
                 raise ValueError(f"{self._where}: mesh {mesh.path} has {len(points)} points "
-                                 f"at time code {time.GetValue():g}, too few for its faces")
-            if faces is None and mesh.vertex_points is None and len(points) != mesh.point_count:
-                faces = mesh.faces  # more points than the first frame's: new vertex count
+                                 f"at {at}, too few for its faces")
+            if faces is None and (mesh.id in given or (
+                    mesh.vertex_points is None and len(points) != mesh.point_count)):
+                faces = mesh.faces  # a new vertex count, or back to the first frame's
+            if faces is not None:
+                given.add(mesh.id)
             frame[mesh.id] = FrameGeometry(
                 np.ascontiguousarray(points, dtype=np.float32).reshape(-1),
                 None if faces is None else faces.reshape(-1))
         return frame
 
+    @_usd_quiet
     def world_triangles(self, i: int) -> dict[str, np.ndarray]:
         """Every mesh's triangles at frame ``i`` as ``(F, 3, 3)`` float64 world-space
         corners (Mitsuba's Y-up metres), computed from ``pxr`` alone: what the frames
@@ -299,7 +401,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         cache = UsdGeom.XformCache(time)
         result = {}
         for mesh in self._meshes:
-            points, faces = self._geometry(mesh, time, cache)
+            points, faces = self._geometry(mesh, time, cache, self._at(i))
             result[mesh.id] = points[faces if faces is not None else mesh.faces]
         placed = self._transforms(self._instances, cache)
         for instance in self._instances:
@@ -330,6 +432,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
                 digest.update(b"\0unreadable\0")
         return digest.hexdigest()
 
+    @_usd_quiet
     def scene_dict(self, resolution=None, spp=None, integrator=None) -> dict:
         """See :meth:`AnimatedScene.scene_dict`: the camera, lights and every mesh at
         the first frame (apply ``frame(i)`` before rendering frame ``i``). Defaults: a
@@ -357,7 +460,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
                     "type": "instance", "shape": {"type": "ref", "id": shape.group.id},
                     "to_world": mi.ScalarTransform4f(placed[shape.id].astype(np.float32))}
                 continue
-            points, faces = self._geometry(shape, time, cache)
+            points, faces = self._geometry(shape, time, cache, self._at(0))
             description[shape.id] = _mitsuba_mesh(
                 shape, points, shape.faces if faces is None else faces)
         description.update(self._lights)
@@ -368,6 +471,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
 
     # ---- Reading the stage -------------------------------------------------------
 
+    @_usd_quiet
     def _collect(self) -> list[str]:
         """Walks the stage once (through instance proxies): meshes, lights, and a
         warning for each prim that will not render. Returns the prim paths whose
@@ -404,7 +508,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
                 self._warn(f"{self._where}: {prim.GetPath()}: a {kind} is not supported; "
                            f"it is not rendered")
                 prims.PruneChildren()  # a point instancer's prototypes render through it
-            elif kind == "Skeleton":
+            elif kind == "Skeleton" and not self._skinned:
                 self._warn(f"{self._where}: {prim.GetPath()}: UsdSkel skinning is not "
                            f"applied (bake it into points); its meshes render at rest")
         if stats.subdivided:
@@ -448,16 +552,17 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         meshes are made and returned (None: not renderable in a group)."""
         mesh = UsdGeom.Mesh(prim)
         path = prim.GetPath()
-        if prim.HasAPI(_skel_binding()):
-            self._warn(f"{self._where}: {path}: bound to a UsdSkel skeleton whose skinning "
-                       f"is not applied (bake it into points); its rest points render")
         points_attr = mesh.GetPointsAttr()
         deforming = points_attr.GetNumTimeSamples() > 1
+        if prim.HasAPI(_skel_binding()) and not deforming and not self._skinned:
+            self._warn(f"{self._where}: {path}: bound to a UsdSkel skeleton whose skinning "
+                       f"is not applied (bake it into points); its rest points render")
         topology_varies = any(a.GetNumTimeSamples() > 1 for a in (
             mesh.GetFaceVertexCountsAttr(), mesh.GetFaceVertexIndicesAttr()))
         rigid = not deforming and _transform_varies(prim)
         motion = "deforming" if deforming or topology_varies else "rigid" if rigid else "static"
         points = _array(points_attr.Get(time), 3)
+        self._check_finite(path, "points", points, f"time code {time.GetValue():g}")
         faces, source_faces, corners = _triangulate(mesh, time, len(points), path,
                                                     self._where, with_faces=True)
         if len(points) == 0 or len(faces) == 0:
@@ -518,7 +623,8 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             vertex_points, faces, texcoords = uv
         elif uv is not None:
             texcoords = uv[2]
-        if not instanced and np.linalg.det(transform[:3, :3]) < 0:
+        mirrored = not instanced and bool(np.linalg.det(transform[:3, :3]) < 0)
+        if mirrored:
             faces = faces[:, ::-1].copy()  # a mirroring transform: keep the faces outward
         meshes = []
         for part, chosen, bsdf, emission, colors, st in parts:
@@ -535,7 +641,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
                 bsdf=bsdf, emission=emission,
                 normals=None if normals is None
                 else normals if vertex_points is None else normals[vertex_points],
-                colors=colors, point_count=len(points),
+                colors=colors, point_count=len(points), mirrored=mirrored,
                 local_points=points if motion == "rigid" or instanced else None,
                 vertex_points=vertex_points,
                 texcoords=None if uv is None else texcoords))
@@ -571,16 +677,20 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         self._shapes.append(instance)
 
     def _invertible(self, prim, motion: str) -> bool:
-        """Whether the prim's transform can be an instance's at every frame: finite and
-        invertible (an animation that scales a prop to nothing to hide it keeps the
-        prop a world-space mesh, whose triangles then collapse; an instance's transform
-        must be invertible)."""
-        times = range(self.frame_count) if motion == "rigid" else range(1)
-        caches = self.__dict__.setdefault("_frame_caches", {})
-        for i in times:
-            if i not in caches:
-                caches[i] = UsdGeom.XformCache(Usd.TimeCode(self._start + i))
-            m = _matrix(caches[i].GetLocalToWorldTransform(prim))
+        """Whether the prim's transform can be an instance's: finite and invertible at
+        the first frame and, when it moves, at every time sample of its transform's
+        attributes up to the last frame (an animation that scales a prop to nothing to
+        hide it keeps the prop a world-space mesh, whose triangles then collapse; an
+        instance's transform must be invertible). The work follows the samples the
+        stage authors, not the length of its time range; a scale interpolated through
+        0 between two samples is named by :meth:`frame` at the frame where it is."""
+        times = [self._start] if motion != "rigid" else _sample_times(
+            _transform_attributes(prim), self._start, self.time_code(self.frame_count - 1))
+        caches = self.__dict__.setdefault("_time_caches", {})
+        for t in times:
+            if t not in caches:
+                caches[t] = UsdGeom.XformCache(Usd.TimeCode(t))
+            m = _matrix(caches[t].GetLocalToWorldTransform(prim))
             if not np.isfinite(m).all() or abs(np.linalg.det(m[:3, :3])) <= 1e-30:
                 return False
         return True
@@ -651,8 +761,13 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         mask = instancer.ComputeMaskAtTime(time)
         if len(mask):
             shown &= np.array(mask, bool)
-        for i in range(self.frame_count):  # one frame's transforms held at a time
-            m = self._point_transforms(path, Usd.TimeCode(self._start + i))
+        attributes = [instancer.GetPositionsAttr(), instancer.GetOrientationsAttr(),
+                      instancer.GetScalesAttr(), instancer.GetProtoIndicesAttr()]
+        if hasattr(instancer, "GetOrientationsfAttr"):  # newer USD: float orientations
+            attributes.append(instancer.GetOrientationsfAttr())
+        last = self.time_code(self.frame_count - 1)
+        for t in _sample_times(attributes, self._start, last):  # one time's held at a time
+            m = self._point_transforms(path, Usd.TimeCode(t))
             if len(m) != len(indices):
                 self._warn(f"{self._where}: {path}: a PointInstancer whose number of points "
                            f"changes over time is not supported; it is not rendered")
@@ -679,10 +794,6 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             self._warn(f"{self._where}: {path}: {left} of its {len(indices)} points are not "
                        f"rendered (hidden at the first frame, or scaled to nothing at some "
                        f"frame)")
-        attributes = [instancer.GetPositionsAttr(), instancer.GetOrientationsAttr(),
-                      instancer.GetScalesAttr(), instancer.GetProtoIndicesAttr()]
-        if hasattr(instancer, "GetOrientationsfAttr"):  # newer USD: float orientations
-            attributes.append(instancer.GetOrientationsfAttr())
         moving = _transform_varies(prim) or any(a.GetNumTimeSamples() > 1 for a in attributes)
         for i in np.flatnonzero(shown):
             made = members[indices[i]]
@@ -692,24 +803,65 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
                                     "rigid" if moving else "static", group,
                                     point=(int(i), relative)))
 
-    def _geometry(self, mesh: _Mesh, time, cache):
+    def _geometry(self, mesh: _Mesh, time, cache, at: str):
         """``(points (V, 3) float64 world space, faces (F, 3) or None)`` of a mesh at
-        ``time``: faces only when its topology is time-sampled."""
+        ``time`` (``at`` names it: the frame and time code): faces when its topology
+        is time-sampled, or when its transform mirrors at this time and not at the
+        first frame (or the reverse), so its faces keep facing out.
+
+        Raises:
+            ValueError: naming the stage, the mesh and ``at``: its transform or its
+                points are not finite.
+        """
         prim = self.stage.GetPrimAtPath(mesh.path)
         if mesh.local_points is not None:
             local = mesh.local_points
         else:
             local = _array(UsdGeom.Mesh(prim).GetPointsAttr().Get(time), 3)
         transform = self._placement(prim, cache)
+        self._check_finite(mesh.path, "transform", transform, at)
+        self._check_finite(mesh.path, "points", local, at)
         points = local @ transform[:3, :3].T + transform[:3, 3]
         if mesh.vertex_points is not None:
             points = points[mesh.vertex_points]
         faces = None
+        mirrored = bool(np.linalg.det(transform[:3, :3]) < 0)
         if mesh.topology_varies:
             faces = _triangulate(UsdGeom.Mesh(prim), time, len(local), mesh.path, self._where)
-            if np.linalg.det(transform[:3, :3]) < 0:
+            if mirrored:
                 faces = faces[:, ::-1].copy()
+        elif mirrored != mesh.mirrored:
+            faces = mesh.faces[:, ::-1].copy()
         return points, faces
+
+    def _at(self, i: int) -> str:
+        """Frame ``i`` and its time code, as messages name them."""
+        return f"frame {i} (time code {self.time_code(i):g})"
+
+    def _check_finite(self, path, what: str, values: np.ndarray, at: str) -> None:
+        """A ValueError naming the stage, the prim, ``what`` (``"points"``, ``(V, 3)``,
+        or ``"transform"``, a 4x4) and ``at`` when ``values`` holds a NaN or an
+        infinity."""
+        bad = ~np.isfinite(values)
+        if not bad.any():
+            return
+        if what == "points":
+            first = int(np.flatnonzero(bad.any(axis=1))[0])
+            raise ValueError(f"{self._where}: {path}: its points at {at} are not finite "
+                             f"(point {first} of {len(values)})")
+        raise ValueError(f"{self._where}: {path}: its {what} at {at} is not finite")
+
+    def _check_instance_transform(self, instance: _Instance, matrix: np.ndarray,
+                                  at: str) -> None:
+        """A ValueError naming the stage, the instance's prim and ``at`` when its
+        transform there is not finite or is singular (a scale interpolated through 0
+        between two time samples: an instance's transform must be invertible)."""
+        self._check_finite(instance.path, "transform", matrix, at)
+        if abs(np.linalg.det(matrix[:3, :3])) <= 1e-30:
+            raise ValueError(f"{self._where}: {instance.path}: its transform at {at} is "
+                             f"singular, which a Mitsuba instance cannot take; "
+                             f"{self._path.name}:instancing=false renders it as a "
+                             f"world-space mesh")
 
     def _warn_once(self, line: str) -> None:
         said = self.__dict__.setdefault("_said", set())

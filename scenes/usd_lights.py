@@ -8,7 +8,7 @@ import math
 import mitsuba as mi
 import numpy as np
 
-from .usd_prims import (UsdLux, _FLIP_Z, _checked, _dome_pole, _matrix, _transform_varies,
+from .usd_prims import (Sdf, UsdLux, _FLIP_Z, _checked, _dome_pole, _matrix, _transform_varies,
                         _unreadable_image)
 
 #: The largest radiance Mitsuba's single-precision emitters hold.
@@ -29,8 +29,34 @@ def distant_size_factor(angle: float) -> float:
     return math.pi * (sine if theta <= math.pi / 2 else 2 - sine)
 
 
+#: What lights a stage without UsdLux lights, as a DCC's viewport lights it: a uniform
+#: sky and a sun (Mitsuba's Y-up world, the sun from above, behind a camera that looks
+#: down -Z, and to its left). A floor of albedo 0.5 facing up renders about 0.45.
+DEFAULT_LIGHTS = {
+    "default_sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.3] * 3}},
+    "default_sun": {"type": "directional", "direction": [0.35, -1.0, -0.6],
+                    "irradiance": {"type": "rgb", "value": [2.0] * 3}},
+}
+
+
 class _Lights:
-    """The lights of a USD stage, as a method of :class:`UsdScene`."""
+    """The lights of a USD stage, as methods of :class:`UsdScene`."""
+
+    def _add_default_lights(self, default_light: bool) -> None:
+        """A stage without UsdLux lights is said in one line, and lit by
+        :data:`DEFAULT_LIGHTS` unless ``default_light`` is False (then only its
+        emitting materials light it)."""
+        if default_light:
+            for name, light in DEFAULT_LIGHTS.items():
+                self._lights[self._new_id(Sdf.Path(f"/{name}"))] = light
+            self._warn(f"{self._where}: no UsdLux light; a default sky (radiance "
+                       f"{DEFAULT_LIGHTS['default_sky']['radiance']['value'][0]:g}) and sun "
+                       f"(irradiance {DEFAULT_LIGHTS['default_sun']['irradiance']['value'][0]:g}"
+                       f", from above) light it, as a DCC's viewport does "
+                       f"(--no-default-light: none)")
+        else:
+            self._warn(f"{self._where}: no UsdLux light, and --no-default-light: only "
+                       f"emitting materials light it")
 
     def _add_light(self, prim, time, cache) -> None:
         """A UsdLux light as a Mitsuba emitter (or an emitting shape), in UsdLux's

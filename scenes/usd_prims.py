@@ -5,6 +5,7 @@ normals, textures)."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import re
@@ -76,6 +77,7 @@ class _Mesh:
     point_count: int = 0                        # V of the first frame
     vertex_points: np.ndarray | None = None     # (V',) the point of each Mitsuba vertex
     texcoords: np.ndarray | None = None         # (V', 2) Mitsuba uv, with a texture
+    mirrored: bool = False                      # faces flipped: the first frame mirrors
 
 @dataclass
 class _Stats:
@@ -89,25 +91,39 @@ def _print_warning(line: str) -> None:
     """A warning line on stderr, as ``hlbvh render`` says them."""
     print(f"hlbvh: {line}", file=sys.stderr)
 
-def _open(path: Path, where: str):
-    """``Usd.Stage.Open`` with USD's own diagnostics kept off stderr (they are
-    multi-line and repeated): a failure is one ``ValueError``."""
+@contextlib.contextmanager
+def _stderr_captured():
+    """Everything written to the process's stderr (file descriptor 2, where USD's C++
+    diagnostics go, multi-line) during the block kept off the terminal; yields a list
+    that holds the captured lines once the block ends."""
+    lines: list[str] = []
+    sys.stderr.flush()
     saved = os.dup(2)
     with tempfile.TemporaryFile() as sink:
         os.dup2(sink.fileno(), 2)
+        try:
+            yield lines
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            lines.extend(sink.read().decode(errors="replace").splitlines())
+
+
+def _open(path: Path, where: str):
+    """``Usd.Stage.Open`` with USD's own diagnostics kept off stderr (they are
+    multi-line and repeated): a failure is one ``ValueError``."""
+    with _stderr_captured():
         try:
             stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
             error = None
         except Tf.ErrorException as caught:
             stage, error = None, caught
-        finally:
-            sys.stderr.flush()
-            os.dup2(saved, 2)
-            os.close(saved)
-        if stage is None:
-            text = " ".join(str(error).split()) if error else "no stage"
-            reason = re.sub(r".*?Error in '[^']*' at line \d+ in file [^ ]+ : ", "", text)
-            raise ValueError(f"{where}: USD cannot open it as a stage ({reason[:200]})")
+    if stage is None:
+        text = " ".join(str(error).split()) if error else "no stage"
+        reason = re.sub(r".*?Error in '[^']*' at line \d+ in file [^ ]+ : ", "", text)
+        raise ValueError(f"{where}: USD cannot open it as a stage ({reason[:200]})")
     return stage
 
 def _unresolved_arcs(stage) -> list[tuple[str, str]]:
@@ -195,9 +211,12 @@ def _triangulate(mesh, time, point_count: int, path, where: str, with_faces: boo
     if counts.sum() != len(indices):
         raise ValueError(f"{where}: mesh {path}: faceVertexCounts add up to {counts.sum()} "
                          f"but faceVertexIndices holds {len(indices)}")
-    if len(indices) and (indices.min() < 0 or indices.max() >= point_count):
-        raise ValueError(f"{where}: mesh {path}: a face index points past its "
-                         f"{point_count} points")
+    if len(indices) and indices.min() < 0:
+        raise ValueError(f"{where}: mesh {path}: faceVertexIndices holds {indices.min()}: "
+                         f"expected indices >= 0")
+    if len(indices) and indices.max() >= point_count:
+        raise ValueError(f"{where}: mesh {path}: faceVertexIndices holds {indices.max()}, "
+                         f"past its {point_count} points")
     offsets = np.cumsum(counts) - counts
     keep = counts >= 3
     holes = np.array(mesh.GetHoleIndicesAttr().Get(time) or [], dtype=np.int64)
@@ -240,6 +259,39 @@ def _has_normals(mesh) -> bool:
     """Whether a mesh authors normals at all (attribute or primvar)."""
     primvar = UsdGeom.PrimvarsAPI(mesh).GetPrimvar("normals")
     return bool(primvar and primvar.HasAuthoredValue()) or mesh.GetNormalsAttr().HasAuthoredValue()
+
+def _bake_skinning(stage, start: float, end: float) -> bool:
+    """UsdSkel's own skinning of every skinned mesh of ``stage`` over time codes
+    ``start .. end``, written into the stage's session layer (in memory: the files are
+    never touched) as the points and transforms a DCC's baked export holds, which the
+    loader then reads like any other. A mesh whose points are time-sampled already holds
+    its skinning (baked by the export): its own points are kept. False when the stage has
+    no skeleton, or this USD build has no ``UsdSkelBakeSkinning`` or it fails (the rest
+    points then render, said)."""
+    try:
+        from pxr import UsdSkel
+    except ImportError:  # pragma: no cover - depends on the USD build
+        return False
+    if not hasattr(UsdSkel, "BakeSkinning") or not any(
+            prim.IsA(UsdSkel.Skeleton) for prim in stage.Traverse()):
+        return False
+    baked = [prim.GetPath() for prim in stage.Traverse() if prim.IsA(UsdGeom.Mesh)
+             and UsdGeom.Mesh(prim).GetPointsAttr().GetNumTimeSamples() > 1]
+    session = stage.GetSessionLayer()
+    target = stage.GetEditTarget()
+    stage.SetEditTarget(Usd.EditTarget(session))
+    try:
+        done = bool(UsdSkel.BakeSkinning(stage.Traverse(), Gf.Interval(start, end)))
+    except Tf.ErrorException:
+        done = False
+    finally:
+        stage.SetEditTarget(target)
+    with Sdf.ChangeBlock():
+        for path in baked:
+            spec = session.GetPrimAtPath(path)
+            if spec:
+                del session.GetPrimAtPath(path.GetParentPath()).nameChildren[path.name]
+    return done
 
 def _skel_binding():
     """``UsdSkel.BindingAPI`` (imported when a mesh is checked: UsdSkel is optional in

@@ -394,6 +394,7 @@ def write_shot_camera(path):
     _quad(stage, "/Q", [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)])
     UsdGeom.Camera.Define(stage, "/First").AddTranslateOp().Set(Gf.Vec3d(0, 0, 5))
     UsdGeom.Camera.Define(stage, "/Other").AddTranslateOp().Set(Gf.Vec3d(3, 1, 3))
+    UsdLux.DomeLight.Define(stage, "/Sky")
     stage.GetRootLayer().Save()
     return path
 

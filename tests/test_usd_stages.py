@@ -1,0 +1,223 @@
+"""What published USD stages hold and :mod:`hlbvh.scenes.usd` now reads as their
+authors meant: no light (a said default sky and sun, ``--no-default-light``), colour
+from a primvar reader, a textured emission, UsdSkel skinning (pxr's own baking; none
+over points already baked), a time range of ``endTimeCode`` alone."""
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pxr")
+
+import mitsuba as mi  # noqa: E402
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade, UsdSkel, Vt  # noqa: E402
+
+from cli_helpers import run_cli  # noqa: E402
+from hlbvh import cluster  # noqa: E402
+from hlbvh.options import SceneArgument, open_animation  # noqa: E402
+from hlbvh.scenes.usd import UsdScene  # noqa: E402
+from hlbvh.scenes.usd_lights import DEFAULT_LIGHTS  # noqa: E402
+
+
+def _stage(path, start=None, end=None, quad="/Quad"):
+    """A Y-up stage in metres with a quad (at prim path ``quad``) facing a camera at
+    z=4 (nothing lights it)."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    if start is not None:
+        stage.SetStartTimeCode(start)
+    if end is not None:
+        stage.SetEndTimeCode(end)
+    mesh = UsdGeom.Mesh.Define(stage, quad)
+    mesh.CreatePointsAttr([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)])
+    mesh.CreateFaceVertexCountsAttr([4])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    mesh.CreateSubdivisionSchemeAttr("none")
+    UsdGeom.Camera.Define(stage, "/Cam").AddTranslateOp().Set(Gf.Vec3d(0, 0, 4))
+    return stage
+
+
+def _render(animation, size=8, spp=4):
+    scene = mi.load_dict(animation.scene_dict(resolution=(size, size), spp=spp))
+    return np.array(mi.render(scene, seed=0))
+
+
+# ---- No light -------------------------------------------------------------------------
+
+
+def test_a_stage_without_light_is_said_and_lit_by_the_default_sky_and_sun(tmp_path, capsys):
+    path = tmp_path / "dark.usda"
+    stage = _stage(path)
+    stage.GetRootLayer().Save()
+    said = []
+    animation = UsdScene(path, warn=said.append)
+    assert [line for line in said if "light" in line] == [
+        f"stage {str(path)!r}: no UsdLux light; a default sky (radiance 0.3) and sun "
+        f"(irradiance 2, from above) light it, as a DCC's viewport does "
+        f"(--no-default-light: none)"]
+    description = animation.scene_dict(resolution=(8, 8), spp=1)
+    assert description["default_sky"] == DEFAULT_LIGHTS["default_sky"]
+    assert description["default_sun"] == DEFAULT_LIGHTS["default_sun"]
+    assert _render(animation)[4, 4, 0] > 0.1  # the grey quad is lit
+
+    said.clear()
+    dark = UsdScene(path, warn=said.append, default_light=False)
+    assert [line for line in said if "light" in line] == [
+        f"stage {str(path)!r}: no UsdLux light, and --no-default-light: only emitting "
+        f"materials light it"]
+    assert not np.any(_render(dark))
+
+    # The flag, through the command line, a resume's source and a cluster's spec.
+    scene = SceneArgument.of(str(path), None, default_light=False)
+    animation, source, _ = open_animation(scene, None, None, "0:1")
+    assert source["scene"].endswith(":default_light=false")
+    assert "default_sky" not in animation.scene_dict(resolution=(8, 8), spp=1)
+    assert cluster.SceneSpec.of(scene, None, None, range(0, 1)).scene.endswith(
+        ":default_light=false")
+    status, _, err = run_cli(capsys, "render", path, "--no-default-light", "--frames", "0:1",
+                             "--out", tmp_path / "out", "--resolution", "8", "--spp", "1",
+                             "--quiet")
+    assert status == 0 and any("--no-default-light: only emitting" in line for line in err)
+    status, _, err = run_cli(capsys, "render", "cloth", "--no-default-light",
+                             "--out", tmp_path / "cloth")
+    assert status == 2 and err == ["hlbvh render: --no-default-light is for USD stages "
+                                   "without lights; 'cloth' is not a USD stage"]
+
+
+def test_a_lit_stage_gets_no_default_light(tmp_path):
+    stage = _stage(tmp_path / "lit.usda")
+    UsdLux.DomeLight.Define(stage, "/Sky")
+    stage.GetRootLayer().Save()
+    said = []
+    description = UsdScene(tmp_path / "lit.usda", warn=said.append).scene_dict(
+        resolution=(8, 8), spp=1)
+    assert "default_sky" not in description and not any("UsdLux" in line for line in said)
+
+
+# ---- Materials --------------------------------------------------------------------------
+
+
+def _surface(stage):
+    material = UsdShade.Material.Define(stage, "/Looks/Look")
+    surface = UsdShade.Shader.Define(stage, "/Looks/Look/Surface")
+    surface.CreateIdAttr("UsdPreviewSurface")
+    material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
+    UsdShade.MaterialBindingAPI.Apply(stage.GetPrimAtPath("/Quad")).Bind(material)
+    return surface
+
+
+@pytest.mark.parametrize("per_vertex", [False, True])
+def test_diffuse_colour_from_a_primvar_reader_reads_the_primvar(tmp_path, per_vertex):
+    stage = _stage(tmp_path / "reader.usda")
+    UsdLux.DomeLight.Define(stage, "/Sky")
+    quad = UsdGeom.Mesh(stage.GetPrimAtPath("/Quad"))
+    colours = quad.CreateDisplayColorPrimvar(
+        UsdGeom.Tokens.vertex if per_vertex else UsdGeom.Tokens.constant)
+    colours.Set([(0.9, 0.1, 0.1)] * (4 if per_vertex else 1))
+    if per_vertex:
+        colours.Set([(0.9, 0.1, 0.1), (0.9, 0.1, 0.1), (0.1, 0.1, 0.9), (0.1, 0.1, 0.9)])
+    surface = _surface(stage)
+    reader = UsdShade.Shader.Define(stage, "/Looks/Look/Colour")
+    reader.CreateIdAttr("UsdPrimvarReader_float3")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("displayColor")
+    surface.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
+        reader.ConnectableAPI(), "result")
+    stage.GetRootLayer().Save()
+    said = []
+    animation = UsdScene(tmp_path / "reader.usda", warn=said.append)
+    assert not any("not read" in line or "Colour" in line for line in said), said
+    base = animation._meshes[0].bsdf["base_color"]
+    if per_vertex:
+        assert base == {"type": "mesh_attribute", "name": "vertex_color"}
+        image = _render(animation, size=16)
+        assert image[15, 8, 0] > 3 * image[15, 8, 2] and image[0, 8, 2] > 3 * image[0, 8, 0]
+    else:
+        assert base == {"type": "rgb", "value": pytest.approx([0.9, 0.1, 0.1])}
+
+
+def test_a_textured_emission_reads_its_texture_and_no_authored_white(tmp_path):
+    texture = tmp_path / "glow.exr"
+    pixels = np.zeros((4, 4, 3), dtype=np.float32)
+    pixels[..., 0] = 2.0  # red light
+    mi.Bitmap(pixels).write(str(texture))
+    stage = _stage(tmp_path / "glow.usda")
+    UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/Quad")).CreatePrimvar(
+        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex).Set(
+        [(0, 0), (1, 0), (1, 1), (0, 1)])
+    surface = _surface(stage)
+    image = UsdShade.Shader.Define(stage, "/Looks/Look/Glow")
+    image.CreateIdAttr("UsdUVTexture")
+    image.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(Sdf.AssetPath(str(texture)))
+    surface.CreateInput("emissiveColor", Sdf.ValueTypeNames.Color3f).Set((1, 1, 1))
+    surface.GetInput("emissiveColor").ConnectToSource(image.ConnectableAPI(), "rgb")
+    stage.GetRootLayer().Save()
+    said = []
+    animation = UsdScene(tmp_path / "glow.usda", warn=said.append, default_light=False)
+    assert not any("not read" in line for line in said), said
+    assert animation._meshes[0].emission["filename"] == str(texture)
+    centre = _render(animation)[4, 4]
+    assert centre[0] == pytest.approx(2.0, rel=1e-3) and centre[1] == centre[2] == 0
+
+
+# ---- Skinning -----------------------------------------------------------------------------
+
+
+def _skinned(path, baked_points):
+    """A stage in metres, time codes 0..2: a quad bound to a one-joint skeleton whose
+    animation moves it +x by the time code; with ``baked_points`` the quad's points are
+    time-sampled (the skinning baked into them by the export, binding kept)."""
+    stage = _stage(path, 0, 2, quad="/Char/Body")
+    UsdSkel.Root.Define(stage, "/Char")
+    skeleton = UsdSkel.Skeleton.Define(stage, "/Char/Skel")
+    skeleton.CreateJointsAttr(["root"])
+    skeleton.CreateBindTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1)]))
+    skeleton.CreateRestTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1)]))
+    animation = UsdSkel.Animation.Define(stage, "/Char/Skel/Walk")
+    animation.CreateJointsAttr(["root"])
+    for t in range(3):
+        animation.CreateTranslationsAttr().Set(Vt.Vec3fArray([Gf.Vec3f(t, 0, 0)]), t)
+    animation.CreateRotationsAttr().Set(Vt.QuatfArray([Gf.Quatf(1)]))
+    animation.CreateScalesAttr().Set(Vt.Vec3hArray([Gf.Vec3h(1, 1, 1)]))
+    UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets(
+        [animation.GetPath()])
+    body = UsdGeom.Mesh(stage.GetPrimAtPath("/Char/Body"))
+    if baked_points:
+        corners = [(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)]
+        for t in range(3):
+            body.GetPointsAttr().Set([(x + t, y, z) for x, y, z in corners], t)
+    binding = UsdSkel.BindingAPI.Apply(body.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
+    binding.CreateJointIndicesPrimvar(True, 1).Set([0])
+    binding.CreateJointWeightsPrimvar(True, 1).Set([1.0])
+    binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1))
+    stage.GetRootLayer().Save()
+    return path
+
+
+@pytest.mark.parametrize("baked_points", [False, True])
+def test_skinning_is_pxr_s_and_baked_points_are_not_warned(tmp_path, baked_points):
+    path = _skinned(tmp_path / "char.usda", baked_points)
+    before = path.read_bytes()
+    said = []
+    animation = UsdScene(path, warn=said.append)
+    assert not any("skinning is not" in line or "rest" in line for line in said), said
+    assert path.read_bytes() == before  # the file is never written
+    (body,) = [i for i, p in animation.prim_paths().items() if p == "/Char/Body"]
+    for t in range(3):
+        corners = animation.world_triangles(t)[body].reshape(-1, 3)
+        assert corners[:, 0].min() == pytest.approx(-1 + t) and \
+            corners[:, 0].max() == pytest.approx(1 + t), (t, corners)
+
+
+# ---- Time codes ---------------------------------------------------------------------------
+
+
+def test_time_codes_are_pxr_s_with_start_or_end_authored_alone(tmp_path):
+    stage = _stage(tmp_path / "end.usda", end=100)
+    stage.GetRootLayer().Save()
+    animation = UsdScene(tmp_path / "end.usda", warn=lambda line: None)
+    assert animation.frame_count == 101 and animation.time_code(100) == 100
+    stage = _stage(tmp_path / "start.usda", start=5)
+    stage.GetRootLayer().Save()
+    animation = UsdScene(tmp_path / "start.usda", warn=lambda line: None)
+    assert animation.frame_count == 1 and animation.time_code(0) == 5
