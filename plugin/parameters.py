@@ -12,25 +12,42 @@ parameters (bounds, normals, sampling tables); our accelerators follow on their 
 update (an hlbvh integrator updates its own at the start of every render), rebuilding
 or refitting only what moved.
 
-The scene's own accelerator is then out of date: render such a scene only with our
-integrators and ``accel="hlbvh"`` (``accel="native"`` and Mitsuba's C++ integrators
-query it), or call ``mi.traverse(scene).update()`` after a change of an emitter or
-sensor that needs the scene.
+Mitsuba's own accelerator is then out of date, so the rebuild is skipped only where
+nothing queries it: when the scene's integrator is one of ours with ``accel="hlbvh"``.
+A scene whose integrator traces through Mitsuba's accelerator (Mitsuba's C++ ``path``,
+``volpath``, ``ptracer``, a wrapper such as ``moment``, or ours with
+``accel="native"``) is updated as ``mi.traverse`` updates it, rebuild included, with
+one warning saying so: its images are never rendered from old geometry. A scene
+without an integrator is taken to be traced through our accelerator (a
+:class:`hlbvh.SceneAccel` of the caller's); a render that passes another integrator
+than the scene's (``mi.render(scene, integrator=...)``) must use ``mi.traverse``. Call ``mi.traverse(scene).update()``
+after a change of an emitter or sensor that needs the scene.
 """
 
 from __future__ import annotations
+
+import warnings
 
 import mitsuba as mi
 
 
 class ShapeParameters(mi.SceneParameters):
-    """``mi.SceneParameters`` whose ``update()`` never notifies the scene itself (see
-    the module docstring); made by :func:`traverse`."""
+    """``mi.SceneParameters`` whose ``update()`` does not notify the scene itself when
+    the scene's integrator traces through our accelerator (see the module docstring);
+    made by :func:`traverse`.
+
+    Attributes:
+        skips_rebuild: whether ``update()`` skips the scene's own rebuild.
+    """
+
+    skips_rebuild = True
 
     def set_dirty(self, key: str):
         """Mark ``key``'s object and its parents for the next ``update()``, the scene
-        (the root, depth 0) excepted."""
+        (the root, depth 0) excepted when :attr:`skips_rebuild`."""
         entry = super().set_dirty(key)
+        if not self.skips_rebuild:
+            return entry
         node = self.properties[key][2]
         while node is not None:  # up to the root: a walk of the key's depth, per write
             parent, depth = self.hierarchy[node]
@@ -63,4 +80,16 @@ def traverse(scene: mi.Scene) -> ShapeParameters:
     if not isinstance(scene, mi.Scene):
         raise TypeError(f"scene: expected a loaded mi.Scene, got {type(scene).__name__}")
     params = mi.traverse(scene)
-    return ShapeParameters(params.properties, params.hierarchy)
+    shape_params = ShapeParameters(params.properties, params.hierarchy)
+    integrator = scene.integrator()
+    if integrator is not None and getattr(integrator, "accel_name", None) != "hlbvh":
+        shape_params.skips_rebuild = False
+        name = getattr(integrator, "accel_name", None)
+        what = (f"{integrator.class_name()} with accel={name!r}" if name
+                else f"integrator {integrator.class_name()!r}")
+        warnings.warn(
+            f"hlbvh.traverse: the scene's {what} traces through Mitsuba's own "
+            "accelerator, so update() rebuilds it as mi.traverse's does (no time saved); "
+            "an hlbvh integrator with accel='hlbvh' skips that rebuild",
+            stacklevel=2)
+    return shape_params

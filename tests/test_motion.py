@@ -34,7 +34,7 @@ def _l_plate() -> mi.Mesh:
 
 
 def _scene_dict(to_world=None) -> dict:
-    d = {"type": "scene",
+    d = {"type": "scene", "integrator": {"type": "hlbvh_path"},
          "group": {"type": "shapegroup", "plate": _l_plate()},
          "inst": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"}},
          "floor": {"type": "rectangle", "to_world": T().translate([0, 0, -2]).scale(4)}}
@@ -153,3 +153,64 @@ def test04_a_sphere_whose_radius_is_written_in_place_is_seen():
     accel.update()
     t1 = accel.ray_intersect_preliminary(ray).t[0]
     assert abs(t0 - 4.5) < 1e-5 and abs(t1 - 4.75) < 1e-5
+
+
+def _cloth_scene(integrator: dict) -> dict:
+    from meshes import grid
+
+    v, f = grid(12)
+    mesh = mi.Mesh("cloth", len(v), len(f))
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(v.ravel())
+    params["faces"] = mi.UInt32(f.ravel())
+    params.update()
+    return {"type": "scene", "integrator": integrator, "cloth": mesh,
+            "light": {"type": "constant"},
+            "sensor": {"type": "perspective", "fov": 50,
+                       "to_world": T().look_at([0.5, 0.5, 2], [0.5, 0.5, 0], [0, 1, 0]),
+                       "film": {"type": "hdrfilm", "width": 24, "height": 24,
+                                "rfilter": {"type": "box"}},
+                       "sampler": {"type": "independent", "sample_count": 2}}}
+
+
+def _lift(params):
+    positions = np.array(params["cloth.vertex_positions"]).reshape(-1, 3)
+    positions[:, 2] += 0.3 * positions[:, 0]  # tilt the cloth
+    params["cloth.vertex_positions"] = mi.Float(positions.ravel())
+    params.update()
+
+
+@pytest.mark.parametrize("integrator", [{"type": "path"}, {"type": "direct"},
+                                        {"type": "hlbvh_path", "accel": "native"}],
+                         ids=["path", "direct", "hlbvh_path-native"])
+def test05_mitsubas_accelerator_is_brought_up_to_date_for_integrators_that_query_it(integrator):
+    """A scene whose integrator traces through Mitsuba's own accelerator, animated with
+    hlbvh.traverse, renders what a scene loaded with the new geometry renders (one
+    warning says the rebuild is not skipped)."""
+    scene = mi.load_dict(_cloth_scene(integrator))
+    with pytest.warns(UserWarning, match="traces through Mitsuba's own accelerator"):
+        params = hlbvh.traverse(scene)
+    _lift(params)
+    image = np.array(mi.render(scene, seed=3))
+    fresh = mi.load_dict(_cloth_scene(integrator))
+    _lift(mi.traverse(fresh))
+    np.testing.assert_array_equal(image, np.array(mi.render(fresh, seed=3)))
+
+
+def test06_our_integrator_with_our_accelerator_skips_mitsubas_rebuild():
+    """With hlbvh_path (accel="hlbvh") the scene's own accelerator is left as it was
+    (the point of hlbvh.traverse), while our render follows the new geometry."""
+    import warnings
+
+    scene = mi.load_dict(_cloth_scene({"type": "hlbvh_path"}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        params = hlbvh.traverse(scene)
+    ray = mi.Ray3f(mi.Point3f(0.9, 0.5, 2), mi.Vector3f(0, 0, -1))
+    before = scene.ray_intersect_preliminary(ray).t[0]
+    _lift(params)
+    assert scene.ray_intersect_preliminary(ray).t[0] == before  # Mitsuba's: not rebuilt
+    image = np.array(mi.render(scene, seed=3))
+    fresh = mi.load_dict(_cloth_scene({"type": "hlbvh_path"}))
+    _lift(mi.traverse(fresh))
+    np.testing.assert_array_equal(image, np.array(mi.render(fresh, seed=3)))
