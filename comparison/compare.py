@@ -141,6 +141,8 @@ def compare_animation(animation, frames, out_dir, settings: RenderSettings,
                                for accel in ACCELS))
         rows.append(_frame_row(i, stats["native"][i], stats["hlbvh"][i],
                                image_metrics(native, ours, tolerance), hits))
+        # Two black images are equal whatever the accelerators did: said by the verdict.
+        rows[-1]["black"] = not (native.any() or ours.any())
 
     # ---- Difference maps, one scale for every frame ----
     scale = max((row["image"]["max_abs_diff"] for row in rows), default=0.0) or 1.0
@@ -203,14 +205,17 @@ def _frame_row(i: int, native: dict, ours: dict, image: dict, hits: dict) -> dic
 def verdict(rows: list[dict], tolerance: float) -> str:
     """The paragraph the report opens with: frame time of each accelerator (median over
     the frames), the median build speedup, whether the images are equal to native's
-    within ``tolerance`` on every frame, and how often the camera rays hit the same
-    primitive first."""
+    within ``tolerance`` on every frame (or both black on every frame, which tells
+    nothing), and how often the camera rays hit the same primitive first."""
     image = [row["image"] for row in rows]
     ours = statistics.median(row["frame_ms"]["hlbvh"] for row in rows)
     native = statistics.median(row["frame_ms"]["native"] for row in rows)
     faster = f"{native / ours:.2f}x faster" if ours <= native else f"{ours / native:.2f}x slower"
     outside = [m["outside_tolerance_pixels"] for m in image]
-    images = (f"every pixel of every frame equals native's within {tolerance:g} per channel"
+    images = ("both accelerators' images are black on every frame (nothing lights the "
+              "scene), so their agreement says nothing about hlbvh"
+              if all(row.get("black") for row in rows) else
+              f"every pixel of every frame equals native's within {tolerance:g} per channel"
               if not any(outside) else
               f"equal to native's within {tolerance:g} per channel but for {sum(outside)} "
               f"pixels over the {len(rows)} frames (at most {max(outside)} in a frame, at "

@@ -221,3 +221,18 @@ def test_time_codes_are_pxr_s_with_start_or_end_authored_alone(tmp_path):
     stage.GetRootLayer().Save()
     animation = UsdScene(tmp_path / "start.usda", warn=lambda line: None)
     assert animation.frame_count == 1 and animation.time_code(0) == 5
+
+
+def test_compare_says_when_both_images_are_black(tmp_path, capsys):
+    path = tmp_path / "dark.usda"
+    stage = _stage(path)
+    stage.GetRootLayer().Save()
+    status, out, _ = run_cli(capsys, "compare", path, "--no-default-light", "--frames", "0:1",
+                             "--out", tmp_path / "out", "--resolution", "8", "--spp", "1",
+                             "--quiet")
+    assert status == 0 and "Images: both accelerators' images are black on every frame " \
+        "(nothing lights the scene), so their agreement says nothing about hlbvh;" in out, out
+    status, out, _ = run_cli(capsys, "compare", path, "--frames", "0:1",
+                             "--out", tmp_path / "lit", "--resolution", "8", "--spp", "1",
+                             "--quiet")
+    assert status == 0 and "black" not in out and "equals native's" in out, out
