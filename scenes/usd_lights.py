@@ -9,7 +9,7 @@ import mitsuba as mi
 import numpy as np
 
 from .usd_prims import (Sdf, UsdLux, _FLIP_Z, _checked, _dome_pole, _matrix, _transform_varies,
-                        _unreadable_image)
+                        _local_asset, _unreadable_image)
 
 #: The largest radiance Mitsuba's single-precision emitters hold.
 _LARGEST = float(np.finfo(np.float32).max)
@@ -124,7 +124,11 @@ class _Lights:
             layout = dome.GetTextureFormatAttr().Get(time)
             latlong = layout in (None, UsdLux.Tokens.automatic, UsdLux.Tokens.latlong)
             resolved = texture.resolvedPath if texture is not None else ""
-            problem = _unreadable_image(resolved) if latlong and resolved else None
+            filename = _local_asset(resolved) if resolved and latlong else None
+            problem = None
+            if resolved and latlong:
+                problem = ("cannot be read from its package" if filename is None
+                           else _unreadable_image(filename))
             if resolved and latlong and problem is None:
                 if not np.allclose(color, 1.0):
                     self._warn(f"{self._where}: {path}: a textured dome's colour is "
@@ -134,7 +138,7 @@ class _Lights:
                 # pole differs, for DomeLight_1 whose poleAxis is the stage's Z up axis.
                 to_world = np.eye(4)
                 to_world[:3, :3] = rotation @ _dome_pole(dome, kind, self.stage)
-                self._lights[key] = {"type": "envmap", "filename": texture.resolvedPath,
+                self._lights[key] = {"type": "envmap", "filename": filename,
                                      "scale": power,
                                      "to_world": mi.ScalarTransform4f(to_world.tolist())}
             else:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import hashlib
 import os
 import re
 import sys
@@ -20,7 +21,7 @@ import numpy as np
 from .normals import vertex_normals
 
 try:
-    from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade  # noqa: F401
+    from pxr import Ar, Gf, Sdf, Tf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade  # noqa: F401
 except ImportError as _error:  # pragma: no cover - depends on the installation
     raise ImportError(f"USD stages need Pixar's pxr module ({_error}): "
                       f"pip install 'hlbvh[usd]'") from None
@@ -330,9 +331,9 @@ def _uv_texture(texture, time) -> tuple:
         return None, None, "has no file"
     if not asset.resolvedPath:
         return None, None, f"{asset.path!r} does not resolve"
-    if "[" in asset.resolvedPath:
-        return None, None, f"{asset.path!r} is inside a .usdz package"
-    problem = _unreadable_image(asset.resolvedPath)
+    filename = _local_asset(asset.resolvedPath)
+    problem = "cannot be read from its package" if filename is None \
+        else _unreadable_image(filename)
     if problem is not None:
         return None, None, f"{asset.path!r} {problem}"
     name = "st"
@@ -341,7 +342,7 @@ def _uv_texture(texture, time) -> tuple:
         name = str(reader.GetInput("varname").Get(time) or "st")
     wrap = texture.GetInput("wrapS")
     wrap = str(wrap.Get(time)) if wrap and wrap.Get(time) else "useMetadata"
-    return {"type": "bitmap", "filename": asset.resolvedPath,
+    return {"type": "bitmap", "filename": filename,
             "wrap_mode": _WRAPS.get(wrap, "repeat")}, name, None
 
 @functools.lru_cache(maxsize=256)
@@ -368,6 +369,29 @@ def _unreadable_image(path: str) -> str | None:
         return "cannot be read"
     return _image_problem(path, (stat.st_size, stat.st_mtime_ns))
 
+
+def _local_asset(resolved: str) -> str | None:
+    """A file Mitsuba can open holding the asset pxr resolved to ``resolved``: the file
+    itself, or, for an asset inside a .usdz package (``shot.usdz[0/map.png]``, however
+    the converter laid the package out), its bytes read through pxr's resolver and
+    written once to ``hlbvh-usdz/<their SHA-256>/<its name>`` in the temporary folder (a
+    path that depends on the bytes alone, so resume digests and cluster workers agree).
+    ``None`` when pxr cannot open it."""
+    if not Ar.IsPackageRelativePath(resolved):
+        return resolved
+    asset = Ar.GetResolver().OpenAsset(Ar.ResolvedPath(resolved))
+    if asset is None:
+        return None
+    data = bytes(asset.GetBuffer())
+    inner = Ar.SplitPackageRelativePathInner(resolved)[1]
+    folder = Path(tempfile.gettempdir()) / "hlbvh-usdz" / hashlib.sha256(data).hexdigest()
+    target = folder / Path(inner).name
+    if not target.is_file():
+        folder.mkdir(parents=True, exist_ok=True)
+        partial = folder / f".{target.name}.{os.getpid()}"
+        partial.write_bytes(data)
+        os.replace(partial, target)
+    return str(target)
 
 def _filenames(description: dict) -> list[str]:
     """Every ``filename`` a Mitsuba description dict names, nested ones included."""

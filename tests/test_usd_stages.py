@@ -12,8 +12,8 @@ import mitsuba as mi  # noqa: E402
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade, UsdSkel, Vt  # noqa: E402
 
 from cli_helpers import run_cli  # noqa: E402
-from hlbvh import cluster  # noqa: E402
-from hlbvh.options import SceneArgument, open_animation  # noqa: E402
+from hlbvh.render import cluster  # noqa: E402
+from hlbvh.cli.options import SceneArgument, open_animation  # noqa: E402
 from hlbvh.scenes.usd import UsdScene  # noqa: E402
 from hlbvh.scenes.usd_lights import DEFAULT_LIGHTS  # noqa: E402
 
@@ -236,3 +236,45 @@ def test_compare_says_when_both_images_are_black(tmp_path, capsys):
                              "--out", tmp_path / "lit", "--resolution", "8", "--spp", "1",
                              "--quiet")
     assert status == 0 and "black" not in out and "equals native's" in out, out
+
+
+# ---- .usdz packages -----------------------------------------------------------------------
+
+
+def test_a_usdz_package_s_textures_are_read_through_pxr_s_resolver(tmp_path):
+    """A binary layer whose map sits under ``0/`` in the package (as glTF converters
+    lay them out), packaged, then referenced from a layer that adds a light."""
+    from pxr import UsdUtils
+    source = tmp_path / "src"
+    (source / "0").mkdir(parents=True)
+    pixels = np.zeros((4, 4, 3), dtype=np.float32)
+    pixels[..., 0] = 1.0  # red
+    mi.Bitmap(pixels).write(str(source / "0" / "map.exr"))
+    stage = _stage(source / "cube.usdc")
+    UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/Quad")).CreatePrimvar(
+        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex).Set(
+        [(0, 0), (1, 0), (1, 1), (0, 1)])
+    stage.SetDefaultPrim(stage.GetPrimAtPath("/Quad"))
+    surface = _surface(stage)
+    image = UsdShade.Shader.Define(stage, "/Looks/Look/Map")
+    image.CreateIdAttr("UsdUVTexture")
+    image.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(Sdf.AssetPath("./0/map.exr"))
+    surface.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
+        image.ConnectableAPI(), "rgb")
+    stage.GetRootLayer().Save()
+    package = tmp_path / "cube.usdz"
+    assert UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(source / "cube.usdc")), str(package))
+    shot = Usd.Stage.CreateNew(str(tmp_path / "shot.usda"))
+    shot.GetRootLayer().subLayerPaths.append("./cube.usdz")
+    UsdLux.DomeLight.Define(shot, "/Sky")
+    shot.GetRootLayer().Save()
+    for path in (package, tmp_path / "shot.usda"):
+        said = []
+        animation = UsdScene(path, warn=said.append)
+        assert not any("'s texture" in line or "not read" in line for line in said), said
+        bitmap = animation._meshes[0].bsdf["base_color"]
+        assert bitmap["type"] == "bitmap" and bitmap["filename"].endswith("map.exr")
+        centre = _render(animation)[4, 4]
+        assert centre[0] > 5 * max(centre[1], centre[2])  # the red map, under specular
+        digest = animation.source_digest()
+        assert UsdScene(path, warn=said.append).source_digest() == digest  # resumes agree
