@@ -59,6 +59,9 @@ name           what moves                                                      s
 ``world``      the ``cloth`` flag (``flag_triangles``: 1/11) over rolling     pole, terrain
                hills (``triangles=1_100_000`` in all): a moving object in a
                static world
+``fog``        the ``world`` flag inside a box of fog (``density=0.12``, a         pole, terrain
+               homogeneous medium behind a null interface; ``triangles=200_000``;
+               its integrator ``volpath``)
 ``flock``      ``birds=10_000`` instances of one bird (``bird_triangles=300``)  terrain
                circling over the hills (``triangles=500_000``): rigid motion,
                transforms only (see :class:`Flock` for native references)
@@ -90,6 +93,7 @@ from __future__ import annotations
 from .animated import AnimatedScene, FrameGeometry, apply_frame
 from .cloth import Cloth
 from .flock import Flock
+from .fog import Fog
 from .fracture import Fracture
 from .procedural import ProceduralScene
 from .rigid import Rigid
@@ -98,7 +102,7 @@ from .soup import Soup
 from .twist import Twist
 from .world import World
 
-_PROCEDURAL = {cls.name: cls for cls in (Cloth, Twist, Fracture, Rigid, Soup, World, Flock)}
+_PROCEDURAL = {cls.name: cls for cls in (Cloth, Twist, Fracture, Rigid, Soup, World, Flock, Fog)}
 
 
 def names() -> list[str]:

@@ -147,3 +147,39 @@ def test05_spectral_variant_bit_identical():
     done = subprocess.run([sys.executable, "-c", SPECTRAL_SCRIPT.format(tests=tests)],
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-3000:]
+
+
+def test06_fog_scene_moving_flag_in_a_medium():
+    """The ``fog`` scene (the world flag inside a homogeneous medium): its own
+    integrator is volpath, which hlbvh_volpath(native) equals bit for bit; frame 3
+    applied (the flag moved inside the medium), accel="hlbvh" stays within test03's
+    tolerances of native."""
+    from hlbvh import scenes
+    animation = scenes.get("fog", triangles=4000)
+    assert animation.integrator_description()["type"] == "volpath"
+    scene = mi.load_dict(animation.scene_dict(resolution=(24, 16), spp=2))
+    reference = np.array(mi.render(scene, seed=2))
+    native = render(scene, dict(type="hlbvh_volpath", accel="native", max_depth=8), seed=2)
+    np.testing.assert_array_equal(native, reference)
+    ours = mi.load_dict(dict(type="hlbvh_volpath", max_depth=8, moving="flag"))
+    params = mi.traverse(scene)
+    scenes.apply_frame(scene, params, animation.frame(3))
+    native = render(scene, dict(type="hlbvh_volpath", accel="native", max_depth=8), seed=2)
+    moved = np.array(mi.render(scene, integrator=ours, seed=2))
+    diff = np.abs(moved - native)
+    assert (diff > 5e-4 + 1e-4 * np.abs(native)).any(axis=-1).sum() <= 1
+    assert diff.mean() < 1e-5 and native.mean() > 0.01
+
+
+@pytest.mark.parametrize("kind, choice", [("direct", "direct"), ("volpath", "volpath"),
+                                          ("hlbvh_volpath", "volpath")])
+def test07_scene_integrators_run_as_ours(kind, choice):
+    """``hlbvh render`` maps a scene's direct/volpath to ours with its properties."""
+    from hlbvh.render.settings import RenderSettings, scene_integrator_fields
+    props = dict(max_depth=5) if choice == "volpath" else dict(emitter_samples=2)
+    fields = scene_integrator_fields(dict(type=kind, **props))
+    settings = RenderSettings(**fields)
+    description = settings.integrator_dict()
+    assert description["type"] == f"hlbvh_{choice}"
+    assert {k: description[k] for k in props} == props
+    mi.load_dict(description)  # a valid integrator
