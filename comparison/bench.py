@@ -14,7 +14,7 @@ import json
 
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BUILDERS
-from hlbvh.options import int_flag
+from hlbvh.cli.options import int_flag
 
 _SUITES = {
     "build": "hlbvh.comparison.bench_build",

@@ -22,14 +22,14 @@ In a scene whose motion is instances' transforms (``flock``, ``rigid:instanced=t
 the instances' two-level update instead: their world boxes and the top level over them
 built fresh, seeded, or frame 0's top level refit (the groups' BVHs are built once);
 ``instances`` counts them, and a scene with more instances than Mitsuba's renderer
-takes (:data:`hlbvh.frame.MOST_NATIVE_INSTANCES`) has hlbvh rows alone, native shown
+takes (:data:`hlbvh.render.frame.MOST_NATIVE_INSTANCES`) has hlbvh rows alone, native shown
 as refused.
 
 ``cold`` is frame 0's build (the first of the scene in the process: kernels compiled
 unless Dr.Jit's disk cache holds them); ``min``/``median`` are over frames ``1 ..``.
 
 **Frame time** at ``resolution``² and each ``spp``, through
-:class:`hlbvh.frame.FrameRenderer` (what ``hlbvh render`` does), ``repeats + 1``
+:class:`hlbvh.render.frame.FrameRenderer` (what ``hlbvh render`` does), ``repeats + 1``
 consecutive frames per spp, every frame a new pose, the two accelerators taking turns
 frame by frame (both see the same machine load):
 
@@ -67,15 +67,15 @@ import numpy as np
 import hlbvh
 from hlbvh.comparison.crossover import crossover_spp, describe
 from hlbvh.errors import UserError
-from hlbvh.instance_group import group_of
-from hlbvh.instance_shading import group_members, is_instance
+from hlbvh.accel.instance_group import group_of
+from hlbvh.accel.instance_shading import group_members, is_instance
 from hlbvh.kernels.instances import refit_top_level, two_level
-from hlbvh.native_group import shape_groups
-from hlbvh.scene_geometry import collect_geometry
+from hlbvh.accel.native_group import shape_groups
+from hlbvh.accel.scene_geometry import collect_geometry
 from hlbvh.scenes import get as get_scene, parse as parse_scene
-from hlbvh.frame import FrameRenderer
-from hlbvh.policy import UpdatePolicy
-from hlbvh.settings import RenderSettings
+from hlbvh.render.frame import FrameRenderer
+from hlbvh.accel.policy import UpdatePolicy
+from hlbvh.render.settings import RenderSettings
 from hlbvh.timing import timed
 
 #: The accelerator's default per-frame policy, which the hlbvh frames run under.

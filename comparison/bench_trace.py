@@ -171,7 +171,7 @@ def _step_profile(bvh, ray, any_hit: bool) -> dict:
 def _scene_triangles(scene):
     """All mesh triangles of ``scene`` in one buffer, with each triangle's shape and
     local primitive index (for comparing primitives with the native result)."""
-    from hlbvh.scene_geometry import collect_geometry
+    from hlbvh.accel.scene_geometry import collect_geometry
 
     g = collect_geometry(scene.shapes())
     return g.vertices, g.faces, g.prim_shape, g.prim_local

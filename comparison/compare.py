@@ -10,7 +10,7 @@ Usage::
 
 ``SCENE``, ``--frames``, ``--resolution``, ``--spp``, ``--triangles``, the builder
 options, ``--update``, ``--max-depth`` and ``--seed`` mean what they mean for
-``hlbvh render`` (see :mod:`hlbvh.render`), which does the rendering.
+``hlbvh render`` (see :mod:`hlbvh.render.animation`), which does the rendering.
 
 What is rendered
 ----------------
@@ -65,16 +65,16 @@ from pathlib import Path
 import drjit as dr
 import mitsuba as mi
 
-from hlbvh import images
-from hlbvh.policy import UpdatePolicy
+from hlbvh.render import images
+from hlbvh.accel.policy import UpdatePolicy
 from hlbvh.comparison import plots, report
 from hlbvh.comparison.metrics import hit_agreement, image_metrics
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BuildConfig
-from hlbvh.options import add_scene_options, open_animation, out_flag, render_settings
-from hlbvh.output import frame_name, output_directory
-from hlbvh.render import render_animation
-from hlbvh.settings import RenderSettings, check_seed
+from hlbvh.cli.options import add_scene_options, open_animation, out_flag, render_settings
+from hlbvh.render.output import frame_name, output_directory
+from hlbvh.render.animation import render_animation
+from hlbvh.render.settings import RenderSettings, check_seed
 
 #: Largest absolute per-channel difference of a pixel still counted as equal to native:
 #: the absolute part of tests/test_integrators.py::test11's tolerance, several times the

@@ -26,7 +26,7 @@ import numbers
 
 import numpy as np
 
-from hlbvh.images import as_image
+from hlbvh.render.images import as_image
 
 
 def image_metrics(reference, test, tolerance: float, peak: float | None = None) -> dict:

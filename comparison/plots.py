@@ -21,7 +21,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FormatStrFormatter, MaxNLocator
 
 from hlbvh.comparison.crossover import crossover_spp, describe
-from hlbvh.images import atomic_output
+from hlbvh.render.images import atomic_output
 
 _NATIVE_STYLE = {"color": "black", "linestyle": "--", "marker": "s"}
 

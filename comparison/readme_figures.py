@@ -38,9 +38,9 @@ import mitsuba as mi
 from hlbvh.comparison import bench_build, bench_frame, bench_trace, sweep
 from hlbvh.comparison.machine import cpu_model
 from hlbvh.comparison.tables import flatten, markdown_table, read_results, to_json
-from hlbvh.images import atomic_output
-from hlbvh.options import open_animation
-from hlbvh.settings import RenderSettings
+from hlbvh.render.images import atomic_output
+from hlbvh.cli.options import open_animation
+from hlbvh.render.settings import RenderSettings
 
 #: What the README's figures are measured on (each overridable on the command line).
 SIZES = {

@@ -30,7 +30,7 @@ from pathlib import Path
 
 from hlbvh.comparison.tables import (column_keys, column_title, csv_value, flatten, format_value,
                                     is_number, markdown_table, to_json)
-from hlbvh.images import atomic_output
+from hlbvh.render.images import atomic_output
 
 #: Image formats a browser shows; EXR is not one of them.
 BROWSER_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".gif", ".webp", ".svg")

@@ -28,7 +28,7 @@ accelerator) is always measured, as the reference.
 
 What is measured
 ----------------
-Every setting gets its own loaded scene and :class:`hlbvh.frame.FrameRenderer`
+Every setting gets its own loaded scene and :class:`hlbvh.render.frame.FrameRenderer`
 (``hlbvh_path``, the same seed per frame for all). First a cold start: every setting
 renders the first two frames of ``--frames`` once, untimed (the first compiles the
 kernels Dr.Jit's disk cache does not hold, the second is the first update, which
@@ -78,17 +78,17 @@ import mitsuba as mi
 from hlbvh.comparison import plots, report
 from hlbvh.comparison.machine import cpu_model
 from hlbvh.comparison.bench_trace import primary_rays, secondary_rays
-from hlbvh.policy import BUILD_OPTIONS, UPDATES
+from hlbvh.accel.policy import BUILD_OPTIONS, UPDATES
 from hlbvh.comparison.compare import TOLERANCE
 from hlbvh.comparison.crossover import crossover_spp
 from hlbvh.comparison.metrics import image_metrics
 from hlbvh.errors import UserError
-from hlbvh.frame import FrameRenderer
-from hlbvh.images import as_image
-from hlbvh.options import (add_scene_options, int_flag, open_animation, option_value, out_flag,
+from hlbvh.render.frame import FrameRenderer
+from hlbvh.render.images import as_image
+from hlbvh.cli.options import (add_scene_options, int_flag, open_animation, option_value, out_flag,
                            render_settings)
-from hlbvh.output import output_directory
-from hlbvh.settings import RenderSettings, check_seed
+from hlbvh.render.output import output_directory
+from hlbvh.render.settings import RenderSettings, check_seed
 from hlbvh.timing import timed
 
 #: The default grid: each setting varies one knob of the defaults (builder options, and

@@ -21,8 +21,7 @@ if _mi.variant() is None:
 
 from hlbvh.kernels.build import build  # noqa: E402
 from hlbvh.kernels.bvh import BVH, BuildConfig, BuildStats  # noqa: E402
-from hlbvh.accel import NativeAccel, SceneAccel, make_accel  # noqa: E402
-from hlbvh.parameters import ShapeParameters, traverse  # noqa: E402
+from hlbvh.accel import NativeAccel, SceneAccel, ShapeParameters, make_accel, traverse  # noqa: E402
 from hlbvh.integrators import register  # noqa: E402
 
 register()

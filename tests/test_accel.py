@@ -8,7 +8,7 @@ import hlbvh
 import mitsuba as mi
 import numpy as np
 import pytest
-from hlbvh.scene_geometry import collect_geometry
+from hlbvh.accel.scene_geometry import collect_geometry
 from meshes import empty_mesh_loads
 
 T = mi.ScalarTransform4f

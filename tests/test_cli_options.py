@@ -12,7 +12,8 @@ import pytest
 
 import hlbvh  # noqa: F401  (sets up Dr.Jit's LLVM and the variant)
 from cli_helpers import read_stats, run_cli
-from hlbvh import images, mesh_group
+from hlbvh.render import images
+from hlbvh.accel import mesh_group
 
 SMALL = ["--triangles", "1500", "--resolution", "16", "--spp", "1", "--quiet"]
 

@@ -17,8 +17,10 @@ import pytest
 distributed = pytest.importorskip("distributed")
 
 from cli_helpers import read_stats, write_twist_scene  # noqa: E402
-from hlbvh import cli, cluster, images  # noqa: E402
-from hlbvh.frame import STATS_FIELDS  # noqa: E402
+from hlbvh import cli  # noqa: E402
+from hlbvh.render import cluster  # noqa: E402
+from hlbvh.render import images  # noqa: E402
+from hlbvh.render.frame import STATS_FIELDS  # noqa: E402
 
 TINY = ["--resolution", "16", "--spp", "1", "--quiet"]
 CLOTH = ["cloth", "--triangles", "300", *TINY]
@@ -98,7 +100,7 @@ def test02_mesh_sequence_on_a_scheduler_equals_one_process(tmp_path, scheduler):
 # frame is still inside the chunk when it is killed. The images do not change.
 _SLOW_FRAMES = """
 import time
-from hlbvh.frame import FrameRenderer
+from hlbvh.render.frame import FrameRenderer
 if not hasattr(FrameRenderer, "_fast_render"):
     FrameRenderer._fast_render = FrameRenderer.render
     def _slow_render(self, *args, **kwargs):
@@ -107,7 +109,7 @@ if not hasattr(FrameRenderer, "_fast_render"):
     FrameRenderer.render = _slow_render
 """
 _FAST_FRAMES = """
-from hlbvh.frame import FrameRenderer
+from hlbvh.render.frame import FrameRenderer
 if hasattr(FrameRenderer, "_fast_render"):
     FrameRenderer.render = FrameRenderer._fast_render
     del FrameRenderer._fast_render

@@ -11,7 +11,8 @@ import OpenImageIO as oiio
 import pytest
 
 from cli_helpers import run_cli
-from hlbvh import cli, images
+from hlbvh import cli
+from hlbvh.render import images
 from hlbvh.comparison import compare
 from hlbvh.comparison.metrics import hit_agreement, image_metrics
 from hlbvh.comparison.tables import column_title, format_value, read_results

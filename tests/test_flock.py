@@ -3,15 +3,15 @@ instances, the ``flock`` scene, and its animation rendered through our two level
 frame by frame as native renders it, rebuilding only the top level."""
 
 import hlbvh
-import hlbvh.native_group
+import hlbvh.accel.native_group
 import mitsuba as mi
 import numpy as np
 import pytest
 
 from hlbvh import scenes
-from hlbvh.frame import FrameRenderer
+from hlbvh.render.frame import FrameRenderer
 from hlbvh.scenes.procedural import FPS
-from hlbvh.settings import RenderSettings
+from hlbvh.render.settings import RenderSettings
 
 
 def _flock(**kw):
@@ -36,7 +36,7 @@ def test01_frames_move_the_birds_by_their_transforms():
     assert np.abs(after - before).max() > 1e-3
     assert np.allclose(after, frame["bird_3"].to_world, atol=1e-5)
     assert np.linalg.det(after[:3, :3]) > 0  # turned and scaled, never mirrored
-    group = hlbvh.native_group.shape_groups(scene)[0]
+    group = hlbvh.accel.native_group.shape_groups(scene)[0]
     assert animation.triangle_counts()["bird_0"] == group.primitive_count()
 
 
@@ -100,7 +100,7 @@ def test05_flock_options_are_checked():
 
 def test06_a_native_render_of_too_many_instances_is_refused_in_one_line():
     from hlbvh.errors import UserError
-    from hlbvh.frame import MOST_NATIVE_INSTANCES
+    from hlbvh.render.frame import MOST_NATIVE_INSTANCES
     animation = scenes.get("flock", birds=MOST_NATIVE_INSTANCES + 1, triangles=200, frames=2)
     with pytest.raises(UserError, match="instances.*--accel hlbvh"):
         FrameRenderer(animation, RenderSettings(resolution=(8, 8), spp=1, accel="native"))
@@ -184,7 +184,7 @@ def test10_bench_frame_times_the_top_level_of_an_instanced_scene(monkeypatch):
     table = bench_frame.format_table(found)
     assert "6 instances" in table
     # Past what native takes: the hlbvh side alone, the table says native refused.
-    monkeypatch.setattr(hlbvh.frame, "MOST_NATIVE_INSTANCES", 4)
+    monkeypatch.setattr(hlbvh.render.frame, "MOST_NATIVE_INSTANCES", 4)
     found = rows("flock:birds=6")
     assert all(r["native_frame_min_ms"] is None and r["native_over_hlbvh"] is None
                and r["hlbvh_frame_min_ms"] > 0 and r["crossover_spp"] is None for r in found)
@@ -218,7 +218,7 @@ def test12_fracture_instanced_moves_the_one_mesh_models_shards_by_transforms():
     assert instanced.triangle_count() == mesh.triangle_count()
     assert instanced.static_ids() == ["ground"]
     scene = mi.load_dict(instanced.scene_dict(resolution=(16, 12), spp=1))
-    groups = hlbvh.native_group.shape_groups(scene)
+    groups = hlbvh.accel.native_group.shape_groups(scene)
     assert len(groups) == len(shards)
     # Frame 30 (shards in flight, some landed): the world vertices through each
     # transform are the mesh model's

@@ -1,4 +1,4 @@
-"""``hlbvh.images``: EXR keeps float32 values bit for bit, PNG is 8-bit sRGB by the IEC
+"""``hlbvh.render.images``: EXR keeps float32 values bit for bit, PNG is 8-bit sRGB by the IEC
 61966-2-1 formula, difference maps paint what differs, and every write is atomic: no
 temporary file left behind, an existing file intact when a write fails."""
 
@@ -8,7 +8,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from hlbvh import images
+from hlbvh.render import images
 
 
 def awkward_values(height=5, width=7, channels=3) -> np.ndarray:
@@ -131,9 +131,9 @@ def test05_png_grey_and_alpha(tmp_path):
 
 
 def test06_write_frame_writes_exr_and_png_of_one_frame(tmp_path):
-    """hlbvh.output.write_frame (what a render writes per frame): every channel to the
+    """hlbvh.render.output.write_frame (what a render writes per frame): every channel to the
     EXR bit for bit, R, G, B to the PNG, then the row recorded."""
-    from hlbvh.output import write_frame
+    from hlbvh.render.output import write_frame
 
     class Renderer:
         def channel_names(self, pixels):

@@ -1,5 +1,5 @@
 """Hits inside instances expanded without Mitsuba's call through a shape pointer
-(:mod:`hlbvh.instance_shading`): every field of the surface interaction as Mitsuba's
+(:mod:`hlbvh.accel.instance_shading`): every field of the surface interaction as Mitsuba's
 own expansion gives it, for rotated, scaled, mirrored, still and moving instances, mesh
 and analytic group shapes, and the shapes beside them."""
 
@@ -99,7 +99,7 @@ def test03_an_hlbvh_path_render_of_instances_equals_native():
 def test04_many_group_shapes_expand_through_a_switch_as_mitsubas(monkeypatch):
     """Past MOST_INLINE_CHILDREN group shapes each lane runs its own shape's expansion
     alone (a switch): the same fields, moving instances included."""
-    import hlbvh.instance_shading as shading
+    import hlbvh.accel.instance_shading as shading
 
     monkeypatch.setattr(shading, "MOST_INLINE_CHILDREN", 0)
     scene = mi.load_dict(_rigid_scene())

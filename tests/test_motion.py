@@ -10,7 +10,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from hlbvh.motion import shape_state
+from hlbvh.accel.motion import shape_state
 from hlbvh.scenes.animated import FrameGeometry, apply_frame
 
 T = mi.ScalarTransform4f

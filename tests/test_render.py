@@ -12,10 +12,11 @@ import OpenImageIO as oiio
 import pytest
 
 from cli_helpers import read_stats, run_cli, write_twist_scene
-from hlbvh import cli, images
+from hlbvh import cli
+from hlbvh.render import images
 from hlbvh.comparison import bench_frame
 from hlbvh.integrators.aov import CHANNELS
-from hlbvh.frame import STATS_FIELDS
+from hlbvh.render.frame import STATS_FIELDS
 
 
 

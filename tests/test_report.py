@@ -1,5 +1,5 @@
 """``hlbvh.comparison.report`` and ``hlbvh.comparison.plots`` on a tiny fake run (two
-frames of small synthetic images written with ``hlbvh.images``): every promised file is
+frames of small synthetic images written with ``hlbvh.render.images``): every promised file is
 written, the numbers on the pages are the JSON's and the CSV's, the Pareto front and the
 crossover are right on hand-made data, and the HTML page shows every image in a real
 browser (headless Chromium)."""
@@ -18,7 +18,7 @@ import numpy as np
 import matplotlib.text
 import pytest
 
-from hlbvh import images
+from hlbvh.render import images
 from hlbvh.comparison import crossover, plots, report
 from hlbvh.comparison.metrics import hit_agreement, image_metrics
 from hlbvh.comparison.tables import column_title, format_value, read_results

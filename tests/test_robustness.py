@@ -21,11 +21,13 @@ import pytest
 import hlbvh
 from cli_helpers import read_stats, run_cli, write_twist_scene
 from meshes import soup
-from hlbvh import images, output, scenes
-from hlbvh.frame import FrameRenderer
-from hlbvh.output import LOCK_NAME
-from hlbvh.render import render_animation
-from hlbvh.settings import RenderSettings
+from hlbvh import scenes
+from hlbvh.render import images
+from hlbvh.render import output
+from hlbvh.render.frame import FrameRenderer
+from hlbvh.render.output import LOCK_NAME
+from hlbvh.render.animation import render_animation
+from hlbvh.render.settings import RenderSettings
 from hlbvh.scenes.procedural import mesh_object
 
 TINY = ["--triangles", "200", "--resolution", "16", "--spp", "1", "--accel", "native",

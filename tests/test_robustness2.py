@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cli_helpers import interrupt_second_render, read_stats, run_cli, write_twist_scene
-from hlbvh.output import LOCK_NAME
+from hlbvh.render.output import LOCK_NAME
 
 TINY = ["--triangles", "200", "--resolution", "16", "--spp", "1", "--quiet"]
 
@@ -243,7 +243,7 @@ def test_the_scenes_own_integrator_is_honoured_and_a_flag_says_what_it_overrides
         tmp_path, capsys):
     import mitsuba as mi
 
-    from hlbvh import images
+    from hlbvh.render import images
 
     xml, frames = write_twist_scene(tmp_path, triangles=100)
     edit(xml, PATH_8, '<integrator type="hlbvh_path"><string name="accel" value="native"/>'
@@ -286,7 +286,7 @@ def test_the_scenes_own_integrator_is_honoured_and_a_flag_says_what_it_overrides
 
 
 def test_a_local_cluster_is_bounded_by_the_machine(tmp_path, capsys, monkeypatch):
-    cluster = pytest.importorskip("hlbvh.cluster")
+    cluster = pytest.importorskip("hlbvh.render.cluster")
     argv = ["render", "cloth", "--frames", "0:2", "--out", tmp_path / "out", *TINY]
     status, _, err = run_cli(capsys, *argv, "--cluster", "local:100000")
     assert status == 2 and len(err) == 1 and "this machine runs at most" in err[0], err
@@ -341,7 +341,7 @@ class Server:
 ])
 def test_a_scheduler_address_that_does_not_speak_dask_is_one_line(tmp_path, capsys,
                                                                    monkeypatch, kind, message):
-    cluster = pytest.importorskip("hlbvh.cluster")
+    cluster = pytest.importorskip("hlbvh.render.cluster")
     monkeypatch.setattr(cluster, "CONNECT_TIMEOUT", 1)
     server = Server(kind)
     try:
@@ -367,12 +367,12 @@ class Interrupt:
         return None
 
 sys.meta_path.insert(0, Interrupt())
-from hlbvh.cli import main
+from hlbvh.cli.command import main
 sys.exit(main(["render", "cloth", "--frames", "0:1", "--out", {out!r}]))
 """
 
 
-@pytest.mark.parametrize("module", ["mitsuba", "hlbvh.render"])
+@pytest.mark.parametrize("module", ["mitsuba", "hlbvh.render.animation"])
 def test_ctrl_c_while_the_command_starts_is_one_line(tmp_path, module):
     """The console script (a file named ``hlbvh``) interrupted while it imports
     Mitsuba (the package) or a verb's module (the parser)."""

@@ -314,8 +314,8 @@ def test10_a_hand_written_loop_with_hlbvh_traverse_renders_like_hlbvh_render():
     """The README's loop (hlbvh.traverse, params.update(), mi.render) gives the frames
     FrameRenderer (what `hlbvh render` runs) gives, bit for bit, and never lets Mitsuba
     rebuild its own accelerator."""
-    from hlbvh.frame import FrameRenderer
-    from hlbvh.settings import RenderSettings
+    from hlbvh.render.frame import FrameRenderer
+    from hlbvh.render.settings import RenderSettings
     animation = hlbvh.scenes.get("cloth", triangles=3000, frames=4)
     settings = RenderSettings(resolution=(32, 18), spp=2, integrator="path", max_depth=4)
     renderer = FrameRenderer(animation, settings)

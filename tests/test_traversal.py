@@ -630,7 +630,7 @@ def test18_matches_mitsuba_native_on_100k_triangles(builder):
 
 
 def test19_matches_mitsuba_native_on_cornell_box():
-    from hlbvh.scene_geometry import collect_geometry
+    from hlbvh.accel.scene_geometry import collect_geometry
     from hlbvh.comparison.bench_trace import primary_rays, secondary_rays
 
     box = mi.cornell_box()

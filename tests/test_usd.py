@@ -18,9 +18,11 @@ import mitsuba as mi  # noqa: E402
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade  # noqa: E402
 
 from cli_helpers import read_stats, run_cli  # noqa: E402
-from hlbvh import cluster, images, scenes  # noqa: E402
+from hlbvh import scenes  # noqa: E402
+from hlbvh.render import cluster  # noqa: E402
+from hlbvh.render import images  # noqa: E402
 from hlbvh.errors import UserError  # noqa: E402
-from hlbvh.options import open_animation  # noqa: E402
+from hlbvh.cli.options import open_animation  # noqa: E402
 from hlbvh.scenes.usd import UsdScene  # noqa: E402
 from test_render import assert_close_to_native  # noqa: E402
 
@@ -620,7 +622,7 @@ def test16_a_local_cluster_renders_a_stage_as_one_process(shot, tmp_path, capsys
 @pytest.mark.parametrize("before", [True, False])
 def test17_camera_flag_picks_the_camera_and_travels_to_cluster_specs(tmp_path, capsys,
                                                                      before):
-    from hlbvh import render
+    from hlbvh.render import animation as render
     import argparse
     path = write_shot_camera(tmp_path / "cams.usda")
     parser = argparse.ArgumentParser()
@@ -732,8 +734,8 @@ def test20_holes_left_handed_faces_subsets_and_growing_point_counts(tmp_path):
 def test21_the_stage_s_still_meshes_are_built_once_and_never_leave(shot):
     """FrameRenderer declares the stage's deforming and rigid meshes as moving: the still
     world (ground, instances, light shapes) is built once and nothing leaves it."""
-    from hlbvh.frame import FrameRenderer
-    from hlbvh.settings import RenderSettings
+    from hlbvh.render.frame import FrameRenderer
+    from hlbvh.render.settings import RenderSettings
     animation = UsdScene(shot, warn=lambda line: None)
     renderer = FrameRenderer(animation, RenderSettings(resolution=(8, 8), spp=1))
     for i in range(animation.frame_count):
@@ -947,8 +949,8 @@ def test25_an_instanced_stage_renders_as_native_rebuilding_only_the_top_level(tm
     """Frame by frame, hlbvh's images of the instanced crowd equal native's (and the
     world-space copies' in the mean); each frame refits or rebuilds the top level
     alone."""
-    from hlbvh.frame import FrameRenderer
-    from hlbvh.settings import RenderSettings
+    from hlbvh.render.frame import FrameRenderer
+    from hlbvh.render.settings import RenderSettings
     path = write_crowd(tmp_path / "crowd.usda")
     settings = dict(resolution=(32, 24), spp=4, max_depth=3)
     renderers = {
@@ -979,8 +981,8 @@ def test26_a_prop_scaled_to_nothing_stays_a_world_space_mesh(tmp_path):
     """An animation that hides a prop by scaling it to 0 (and a proxy placed at scale
     0): an instance's transform must be invertible, so these stay world-space meshes,
     whose triangles collapse, and every frame renders."""
-    from hlbvh.frame import FrameRenderer
-    from hlbvh.settings import RenderSettings
+    from hlbvh.render.frame import FrameRenderer
+    from hlbvh.render.settings import RenderSettings
     path = write_crowd(tmp_path / "crowd.usda")
     stage = Usd.Stage.Open(str(path))
     hide = UsdGeom.Xformable(stage.GetPrimAtPath("/Flyer")).AddScaleOp(opSuffix="hide")
@@ -1103,8 +1105,8 @@ def test28_a_point_instancer_renders_its_points_as_instances(tmp_path):
     meshes two instances), where the instancer's attributes put it frame by frame; the
     hidden and vanishing points are left out, said once; the frames move the
     points' transforms only, and hlbvh's images equal native's."""
-    from hlbvh.frame import FrameRenderer
-    from hlbvh.settings import RenderSettings
+    from hlbvh.render.frame import FrameRenderer
+    from hlbvh.render.settings import RenderSettings
     path = write_points(tmp_path / "points.usda")
     said, warn = lines()
     animation = UsdScene(path, warn=warn)

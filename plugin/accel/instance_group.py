@@ -27,10 +27,10 @@ from hlbvh.kernels.arrays import concat
 from hlbvh.kernels.build import build
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.kernels.instances import BadTransform, refit_top_level, two_level
-from hlbvh.instance_shading import group_members, to_world_rows
-from hlbvh.motion import member_states, members_changed
-from hlbvh.policy import RefitOrRebuild, UpdatePolicy
-from hlbvh.scene_geometry import _describe, collect_geometry
+from hlbvh.accel.instance_shading import group_members, to_world_rows
+from hlbvh.accel.motion import member_states, members_changed
+from hlbvh.accel.policy import RefitOrRebuild, UpdatePolicy
+from hlbvh.accel.scene_geometry import _describe, collect_geometry
 from hlbvh.timing import clock_ms
 
 
@@ -72,7 +72,7 @@ class InstanceGroup:
         self._parts = []  # each used group's share of _prims
         self._states = []  # each used group's meshes' states when its BVH was built
         self._members = []  # each used group's meshes
-        self._handles = {}  # their parameter handles (hlbvh.motion)
+        self._handles = {}  # their parameter handles (hlbvh.accel.motion)
         self._scene_index = None  # UInt32: each instance's index in scene.shapes()
         self._built_sah = None  # the top level's SAH cost at its last build
         self._policy = RefitOrRebuild()  # what "auto" remembers of past refits

@@ -7,8 +7,8 @@ from __future__ import annotations
 from hlbvh.kernels.arrays import concat
 from hlbvh.kernels.build import build
 from hlbvh.kernels.bvh import BuildConfig
-from hlbvh.policy import RefitOrRebuild, UpdatePolicy
-from hlbvh.scene_geometry import _named_error, collect_geometry
+from hlbvh.accel.policy import RefitOrRebuild, UpdatePolicy
+from hlbvh.accel.scene_geometry import _named_error, collect_geometry
 from hlbvh.timing import clock_ms
 
 

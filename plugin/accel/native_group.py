@@ -21,9 +21,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from hlbvh.instance_shading import group_members
-from hlbvh.motion import member_states, members_changed
-from hlbvh.scene_geometry import check_finite
+from hlbvh.accel.instance_shading import group_members
+from hlbvh.accel.motion import member_states, members_changed
+from hlbvh.accel.scene_geometry import check_finite
 from hlbvh.timing import clock_ms
 
 
@@ -58,7 +58,7 @@ class NativeGroup:
         self._built = False
         self._triangles = 0
         self._members = [group_members(g) for g in groups]  # each group's shapes
-        self._handles = {}  # their parameter handles (hlbvh.motion)
+        self._handles = {}  # their parameter handles (hlbvh.accel.motion)
         self._group_states = []  # each group's shapes' states when the sub-scene was built
         self.keep()
 

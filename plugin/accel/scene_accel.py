@@ -15,18 +15,18 @@ Groups by motion
 ----------------
 Every shape starts *static*; a shape is *moving* once it was declared so (option
 ``moving``, ids; the animations of :mod:`hlbvh.scenes` declare their animated shapes)
-or once it changed (see :mod:`hlbvh.motion`). Then it stays moving.
+or once it changed (see :mod:`hlbvh.accel.motion`). Then it stays moving.
 
 * ``static="native"`` (default): the static shapes, of any type Mitsuba intersects
   (meshes, analytic shapes, instances, curves, SDF grids, ellipsoids), are traced by
   Mitsuba's own accelerator over a sub-scene of those shapes
-  (:class:`hlbvh.native_group.NativeGroup`), built on the first update and rebuilt
+  (:class:`hlbvh.accel.native_group.NativeGroup`), built on the first update and rebuilt
   only when a shape leaves it (``last_update["groups"]["static"]["left"]`` names it).
   Moving meshes are in the dynamic :class:`MeshGroup`'s HLBVH; moving ``sphere``,
   ``disk`` and ``cylinder`` shapes are intersected by their own routine
   (``shape.ray_intersect_preliminary``, once per shape: a call through a shape
   pointer inside a symbolic loop would trace every registered shape); moving instances
-  go through our two-level hierarchy (:class:`hlbvh.instance_group.InstanceGroup`: their
+  go through our two-level hierarchy (:class:`hlbvh.accel.instance_group.InstanceGroup`: their
   groups' BVHs built once, the top level rebuilt when one moves); any other shape that
   moves is refused with a ``ValueError`` naming it.
 * ``static="hlbvh"``: every mesh in our BVHs (the static :class:`MeshGroup`, built
@@ -71,15 +71,15 @@ from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.kernels.geometry import half_area
 from hlbvh.kernels.layout import joined
 from hlbvh.kernels.traversal import any_hit, closest_hit
-from hlbvh.instance_group import InstanceGroup, group_of
-from hlbvh.instance_shading import InstanceShading, is_instance
+from hlbvh.accel.instance_group import InstanceGroup, group_of
+from hlbvh.accel.instance_shading import InstanceShading, is_instance
 from hlbvh.kernels.traversal import closest_instance_hit
-from hlbvh.mesh_group import MeshGroup
-from hlbvh.motion import MeshState, shape_states
-from hlbvh.native_group import NativeGroup, shape_groups
-from hlbvh.policy import ACCELS, DECISIONS, UpdatePolicy, split_options
-from hlbvh.queries import NativeAccel, _Accel, _checked_scene
-from hlbvh.scene_geometry import _describe, scene_shapes, unmovable_error
+from hlbvh.accel.mesh_group import MeshGroup
+from hlbvh.accel.motion import MeshState, shape_states
+from hlbvh.accel.native_group import NativeGroup, shape_groups
+from hlbvh.accel.policy import ACCELS, DECISIONS, UpdatePolicy, split_options
+from hlbvh.accel.queries import NativeAccel, _Accel, _checked_scene
+from hlbvh.accel.scene_geometry import _describe, scene_shapes, unmovable_error
 from hlbvh.timing import clock_ms
 
 
@@ -158,7 +158,7 @@ class SceneAccel(_Accel):
         for i in self.moving:
             self._check_movable(i)
         self.last_update = None
-        self._handles = {}  # each shape's parameter handles (hlbvh.motion)
+        self._handles = {}  # each shape's parameter handles (hlbvh.accel.motion)
         self._states = None  # each shape's state at the last update
         self._current = False  # whether the last update succeeded
         self._traced = []  # the mesh groups with triangles our BVHs trace, static first
@@ -181,7 +181,7 @@ class SceneAccel(_Accel):
     def update(self):
         """Bring the groups up to date with the scene's shapes; call it after the scene
         changed (a call when nothing changed costs a look at each shape, see
-        :mod:`hlbvh.motion`, and records ``"kept"``).
+        :mod:`hlbvh.accel.motion`, and records ``"kept"``).
 
         Returns:
             self.
@@ -243,7 +243,7 @@ class SceneAccel(_Accel):
     def surface_interaction(self, pi, ray, ray_flags=mi.RayFlags.All, active=True):
         """``pi.compute_surface_interaction(ray, ray_flags, active)``; in a scene with
         instances, expanded without Mitsuba's call through a shape pointer, whose kernel
-        grows with the number of instances (:mod:`hlbvh.instance_shading`)."""
+        grows with the number of instances (:mod:`hlbvh.accel.instance_shading`)."""
         if self.shading is None:
             return pi.compute_surface_interaction(ray, ray_flags, active)
         return self.shading.surface_interaction(pi, ray, ray_flags, active)

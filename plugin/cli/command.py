@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-# One class whether this module runs as hlbvh.cli or as __main__ (python -m hlbvh.cli).
+# The command line runs as hlbvh.cli.command, also through python -m hlbvh.cli.
 from hlbvh.errors import UserError
 
 
@@ -39,7 +39,7 @@ def _doctor(args) -> int:
 # Each verb lives in its own module with ``configure(parser)`` and ``run(args) -> int``;
 # modules are imported only when their verb runs.
 _VERBS = {
-    "render": ("hlbvh.render", "render an animation to EXR/PNG with per-frame statistics"),
+    "render": ("hlbvh.render.animation", "render an animation to EXR/PNG with per-frame statistics"),
     "compare": ("hlbvh.comparison.compare", "native vs hlbvh, frame by frame, with a report"),
     "sweep": ("hlbvh.comparison.sweep", "the speed/accuracy trade of builder settings"),
     "bench": ("hlbvh.comparison.bench", "build, trace and frame benchmarks against native"),

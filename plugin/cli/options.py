@@ -12,11 +12,11 @@ from dataclasses import replace
 from pathlib import Path
 
 from hlbvh import scenes
-from hlbvh.policy import ACCELS, BUILD_OPTIONS, STATICS, UPDATES
+from hlbvh.accel.policy import ACCELS, BUILD_OPTIONS, STATICS, UPDATES
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.scenes.sequence import TOPOLOGIES
-from hlbvh.settings import (DEFAULT_MAX_DEPTH, INTEGRATORS, MAX_SEED, SCENE_INTEGRATORS,
+from hlbvh.render.settings import (DEFAULT_MAX_DEPTH, INTEGRATORS, MAX_SEED, SCENE_INTEGRATORS,
                             RenderSettings, scene_integrator_fields)
 
 
@@ -70,7 +70,7 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
 class SceneArgument(str):
     """The SCENE string, carrying ``camera`` (``--camera``) and ``default_light``
     (False with ``--no-default-light``): the options that qualify SCENE travel with it
-    to :func:`open_animation` and to the cluster's :class:`hlbvh.cluster.SceneSpec`,
+    to :func:`open_animation` and to the cluster's :class:`hlbvh.render.cluster.SceneSpec`,
     whichever command parsed them."""
 
     camera: str | None = None
@@ -118,7 +118,7 @@ class _NoDefaultLightAction(argparse.Action):
 def out_flag(text: str | None, default: Path) -> Path:
     """``--out`` as given, or ``default`` when it is not; an empty ``--out ''`` is an
     error, not the default (the directory itself is checked by
-    :func:`hlbvh.output.output_directory`)."""
+    :func:`hlbvh.render.output.output_directory`)."""
     if text is None:
         return default
     if not text.strip():
@@ -129,7 +129,7 @@ def out_flag(text: str | None, default: Path) -> Path:
 
 def render_settings(args, *, spp: int | None = None, integrator: str = "path",
                     accel: str = "native") -> RenderSettings:
-    """The :class:`hlbvh.settings.RenderSettings` of the options :func:`add_scene_options`
+    """The :class:`hlbvh.render.settings.RenderSettings` of the options :func:`add_scene_options`
     parsed into ``args``, with ``integrator`` and ``accel`` (``spp`` given here
     overrides ``--spp``; the builder options and ``--update`` are read when ``args``
     has them).
@@ -168,7 +168,7 @@ def scene_render_settings(args, animation, scene: str) -> tuple[RenderSettings, 
 
     Raises:
         UserError: a malformed flag, or a scene integrator that ``hlbvh render`` does not
-            run (not one of :data:`hlbvh.settings.SCENE_INTEGRATORS`) without an
+            run (not one of :data:`hlbvh.render.settings.SCENE_INTEGRATORS`) without an
             ``--integrator`` to replace it.
         ValueError: a value out of range, from a flag or the scene.
     """
@@ -217,7 +217,7 @@ def scene_render_settings(args, animation, scene: str) -> tuple[RenderSettings, 
 
 
 def seed_flag(text: str) -> int:
-    """``--seed``: an integer in 0 .. :data:`hlbvh.settings.MAX_SEED`."""
+    """``--seed``: an integer in 0 .. :data:`hlbvh.render.settings.MAX_SEED`."""
     return int_flag("--seed", text, least=0, most=MAX_SEED)
 
 

@@ -16,7 +16,7 @@ import drjit as dr
 import mitsuba as mi
 
 from hlbvh.accel import NativeAccel, SceneAccel
-from hlbvh.policy import ACCELS, BUILD_OPTIONS, UPDATE_OPTIONS, split_options
+from hlbvh.accel.policy import ACCELS, BUILD_OPTIONS, UPDATE_OPTIONS, split_options
 
 
 class AccelIntegrator(mi.SamplingIntegrator):
@@ -36,7 +36,7 @@ class AccelIntegrator(mi.SamplingIntegrator):
             of the accelerator (``"auto"``, the default, ``"rebuild"``, ``"fresh"`` or
             ``"refit"``; the SAH drift ``"auto"`` accepts, default 1.05; the builder
             and leaf size of the static group with ``static="hlbvh"``;
-            see :class:`hlbvh.policy.UpdatePolicy`).
+            see :class:`hlbvh.accel.policy.UpdatePolicy`).
 
     The accelerator is built on the first render of a scene and kept for the next
     renders of that scene; it is built anew when another scene is rendered, and

@@ -26,8 +26,8 @@ Each frame
    accelerator, so renders of both are comparable pixel by pixel (box filter);
 4. ``frame_NNNN.exr`` (linear float32, every film channel: R, G, B, and the AOVs of
    ``--integrator aov``) and ``frame_NNNN.png`` (8-bit sRGB of R, G, B) are written
-   through :mod:`hlbvh.images`, each to a temporary file renamed into place;
-5. its row (:data:`hlbvh.frame.STATS_FIELDS`) is added to ``stats.csv`` and ``stats.json``, both
+   through :mod:`hlbvh.render.images`, each to a temporary file renamed into place;
+5. its row (:data:`hlbvh.render.frame.STATS_FIELDS`) is added to ``stats.csv`` and ``stats.json``, both
    rewritten whole and atomically.
 
 The integrator is the scene's own when it names ``path`` (run as ``hlbvh_path``, which
@@ -53,7 +53,7 @@ and for an XML scene a SHA-256 of the file, its includes and every file a ``file
 property names); rendering into a directory that holds frames of other settings, or
 of the scene before an edit, is refused, so one directory never mixes two renders.
 One render writes into a directory at a time: it holds the directory's lock file
-(:data:`hlbvh.output.LOCK_NAME`, naming its pid and host); a second is refused, and a lock left by a
+(:data:`hlbvh.render.output.LOCK_NAME`, naming its pid and host); a second is refused, and a lock left by a
 process that died is taken over. Frame ranges are iterated, never listed, and the seed
 of the last frame, the film's size and the samples per frame are checked against what
 Dr.Jit and the machine's memory hold before any frame is rendered.
@@ -80,12 +80,12 @@ from pathlib import Path
 import numpy as np
 
 from hlbvh.errors import UserError
-from hlbvh.frame import FrameRenderer
-from hlbvh.options import (add_scene_options, int_flag, open_animation, out_flag,
+from hlbvh.render.frame import FrameRenderer
+from hlbvh.cli.options import (add_scene_options, int_flag, open_animation, out_flag,
                            scene_render_settings)
-from hlbvh.output import (Statistics, output_directory, output_lock, recorded_settings,
+from hlbvh.render.output import (Statistics, output_directory, output_lock, recorded_settings,
                           remove_stale_files, write_frame)
-from hlbvh.settings import RenderSettings, check_seed
+from hlbvh.render.settings import RenderSettings, check_seed
 
 
 def render_animation(animation, frames, out_dir, settings: RenderSettings,
@@ -97,7 +97,7 @@ def render_animation(animation, frames, out_dir, settings: RenderSettings,
         animation: the :class:`hlbvh.scenes.AnimatedScene`.
         frames: the frame indices, a sequence iterated once (e.g. ``range(0, 24)``).
         out_dir: the output directory (created if needed).
-        settings: the :class:`hlbvh.settings.RenderSettings`.
+        settings: the :class:`hlbvh.render.settings.RenderSettings`.
         source: what identifies the scene (JSON values, e.g. ``{"scene": "cloth",
             "triangles": 200000}``), recorded with the settings.
         progress: show a progress bar on stderr.
@@ -105,8 +105,8 @@ def render_animation(animation, frames, out_dir, settings: RenderSettings,
         ``(rows, rendered)``: every row of the directory's statistics (earlier runs'
         included) in frame order, and the frames this call rendered.
     Raises:
-        UserError: ``out_dir`` cannot be used (:func:`hlbvh.output.output_directory`) or another
-            render holds it (:func:`hlbvh.output.output_lock`), it holds frames of other settings or
+        UserError: ``out_dir`` cannot be used (:func:`hlbvh.render.output.output_directory`) or another
+            render holds it (:func:`hlbvh.render.output.output_lock`), it holds frames of other settings or
             unreadable statistics, a seed or the frame's size is out of range, or a
             write failed (a full disk): no partial file is left, the frames finished
             before it stay complete.
@@ -184,7 +184,7 @@ def run(args) -> int:
                                           progress=not args.quiet)
     else:
         try:
-            from hlbvh import cluster
+            from hlbvh.render import cluster
         except ModuleNotFoundError as error:
             raise UserError(f"--cluster and --scheduler need Dask's distributed ({error}): "
                             f"pip install 'hlbvh[cluster]'") from None

@@ -12,11 +12,11 @@ How the work is cut and written
   range split in at least two chunks per worker, at most :data:`MAX_CHUNK` frames each),
   a few chunks per worker in flight at a time, so a billion frames are never listed.
   A chunk is one task, :func:`render_chunk`: its worker loads the scene (once per
-  process), makes a :class:`hlbvh.frame.FrameRenderer` whose first frame is a fresh
+  process), makes a :class:`hlbvh.render.frame.FrameRenderer` whose first frame is a fresh
   build, and renders the chunk's frames in order, so the accelerator's policy (seeded
   rebuilds, refits) works inside the chunk as in one process.
 - Each frame is written as in a local render (EXR, PNG, atomically, read back), then
-  its row to a hidden row file beside it (:func:`hlbvh.output.row_path`). A chunk whose
+  its row to a hidden row file beside it (:func:`hlbvh.render.output.row_path`). A chunk whose
   worker dies is retried by Dask elsewhere and resumes after its last complete frame.
 - The rows come back to the client, which writes ``stats.json`` and ``stats.csv`` once,
   in frame order, when the work ends (also after an error or Ctrl-C, then with the row
@@ -50,12 +50,12 @@ from distributed import (Client, Event, KilledWorker, LocalCluster, as_completed
 from distributed.comm.addressing import parse_address, parse_host_port
 
 from hlbvh.errors import UserError
-from hlbvh.frame import FrameRenderer, available_memory
-from hlbvh.options import open_animation, usd_scene_string, usd_stage
-from hlbvh.output import (Statistics, frame_images_complete, output_directory, output_lock,
+from hlbvh.render.frame import FrameRenderer, available_memory
+from hlbvh.cli.options import open_animation, usd_scene_string, usd_stage
+from hlbvh.render.output import (Statistics, frame_images_complete, output_directory, output_lock,
                           read_row, recorded_settings, remove_stale_files, row_files, row_path,
                           write_frame, write_row)
-from hlbvh.settings import RenderSettings, check_seed
+from hlbvh.render.settings import RenderSettings, check_seed
 
 #: Most frames in a chunk unless ``--chunk-size`` says otherwise.
 MAX_CHUNK = 16
@@ -89,7 +89,7 @@ _ONE_CHUNK = threading.Lock()
 @dataclass(frozen=True)
 class SceneSpec:
     """What a worker needs to open the animation as the client did: the command line's
-    strings (paths absolute) for :func:`hlbvh.options.open_animation`."""
+    strings (paths absolute) for :func:`hlbvh.cli.options.open_animation`."""
 
     scene: str
     frames_dir: str | None
@@ -101,7 +101,7 @@ class SceneSpec:
     @classmethod
     def of(cls, scene, frames_dir, triangles, frames: range, topology=None) -> SceneSpec:
         """The spec of the command line's ``SCENE --frames-dir --triangles --topology``
-        (and ``--camera``, which a :class:`hlbvh.options.SceneArgument` carries) and the
+        (and ``--camera``, which a :class:`hlbvh.cli.options.SceneArgument` carries) and the
         frame range, files made absolute (a worker's working directory is its own)."""
         camera = getattr(scene, "camera", None)
         stage = usd_stage(scene)
@@ -194,14 +194,14 @@ def render_on_cluster(animation, spec: SceneSpec, frames: range, out_dir,
         spec: the scene, as :class:`SceneSpec`.
         frames: the frame range.
         out_dir: the output folder, seen by every worker at the same path.
-        settings: the :class:`hlbvh.settings.RenderSettings`.
+        settings: the :class:`hlbvh.render.settings.RenderSettings`.
         source: what identifies the scene, recorded with the settings.
         cluster: ``"local:N"``: a ``LocalCluster`` of N worker processes on this machine.
         scheduler: the address of a running Dask scheduler (exclusive with ``cluster``).
         chunk_size: frames per chunk; ``None``: see the module docstring.
         progress: one progress bar over all frames on stderr.
     Returns:
-        ``(rows, rendered)`` as :func:`hlbvh.render.render_animation` returns them.
+        ``(rows, rendered)`` as :func:`hlbvh.render.animation.render_animation` returns them.
     Raises:
         UserError: what a local render refuses; a bad ``cluster``, a scheduler that
             cannot be reached or has no workers; a worker that cannot import hlbvh, does
@@ -348,7 +348,7 @@ class _connected:
                                 f"{self.scheduler}'") from None
         # A worker that cannot unpickle a task (hlbvh missing there) never answers for
         # it: every worker is asked to import hlbvh first, by a builtin it can unpickle.
-        answers = self.client.run(exec, "import hlbvh.cluster", on_error="return")
+        answers = self.client.run(exec, "import hlbvh.render.cluster", on_error="return")
         failed = {worker: error for worker, error in answers.items()
                   if isinstance(error, BaseException)}
         if failed:
@@ -389,7 +389,7 @@ def parse_cluster(text: str) -> int:
 
 def machine_capacity() -> tuple[int, int | None]:
     """The cores this process may run on, and the bytes it can still allocate
-    (:func:`hlbvh.frame.available_memory`; ``None`` when nothing says)."""
+    (:func:`hlbvh.render.frame.available_memory`; ``None`` when nothing says)."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return cores or 1, available_memory()
 

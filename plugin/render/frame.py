@@ -12,11 +12,11 @@ import drjit as dr
 import mitsuba as mi
 
 from hlbvh import scenes
-from hlbvh.instance_shading import is_instance
-from hlbvh.parameters import traverse
-from hlbvh.scene_geometry import scene_shapes
+from hlbvh.accel.instance_shading import is_instance
+from hlbvh.accel.parameters import traverse
+from hlbvh.accel.scene_geometry import scene_shapes
 from hlbvh.errors import UserError
-from hlbvh.settings import RenderSettings
+from hlbvh.render.settings import RenderSettings
 from hlbvh.timing import clock_ms, timed
 
 #: Columns of ``stats.csv``, and keys of every row of ``stats.json``.
@@ -43,7 +43,7 @@ class FrameRenderer:
 
     Args:
         animation: the :class:`hlbvh.scenes.AnimatedScene`.
-        settings: the :class:`hlbvh.settings.RenderSettings`.
+        settings: the :class:`hlbvh.render.settings.RenderSettings`.
     Raises:
         ValueError: the integrator cannot be made from the settings (naming what
             Mitsuba or the builder objected to).

@@ -16,9 +16,9 @@ import socket
 import sys
 from pathlib import Path
 
-from hlbvh import images
+from hlbvh.render import images
 from hlbvh.errors import UserError
-from hlbvh.frame import STATS_FIELDS, FrameRenderer
+from hlbvh.render.frame import STATS_FIELDS, FrameRenderer
 
 #: The lock file of an output directory (see :func:`output_lock`).
 LOCK_NAME = ".hlbvh.lock"
@@ -112,7 +112,7 @@ class Statistics:
 
 def recorded_settings(source: dict | None, settings, renderer: FrameRenderer) -> dict:
     """What ``stats.json`` records as a folder's settings: what identifies the scene
-    (``source``), the :class:`hlbvh.settings.RenderSettings` as JSON values, and the
+    (``source``), the :class:`hlbvh.render.settings.RenderSettings` as JSON values, and the
     ``resolution`` and ``spp`` the loaded scene renders at (its film's size, its
     sampler's count) in place of a ``None`` that left them to the scene: a resumed
     folder then refuses a scene edited to render other frames."""

@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from hlbvh.policy import ACCELS, BUILD_OPTIONS, STATICS, UPDATES
+from hlbvh.accel.policy import ACCELS, BUILD_OPTIONS, STATICS, UPDATES
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BuildConfig
 
