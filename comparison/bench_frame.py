@@ -75,7 +75,7 @@ from hlbvh.accel.scene_geometry import collect_geometry
 from hlbvh.scenes import get as get_scene, parse as parse_scene
 from hlbvh.render.frame import FrameRenderer
 from hlbvh.accel.policy import UpdatePolicy
-from hlbvh.render.settings import RenderSettings
+from hlbvh.render.settings import SCENE_INTEGRATORS, RenderSettings
 from hlbvh.timing import timed
 
 #: The accelerator's default per-frame policy, which the hlbvh frames run under.
@@ -169,6 +169,14 @@ def run(repeats: int = 3, sizes=(1_000_000,), resolution: int = 512, builder: st
 _FRAME_KEYS = ("cold_ms", "min_ms", "median_ms", "build_ms", "render_ms", "mitsuba_update_ms")
 
 
+def _integrator(animation) -> str:
+    """The ``--integrator`` choice a scene is timed with: the one its own integrator
+    runs as (``volpath`` for the ``fog`` scene), else ``path``."""
+    own = animation.integrator_description()
+    kind = None if own is None else SCENE_INTEGRATORS.get(own["type"])
+    return "path" if kind in (None, "aov") else kind
+
+
 def _renderers(animation, resolution: int, max_depth: int, builder: str,
                native: bool = True) -> dict:
     """``{"hlbvh": FrameRenderer, "native": FrameRenderer}``, without native where it
@@ -178,7 +186,7 @@ def _renderers(animation, resolution: int, max_depth: int, builder: str,
     for accel in ("hlbvh", "native") if native else ("hlbvh",):
         try:
             renderers[accel] = FrameRenderer(animation, RenderSettings(
-                resolution=(resolution, resolution), integrator="path",
+                resolution=(resolution, resolution), integrator=_integrator(animation),
                 max_depth=max_depth, accel=accel, build_options={"builder": builder}))
         except UserError:
             if accel == "hlbvh":

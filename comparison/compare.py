@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import math
 import statistics
+import sys
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -71,10 +72,11 @@ from hlbvh.comparison import plots, report
 from hlbvh.comparison.metrics import hit_agreement, image_metrics
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BuildConfig
-from hlbvh.cli.options import add_scene_options, open_animation, out_flag, render_settings
+from hlbvh.cli.options import (add_scene_options, open_animation, out_flag, render_settings,
+                               scene_render_settings)
 from hlbvh.render.output import frame_name, output_directory
 from hlbvh.render.animation import render_animation
-from hlbvh.render.settings import RenderSettings, check_seed
+from hlbvh.render.settings import SCENE_INTEGRATORS, RenderSettings, check_seed
 
 #: Largest absolute per-channel difference of a pixel still counted as equal to native:
 #: the absolute part of tests/test_integrators.py::test11's tolerance, several times the
@@ -124,7 +126,8 @@ def compare_animation(animation, frames, out_dir, settings: RenderSettings,
     out = Path(out_dir)
     stats = {}
     for accel in ACCELS:
-        colour = replace(settings, accel=accel, integrator="path")
+        colour = replace(settings, accel=accel,
+                         integrator="path" if settings.integrator == "aov" else settings.integrator)
         rows, _ = render_animation(animation, frames, out / accel, colour, source, progress)
         stats[accel] = {row["frame"]: row for row in rows}
         hits = replace(settings, accel=accel, integrator="aov", spp=1)
@@ -253,6 +256,12 @@ def run(args) -> int:
     tolerance = _tolerance(args.tolerance)
     animation, source, frames = open_animation(args.scene, args.frames_dir, args.triangles,
                                                args.frames, args.topology)
+    own = animation.integrator_description()
+    if own is not None and SCENE_INTEGRATORS.get(own["type"]) in ("direct", "volpath"):
+        # The scene's direct or volpath runs as ours (path scenes keep --max-depth's path)
+        settings, line = scene_render_settings(args, animation, args.scene)
+        if line is not None:
+            print(f"hlbvh compare: {line}", file=sys.stderr)
     check_seed(settings.seed, frames)
     out = output_directory(out_flag(args.out, Path("out/compare") / Path(args.scene).stem))
     result = compare_animation(animation, frames, out, settings, source, tolerance,

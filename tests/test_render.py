@@ -200,7 +200,7 @@ def test04_mesh_sequence_renders_and_bad_frame_files_are_named(sequence, capsys)
     (["cloth", "--resolution", "32x0"], "--resolution"),
     (["cloth", "--accel", "embree"], "--accel"),
     (["cloth", "--leaf-size", "99"], "leaf_size=99"),
-    (["cloth", "--integrator", "direct"], "--integrator"),
+    (["cloth", "--integrator", "ptracer"], "--integrator"),
     (["cloth", "--frames-dir", "frames"], "--frames-dir is for XML scenes"),
     (["{xml}"], "needs --frames-dir"),
     (["{xml}", "--frames-dir", "{tmp}/nowhere"], "no such directory"),

@@ -16,8 +16,9 @@ from hlbvh.accel.policy import ACCELS, BUILD_OPTIONS, STATICS, UPDATES
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.scenes.sequence import TOPOLOGIES
-from hlbvh.render.settings import (DEFAULT_MAX_DEPTH, INTEGRATORS, MAX_SEED, SCENE_INTEGRATORS,
-                            RenderSettings, scene_integrator_fields)
+from hlbvh.render.settings import (DEFAULT_MAX_DEPTH, DEPTH_INTEGRATORS, INTEGRATORS,
+                                   MAX_SEED, SCENE_INTEGRATORS, RenderSettings,
+                                   scene_integrator_fields)
 
 
 def add_scene_options(parser, out: str, *, builder_options: bool = True,
@@ -172,9 +173,11 @@ def scene_render_settings(args, animation, scene: str) -> tuple[RenderSettings, 
             ``--integrator`` to replace it.
         ValueError: a value out of range, from a flag or the scene.
     """
-    integrator = None if args.integrator is None else choice(
-        "--integrator", args.integrator, tuple(INTEGRATORS))
-    accel = None if args.accel is None else choice("--accel", args.accel, ACCELS)
+    integrator = getattr(args, "integrator", None)
+    integrator = None if integrator is None else choice("--integrator", integrator,
+                                                        tuple(INTEGRATORS))
+    accel = getattr(args, "accel", None)
+    accel = None if accel is None else choice("--accel", accel, ACCELS)
     flags = render_settings(args, integrator=integrator or "path", accel=accel or "hlbvh")
     own = animation.integrator_description()
     if own is None:
@@ -184,8 +187,8 @@ def scene_render_settings(args, animation, scene: str) -> tuple[RenderSettings, 
         if integrator is None:
             raise UserError(
                 f"scene {scene!r}: its integrator {kind!r} is not one hlbvh render runs "
-                f"({', '.join(SCENE_INTEGRATORS)}); pass --integrator path or aov to render "
-                f"with hlbvh's instead")
+                f"({', '.join(SCENE_INTEGRATORS)}); pass --integrator "
+                f"{'/'.join(INTEGRATORS)} to render with hlbvh's instead")
         return flags, (f"--integrator {integrator} overrides the scene's integrator "
                        f"{kind!r} (its properties are not used)")
     fields = scene_integrator_fields(own)
@@ -195,11 +198,11 @@ def scene_render_settings(args, animation, scene: str) -> tuple[RenderSettings, 
         if value != scene_value:
             overrides.append(f"{flag} {value} (the scene's {name}: {scene_value!r})")
 
-    if args.max_depth is not None and fields["integrator"] == "path":
+    if args.max_depth is not None and fields["integrator"] in DEPTH_INTEGRATORS:
         override("--max-depth", "max_depth", flags.max_depth, fields["max_depth"])
         fields["max_depth"] = flags.max_depth
     if accel is not None:
-        if kind != "path":  # Mitsuba's path names no accelerator: either renders it alike
+        if kind.startswith("hlbvh_"):  # Mitsuba's integrators name no accelerator
             override("--accel", "accel", accel, fields["accel"])
         fields["accel"] = accel
     for name, value in flags.build_options.items():
@@ -211,8 +214,15 @@ def scene_render_settings(args, animation, scene: str) -> tuple[RenderSettings, 
     if getattr(args, "static", None) is not None:
         override("--static", "static", flags.static, fields["static"])
         fields["static"] = flags.static
-    line = (f"the command line overrides the scene's integrator {kind!r}: "
-            f"{', '.join(overrides)}") if overrides else None
+    # Mitsuba's path has always run as hlbvh_path (the README says so); the other
+    # integrators that run as ours are said, once
+    lines = [] if kind.startswith("hlbvh_") or kind == "path" else [
+        f"the scene's integrator {kind!r} runs as {INTEGRATORS[fields['integrator']]} "
+        f"(which mirrors it, every ray through the chosen accelerator)"]
+    if overrides:
+        lines.append(f"the command line overrides the scene's integrator {kind!r}: "
+                     f"{', '.join(overrides)}")
+    line = "; ".join(lines) or None
     return replace(flags, **fields), line
 
 

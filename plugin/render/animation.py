@@ -155,9 +155,10 @@ def configure(parser) -> None:
     parser.description = __doc__.split("\n\n")[0]
     add_scene_options(parser, "out/render/<scene>-<accel>")
     parser.add_argument("--integrator",
-                        help="path (hlbvh_path) or aov (hlbvh_aov); default: the scene's "
-                             "own (path, hlbvh_path or hlbvh_aov, with its properties), else "
-                             "path")
+                        help="path, direct, volpath (hlbvh_path, hlbvh_direct, "
+                             "hlbvh_volpath) or aov (hlbvh_aov); default: the scene's own "
+                             "(Mitsuba's path, direct or volpath run as ours, or one of "
+                             "ours, with its properties), else path")
     parser.add_argument("--accel", help="hlbvh or native; default: the scene's integrator's, "
                                         "else hlbvh")
     parser.add_argument("--cluster", help="local:N: render on a Dask LocalCluster of N worker "

@@ -12,17 +12,24 @@ from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BuildConfig
 
 #: ``--integrator`` choices and the registered integrators they name.
-INTEGRATORS = {"path": "hlbvh_path", "aov": "hlbvh_aov"}
+INTEGRATORS = {"path": "hlbvh_path", "direct": "hlbvh_direct", "volpath": "hlbvh_volpath",
+               "aov": "hlbvh_aov"}
 
 #: Integrators a scene may name that ``hlbvh render`` runs, and the ``--integrator``
-#: choice each is (Mitsuba's ``path`` runs as ``hlbvh_path``, which mirrors it).
-SCENE_INTEGRATORS = {"path": "path", "hlbvh_path": "path", "hlbvh_aov": "aov"}
+#: choice each is (Mitsuba's ``path``, ``direct`` and ``volpath`` run as ours, which
+#: mirror them).
+SCENE_INTEGRATORS = {"path": "path", "hlbvh_path": "path", "direct": "direct",
+                     "hlbvh_direct": "direct", "volpath": "volpath",
+                     "hlbvh_volpath": "volpath", "hlbvh_aov": "aov"}
+
+#: The ``--integrator`` choices that take ``max_depth``.
+DEPTH_INTEGRATORS = ("path", "volpath")
 
 #: Longest path of ``--integrator path`` unless ``--max-depth`` or the scene's own
 #: integrator says otherwise.
 DEFAULT_MAX_DEPTH = 8
 
-#: Longest path of a scene's ``path`` or ``hlbvh_path`` integrator that names none
+#: Longest path of a scene's path tracer (``path``, ``volpath``, ours) that names none
 #: (theirs: unbounded).
 SCENE_MAX_DEPTH = -1
 
@@ -37,8 +44,9 @@ class RenderSettings:
     Attributes:
         resolution: film ``(width, height)``; ``None`` keeps the scene's.
         spp: samples per pixel; ``None`` keeps the scene's.
-        integrator: ``"path"`` (``hlbvh_path``) or ``"aov"`` (``hlbvh_aov``).
-        max_depth: longest path of ``"path"`` (-1: unbounded).
+        integrator: ``"path"`` (``hlbvh_path``), ``"direct"`` (``hlbvh_direct``),
+            ``"volpath"`` (``hlbvh_volpath``) or ``"aov"`` (``hlbvh_aov``).
+        max_depth: longest path of ``"path"`` and ``"volpath"`` (-1: unbounded).
         accel: ``"hlbvh"`` or ``"native"``.
         build_options: options of :func:`hlbvh.build` (``builder``, ``leaf_size``, ...),
             validated for both accelerators.
@@ -96,7 +104,7 @@ class RenderSettings:
         """The Mitsuba description of the integrator these settings ask for."""
         description = {"type": INTEGRATORS[self.integrator], **self.properties,
                        "accel": self.accel, **self.build_options}
-        if self.integrator == "path":
+        if self.integrator in DEPTH_INTEGRATORS:
             description["max_depth"] = self.max_depth
         if self.update is not None:
             description["update"] = self.update
@@ -119,7 +127,7 @@ def scene_integrator_fields(description: dict) -> dict:
     kind = description["type"]
     properties = {k: v for k, v in description.items() if k != "type"}
     fields = {"integrator": SCENE_INTEGRATORS[kind]}
-    if fields["integrator"] == "path":
+    if fields["integrator"] in DEPTH_INTEGRATORS:
         fields["max_depth"] = properties.pop("max_depth", SCENE_MAX_DEPTH)
     fields["accel"] = properties.pop("accel", "hlbvh")
     fields["build_options"] = {name: properties.pop(name) for name in BUILD_OPTIONS
