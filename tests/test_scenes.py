@@ -38,7 +38,7 @@ def loaded(name, **kwargs):
 
 
 def test01_names_and_bad_arguments():
-    assert scenes.names() == NAMES + ["flock"]  # flock: tests/test_flock.py
+    assert scenes.names() == NAMES + ["flock", "fog"]  # tested in test_flock, test_volpath
     with pytest.raises(ValueError, match="unknown"):
         scenes.get("teapot")
     with pytest.raises(ValueError, match="colour"):
