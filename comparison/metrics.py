@@ -60,18 +60,12 @@ def image_metrics(reference, test, tolerance: float, peak: float | None = None) 
     # ---- Per-pixel classification ----
     height, width, channels = reference.shape
     pixels = height * width
-    identical = np.all(reference.view(np.uint32) == test.view(np.uint32), axis=2)
-    finite_reference = np.all(np.isfinite(reference), axis=2)
-    finite_test = np.all(np.isfinite(test), axis=2)
+    identical, finite_reference, finite_test, difference, within = _classified(
+        reference, test, tolerance)
     compared = finite_reference & finite_test
-
-    # ---- Differences over the compared pixels ----
-    difference = np.abs(test[compared].astype(np.float64) - reference[compared].astype(np.float64))
     max_abs_diff = float(difference.max()) if difference.size else 0.0
     mean_abs_diff = float(difference.sum() / difference.size) if difference.size else 0.0
     mse = float(np.square(difference).sum() / difference.size) if difference.size else 0.0
-    within = identical.copy()
-    within[compared] |= np.all(difference <= tolerance, axis=1)
 
     # ---- PSNR ----
     if peak is None:
@@ -100,6 +94,29 @@ def image_metrics(reference, test, tolerance: float, peak: float | None = None) 
         "nonfinite_pixels_test": int((~finite_test).sum()),
         "nonfinite_mismatch_pixels": int((~compared & ~identical).sum()),
     }
+
+
+def within_tolerance(reference, test, tolerance: float) -> np.ndarray:
+    """``(H, W)`` bool: each pixel of ``test`` within ``tolerance`` of ``reference``'s
+    (the module docstring's definition, the one :func:`image_metrics` counts)."""
+    reference = as_image(reference, "reference")
+    test = as_image(test, "test")
+    _check_same_shape(reference.shape, test.shape)
+    return _classified(reference, test, tolerance)[4]
+
+
+def _classified(reference: np.ndarray, test: np.ndarray, tolerance: float) -> tuple:
+    """Per pixel: ``(bit-identical, finite in the reference, finite in the test, the
+    absolute differences of the compared pixels' channels (float64, (N, C)), within
+    tolerance)``."""
+    identical = np.all(reference.view(np.uint32) == test.view(np.uint32), axis=2)
+    finite_reference = np.all(np.isfinite(reference), axis=2)
+    finite_test = np.all(np.isfinite(test), axis=2)
+    compared = finite_reference & finite_test
+    difference = np.abs(test[compared].astype(np.float64) - reference[compared].astype(np.float64))
+    within = identical.copy()
+    within[compared] |= np.all(difference <= tolerance, axis=1)
+    return identical, finite_reference, finite_test, difference, within
 
 
 def hit_agreement(ref_aov, test_aov) -> dict:
