@@ -24,11 +24,22 @@ from .two_level import GroupSlots, TwoLevel
 
 
 class BadTransform(ValueError):
-    """An instance's transform that cannot be inverted; ``index`` says which."""
+    """An instance's transform that cannot be inverted.
+
+    Attributes:
+        index: which instance (its position in the instances given).
+        what: what is wrong with the transform (``"not finite"``, ``"singular (a
+            scale of 0)"``), for a caller that names the instance its own way.
+    """
 
     def __init__(self, index: int, what: str):
         super().__init__(f"instance {index}: its transform is {what}")
         self.index = index
+        self.what = what
+
+    def __reduce__(self):
+        """Pickled by its fields (a Dask worker's error reaches the client whole)."""
+        return type(self), (self.index, self.what)
 
 
 def root_boxes(group_bvhs: list[BVH]) -> tuple:

@@ -30,7 +30,7 @@ from hlbvh.kernels.instances import BadTransform, refit_top_level, two_level
 from hlbvh.accel.instance_shading import group_members, to_world_rows
 from hlbvh.accel.motion import member_states, members_changed
 from hlbvh.accel.policy import RefitOrRebuild, UpdatePolicy
-from hlbvh.accel.scene_geometry import _describe, collect_geometry
+from hlbvh.accel.scene_geometry import ShapeError, _describe, collect_geometry
 from hlbvh.timing import clock_ms
 
 
@@ -138,8 +138,8 @@ class InstanceGroup:
                     lambda seed: self._build_top(which, rows, seed),
                     lambda: self._refit_top(which, rows))
             except BadTransform as error:
-                raise ValueError(f"{_describe(shapes[indices[error.index]])}: its to_world "
-                                 f"is {str(error).split(' is ', 1)[1]}") from None
+                name = _describe(shapes[indices[error.index]])
+                raise ShapeError(name, f"{name}: its to_world is {error.what}") from None
         self._scene_index = mi.UInt32(list(indices))
         decision = "build" if first else chosen
         self.last = dict(decision=decision, ms=clock_ms() - start, instances=len(indices),

@@ -44,6 +44,27 @@ def _describe(shape) -> str:
     return f"shape {shape.id()!r} ({shape.class_name()})"
 
 
+class ShapeError(ValueError):
+    """A shape of the scene that hlbvh cannot take, in one line naming it.
+
+    Attributes:
+        shape: the shape as the message names it (its id and class).
+        reason: the message's sentence about the shape alone.
+        accel: the ``accel`` option that renders the scene instead (``"native"``), or
+            ``None`` where another accelerator would not help; the message ends with
+            that advice.
+    """
+
+    def __init__(self, shape: str, reason: str, accel: str | None = None):
+        advice = f" Use accel={accel!r} for this scene." if accel else ""
+        super().__init__(reason + advice)
+        self.shape, self.reason, self.accel = shape, reason, accel
+
+    def __reduce__(self):
+        """Pickled by its fields (a Dask worker's error reaches the client whole)."""
+        return type(self), (self.shape, self.reason, self.accel)
+
+
 def scene_shapes(shapes, static: str = "hlbvh") -> tuple[tuple, list, tuple]:
     """Sort a scene's shapes into meshes, analytic shapes and the rest.
 
@@ -58,29 +79,30 @@ def scene_shapes(shapes, static: str = "hlbvh") -> tuple[tuple, list, tuple]:
         ``shapes``, ``(index, shape)`` of every analytic shape, and the indices of the
         other shapes.
     Raises:
-        ValueError: naming the shape, for a mesh without triangles, and with
-            ``static="hlbvh"`` for any shape type our accelerator does not intersect.
+        ShapeError: naming the shape, for a mesh without triangles, and with
+            ``static="hlbvh"`` for any shape type our accelerator does not intersect
+            (then with ``accel="native"``).
     """
     meshes, analytic, others = [], [], []
     for index, shape in enumerate(shapes):
         if shape.is_mesh():
             if shape.face_count() == 0:
-                raise ValueError(
-                    f"{_describe(shape)} has no triangles: it would silently be missing "
-                    "from the image; give it faces or remove it from the scene"
-                )
+                name = _describe(shape)
+                raise ShapeError(name, f"{name} has no triangles: it would silently be "
+                                 "missing from the image; give it faces or remove it from "
+                                 "the scene")
             meshes.append(index)
         elif shape.class_name() in _ANALYTIC:
             analytic.append((index, shape))
         elif static == "native":
             others.append(index)
         else:
-            raise ValueError(
-                f"{_describe(shape)}: with static='hlbvh', hlbvh intersects meshes and the "
+            name = _describe(shape)
+            raise ShapeError(
+                name, f"{name}: with static='hlbvh', hlbvh intersects meshes and the "
                 f"analytic shapes {', '.join(s.lower() for s in _ANALYTIC)}; instances, "
                 "curves, SDF grids and ellipsoids are traced only with static='native' "
-                "(the default) while they do not move. Use accel='native' for this scene."
-            )
+                "(the default) while they do not move.", accel="native")
     return tuple(meshes), analytic, tuple(others)
 
 

@@ -14,7 +14,7 @@ import mitsuba as mi
 from hlbvh import scenes
 from hlbvh.accel.instance_shading import is_instance
 from hlbvh.accel.parameters import traverse
-from hlbvh.accel.scene_geometry import scene_shapes
+from hlbvh.accel.scene_geometry import ShapeError, scene_shapes
 from hlbvh.errors import UserError
 from hlbvh.render.settings import RenderSettings
 from hlbvh.timing import clock_ms, timed
@@ -90,9 +90,8 @@ class FrameRenderer:
         if settings.accel == "hlbvh":
             try:
                 scene_shapes(self.scene.shapes(), description.get("static", "native"))
-            except ValueError as error:
-                reason = str(error).split(" Use accel=")[0]
-                raise UserError(f"{reason} Render this scene with --accel native "
+            except ShapeError as error:
+                raise UserError(f"{error.reason} Render this scene with --accel native "
                                 f"(Mitsuba's own accelerator).") from None
 
     def render(self, i: int, spp: int | None = None) -> tuple[mi.TensorXf, dict]:
@@ -158,25 +157,28 @@ class FrameRenderer:
         return ["R", "G", "B", "A"][:colour] + aovs
 
 
-def check_frame_fits(width: int, height: int, spp: int) -> None:
+def check_frame_fits(width: int, height: int, spp: int, spp_flag: str = "--spp") -> None:
     """Refuse a frame that Dr.Jit cannot index (:data:`MAX_SAMPLES`) or that needs more
     memory than this process can still get (:func:`available_memory`, with
     :data:`BYTES_PER_PIXEL` and :data:`BYTES_PER_SAMPLE`): it would otherwise fail
     deep inside ``mi.render`` or crash the process.
 
     Raises:
-        UserError: naming ``--resolution`` and ``--spp``, the limit and the need.
+        UserError: naming the frame's size (the scene's own or ``--resolution``'s) and
+            spp, the limit and the need, and the flags that lower them (``spp_flag``:
+            the one that set the spp, e.g. ``--spp-curve``).
     """
     samples = width * height * spp
-    what = f"--resolution {width}x{height} at --spp {spp}"
+    what = f"a frame of {width}x{height} pixels at {spp} spp"
+    lower = f"lower it with --resolution or {spp_flag}"
     if samples > MAX_SAMPLES:
-        raise UserError(f"{what}: {samples} samples per frame, more than the {MAX_SAMPLES} "
-                        f"a Dr.Jit array holds; lower --resolution or --spp")
+        raise UserError(f"{what}: {samples} samples, more than the {MAX_SAMPLES} a Dr.Jit "
+                        f"array holds; {lower}")
     need = width * height * BYTES_PER_PIXEL + samples * BYTES_PER_SAMPLE
     available = available_memory()
     if available is not None and need > available:
-        raise UserError(f"{what}: a frame needs about {need / 2**30:.1f} GiB, this process "
-                        f"can get {available / 2**30:.1f} GiB; lower --resolution or --spp")
+        raise UserError(f"{what} needs about {need / 2**30:.1f} GiB, this process can get "
+                        f"{available / 2**30:.1f} GiB; {lower}")
 
 
 def available_memory() -> int | None:
