@@ -216,14 +216,6 @@ class BVHCache:
     refit_faces: tuple | None = None
 
 
-def _cache_entry(name: str) -> property:
-    """The :class:`BVHCache` entry ``name`` under the attribute name it had before the
-    cache was declared (``bvh._pack_plan``: tests reset and read entries so)."""
-    return property(lambda self: getattr(self.cache, name),
-                    lambda self, value: setattr(self.cache, name, value),
-                    doc=f"``cache.{name}``")
-
-
 @dataclass
 class BVH:
     """A built hierarchy over a triangle mesh (layout in the module docstring): a plain
@@ -245,11 +237,6 @@ class BVH:
     stats: BuildStats
     built_topology: tuple | None = None
     cache: BVHCache = field(default_factory=BVHCache, repr=False, compare=False)
-
-    _traversal_records = _cache_entry("traversal_records")
-    _pack_plan = _cache_entry("pack_plan")
-    _last_pack = _cache_entry("last_pack")
-    _ready_records = _cache_entry("ready_records")
 
     def topology_key(self) -> tuple:
         """The Dr.Jit variables of the arrays that give the tree its shape (``node_first``,

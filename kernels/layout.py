@@ -36,9 +36,6 @@ from .slots import (EMPTY, LEAF_BIT, MAX_DEPTH, MAX_LEAF_SIZE, MAX_SLOTS, NODE_H
                     NODE_REF, NODE_SLOTS, SLOT, TRI_FACE, TRI_HI, TRI_LO, TRI_P, WIDTH,
                     leaf_ref, node_ref, node_rows, open_ref)
 
-#: The packer under its former name (the tests validate with ``layout._pack``).
-_pack = pack
-
 __all__ = ["EMPTY", "LEAF_BIT", "MAX_DEPTH", "MAX_LEAF_SIZE", "MAX_SLOTS", "NODE_HI",
            "NODE_LO", "NODE_REF", "NODE_SLOTS", "SLOT", "TRI_FACE", "TRI_HI", "TRI_LO",
            "TRI_P", "WIDTH", "Packed", "check_tree", "joined", "leaf_ref", "node_ref",

@@ -18,7 +18,7 @@ import mitsuba as mi
 sys.path.insert(0, os.path.dirname(__file__))
 from reference import brute_force, median_split_bvh, random_soup, triangle_grid  # noqa: E402
 
-from hlbvh.kernels import layout, traversal  # noqa: E402
+from hlbvh.kernels import layout, packing, traversal  # noqa: E402
 from hlbvh.kernels.arrays import namespace_of  # noqa: E402
 from hlbvh.kernels.bvh import BVH, BuildConfig, BuildStats  # noqa: E402
 from hlbvh.kernels.traversal import any_hit, closest_hit  # noqa: E402
@@ -750,12 +750,12 @@ def test20c_refit_repacks_as_a_fresh_pack(builder):
     bvh.refit(mi.Float(np.ravel(moved)))
     kept, kept_root = traversal.packed_records(bvh)
     kept_joined = layout.joined([other, bvh])
-    bvh._pack_plan = None  # place anew
-    fresh, fresh_root = layout._pack(bvh, 0, 0, check=True)
+    bvh.cache.pack_plan = None  # place anew
+    fresh, fresh_root = packing.pack(bvh, 0, 0, check=True)
     assert kept_root == fresh_root
     np.testing.assert_array_equal(kept.numpy().view(np.uint32), fresh.numpy().view(np.uint32))
-    bvh._pack_plan = None
-    bvh._traversal_records = None
+    bvh.cache.pack_plan = None
+    bvh.cache.traversal_records = None
     fresh_joined = layout.joined([other, bvh])
     np.testing.assert_array_equal(kept_joined.records.numpy().view(np.uint32),
                                   fresh_joined.records.numpy().view(np.uint32))
@@ -788,9 +788,9 @@ def test20d_fused_refit_equals_the_refit_of_the_binary_tree(builder, leaf_size, 
         for step in (1, 2):
             moved = mi.Float(np.ravel(vertices * (1 + 0.05 * step) + 0.02 * step).astype(np.float32))
             fused.refit(moved)
-            assert fused._ready_records is not None  # the fused path ran
+            assert fused.cache.ready_records is not None  # the fused path ran
             twin = build(vertices, faces, builder, leaf_size)
-            assert getattr(twin, "_last_pack", None) is None  # never packed: the binary path
+            assert twin.cache.last_pack is None  # never packed: the binary path
             twin.refit(moved)
             for name in ("node_min", "node_max", "tri_p0", "tri_p1", "tri_p2"):
                 np.testing.assert_array_equal(np.array(getattr(fused, name)),
