@@ -23,6 +23,11 @@ _SUITES = {
 }
 
 
+#: The most triangles a benchmark mesh may have: its faces are one Dr.Jit array of three
+#: indices per triangle, and a Dr.Jit array holds fewer than 2^32 entries.
+MAX_TRIANGLES = (2**32 - 1) // 3
+
+
 def configure(parser) -> None:
     parser.add_argument("suite", choices=sorted(_SUITES), help="which benchmark to run")
     parser.add_argument("--sizes", default=None,
@@ -46,7 +51,8 @@ def run(args) -> int:
     the suite's ``run``."""
     kwargs = {"repeats": int_flag("--repeats", args.repeats, least=1)}
     if args.sizes is not None:
-        kwargs["sizes"] = [int_flag("--sizes", s.strip(), least=1) for s in args.sizes.split(",")]
+        kwargs["sizes"] = [int_flag("--sizes", s.strip(), least=1, most=MAX_TRIANGLES)
+                           for s in args.sizes.split(",")]
     builders = None if args.builder is None else [b.strip() for b in args.builder.split(",")]
     for builder in builders or ():
         if builder not in BUILDERS:

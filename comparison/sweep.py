@@ -83,7 +83,7 @@ from hlbvh.comparison.compare import TOLERANCE
 from hlbvh.comparison.crossover import crossover_spp
 from hlbvh.comparison.metrics import image_metrics
 from hlbvh.errors import UserError
-from hlbvh.render.frame import FrameRenderer
+from hlbvh.render.frame import FrameRenderer, check_frame_fits
 from hlbvh.render.images import as_image
 from hlbvh.cli.options import (add_scene_options, int_flag, open_animation, option_value, out_flag,
                            render_settings)
@@ -259,6 +259,8 @@ def sweep(animation, frames, settings: list[Setting], base: RenderSettings, spp:
     curve = sorted({*spp_curve, spp})
     native = Setting(NATIVE, accel=NATIVE)
     renderers = {NATIVE: FrameRenderer(animation, native.render_settings(base))}
+    width, height = renderers[NATIVE].scene.sensors()[0].film().crop_size()
+    check_frame_fits(int(width), int(height), curve[-1], "--spp-curve")  # before any render
     settings = [s for s in settings if _renderer(animation, s, base, renderers)]
     if not settings:
         raise UserError(f"{animation.name}: the scene takes none of the settings asked for")

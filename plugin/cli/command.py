@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import errno
+import os
 import sys
 
 # The command line runs as hlbvh.cli.command, also through python -m hlbvh.cli.
@@ -89,6 +91,11 @@ def main(argv=None) -> int:
         # traceback.
         print(f"hlbvh {args.command}: {e}", file=sys.stderr)
         return 2
+    except OSError as error:
+        if error.errno != errno.ENAMETOOLONG:
+            raise
+        print(f"hlbvh {args.command}: {_name_too_long(error.filename)}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"hlbvh {args.command}: interrupted", file=sys.stderr)
         return 130
@@ -99,6 +106,17 @@ def main(argv=None) -> int:
             raise
         print(f"hlbvh {args.command}: interrupted", file=sys.stderr)
         return 130
+
+
+def _name_too_long(path) -> str:
+    """The line for a path the file system refuses as too long (``--out``, a scene, a
+    file under them): the path shortened, its longest name's length in bytes."""
+    text = os.fsdecode(path) if path is not None else ""
+    longest = max((len(os.fsencode(name)) for name in text.split(os.sep)), default=0)
+    shown = text if len(text) <= 80 else f"{text[:48]}...{text[-24:]}"
+    return (f"path {shown!r} is too long for the file system ({len(os.fsencode(text))} "
+            f"bytes, its longest name {longest} bytes; a name may hold at most 255 bytes "
+            f"on most file systems)")
 
 
 def _interrupted(error: BaseException) -> bool:

@@ -1,0 +1,82 @@
+"""Inputs past a limit are one line and exit status 2 (issue 33, items 5 and 9): a path
+name longer than the file system takes (``--out`` or the scene, render and compare),
+``sweep --spp-curve`` past what a frame can hold, ``bench build --sizes`` past what a
+Dr.Jit array holds, and a frame too large for the scene's own resolution, said without
+blaming a flag the user did not pass."""
+
+import pytest
+
+from cli_helpers import run_cli
+
+LONG = "n" * 300  # one path name past the 255 bytes Linux file systems take
+SMALL = ["--triangles", "200", "--frames", "0:1", "--resolution", "8", "--spp", "1",
+         "--quiet"]
+
+
+def _too_long(path) -> str:
+    text = str(path)
+    return (f"path {text[:48] + '...' + text[-24:]!r} is too long for the file system "
+            f"({len(text)} bytes, its longest name {len(path.name)} bytes; a name may hold "
+            f"at most 255 bytes on most file systems)")
+
+
+@pytest.mark.parametrize("command", ["render", "compare"])
+def test_an_out_name_too_long_is_one_line(tmp_path, capsys, command):
+    out = tmp_path / LONG
+    status, _, err = run_cli(capsys, command, "cloth", *SMALL, "--out", out)
+    assert status == 2 and err == [f"hlbvh {command}: {_too_long(out)}"], err
+
+
+@pytest.mark.parametrize("command", ["render", "compare"])
+@pytest.mark.parametrize("suffix", [".usda", ".xml"])
+def test_a_scene_name_too_long_is_one_line(tmp_path, capsys, command, suffix):
+    pytest.importorskip("pxr") if suffix == ".usda" else None
+    scene = tmp_path / f"{LONG}{suffix}"
+    extra = ["--frames-dir", str(tmp_path)] if suffix == ".xml" else []
+    status, _, err = run_cli(capsys, command, scene, *extra, "--quiet", "--out",
+                             tmp_path / "out")
+    assert status == 2 and err == [f"hlbvh {command}: {_too_long(scene)}"], err
+
+
+def test_an_spp_curve_past_a_frame_s_samples_is_one_line(tmp_path, capsys):
+    status, _, err = run_cli(capsys, "sweep", "cloth", *SMALL[:2], "--resolution", "8",
+                             "--spp", "1", "--spp-curve", "1,100000000", "--quiet",
+                             "--out", tmp_path / "sweep")
+    assert status == 2 and err == [
+        "hlbvh sweep: a frame of 8x8 pixels at 100000000 spp: 6400000000 samples, more "
+        "than the 4294967295 a Dr.Jit array holds; lower it with --resolution or "
+        "--spp-curve"], err
+    assert not list((tmp_path / "sweep").glob("*.exr"))
+
+
+def test_bench_sizes_past_a_dr_jit_array_is_one_line(capsys):
+    status, _, err = run_cli(capsys, "bench", "build", "--sizes", "1000,10000000000")
+    assert status == 2 and err == [
+        "hlbvh bench: --sizes '10000000000': expected an integer in 1..1431655765"], err
+
+
+def test_a_render_settings_resolution_too_large_names_the_frame_not_a_flag(tmp_path,
+                                                                           capsys):
+    """A stage whose render settings ask for 100000x100000 pixels: the line names the
+    frame's size, not ``--resolution``, which the user never passed."""
+    pytest.importorskip("pxr")
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender
+    path = tmp_path / "huge.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    mesh = UsdGeom.Mesh.Define(stage, "/Q")
+    mesh.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)])
+    mesh.CreateFaceVertexCountsAttr([4])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    mesh.CreateSubdivisionSchemeAttr("none")
+    UsdGeom.Camera.Define(stage, "/Cam").AddTranslateOp().Set(Gf.Vec3d(0.5, 0.5, 4))
+    UsdLux.DomeLight.Define(stage, "/Sky")
+    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
+    settings.CreateCameraRel().SetTargets([Sdf.Path("/Cam")])
+    settings.CreateResolutionAttr(Gf.Vec2i(100000, 100000))
+    stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
+    stage.GetRootLayer().Save()
+    status, _, err = run_cli(capsys, "render", path, "--spp", "1", "--quiet", "--out",
+                             tmp_path / "out")
+    assert status == 2 and err == [
+        "hlbvh render: a frame of 100000x100000 pixels at 1 spp: 10000000000 samples, more "
+        "than the 4294967295 a Dr.Jit array holds; lower it with --resolution or --spp"], err
