@@ -39,14 +39,14 @@ TFAR_SCALE = 1 + 2 * _GAMMA3
 BARYCENTRIC_MARGIN = 2.0**-20
 
 
-def _min(a, b):
+def select_min(a, b):
     """Minimum of two NaN-free arrays (one compare and blend; ``dr.minimum`` also
     handles NaN and signed zeros at a few times the cost)."""
     return dr.select(a < b, a, b)
 
 
-def _max(a, b):
-    """Maximum of two NaN-free arrays (see :func:`_min`)."""
+def select_max(a, b):
+    """Maximum of two NaN-free arrays (see :func:`select_min`)."""
     return dr.select(a > b, a, b)
 
 
@@ -64,11 +64,11 @@ def slab_test(ray: Ray, rec, k: int, limit):
     ref = dr.reinterpret_array(UInt32, rec[NODE_REF + k])
     t0 = [(rec[NODE_LO[i] + k] - ray.o[i]) * ray.inv_d[i] for i in range(3)]
     t1 = [(rec[NODE_HI[i] + k] - ray.o[i]) * ray.inv_d[i] for i in range(3)]
-    near = [_min(a, b) for a, b in zip(t0, t1)]
-    far = [_max(a, b) for a, b in zip(t0, t1)]
-    t_near = _max(_max(near[0], near[1]), _max(near[2], 0.0))
-    t_far = _min(_min(far[0], far[1]), far[2])
-    hit = (t_near <= _min(t_far * TFAR_SCALE, limit)) & (ref != EMPTY)
+    near = [select_min(a, b) for a, b in zip(t0, t1)]
+    far = [select_max(a, b) for a, b in zip(t0, t1)]
+    t_near = select_max(select_max(near[0], near[1]), select_max(near[2], 0.0))
+    t_far = select_min(select_min(far[0], far[1]), far[2])
+    hit = (t_near <= select_min(t_far * TFAR_SCALE, limit)) & (ref != EMPTY)
     return ref, t_near, hit
 
 

@@ -52,7 +52,7 @@ import drjit as dr
 from .arrays import high_half, low_half, namespace_of, pack_halves, plain
 from .layout import Packed
 from .packing import packed_records  # noqa: F401  (what traversal reads, built on first use)
-from .ray_tests import (BARYCENTRIC_MARGIN, TFAR_SCALE, Ray, _max, _min,  # noqa: F401
+from .ray_tests import (BARYCENTRIC_MARGIN, TFAR_SCALE, Ray, select_max, select_min,  # noqa: F401
                         ray_setup, slab_test, triangle_test)
 from .slots import LEAF_BIT, MAX_DEPTH, SLOT, TRI_FACE, WIDTH, open_ref
 from .two_level import NO_INSTANCE, RETURN_REF, TwoLevel, enter_instance, select_ray
@@ -230,7 +230,7 @@ def _box_test(query: _Query, ray: Ray, rec, cur, t_best):
         ref, t_near, hit = slab_test(ray, rec, k, limit)
         keys.append(dr.select(hit, query.entry_of(ref, t_near), query.miss))
     for i, j in _SORTING_NETWORK:
-        keys[i], keys[j] = _min(keys[i], keys[j]), _max(keys[i], keys[j])
+        keys[i], keys[j] = select_min(keys[i], keys[j]), select_max(keys[i], keys[j])
     return tuple(keys)
 
 

@@ -158,6 +158,22 @@ def _check_time_codes(stage, where: str) -> None:
                          f"more than 2^32 frames (a frame's seed is 32-bit)")
 
 
+def _grouped_arcs(arcs: list[tuple[str, str]]) -> list[tuple[str, str]]:
+    """``(who, what USD said)`` once per distinct unresolved asset, sorted: ``who`` is
+    the prim's path, or the first path and how many other prims reference the same
+    missing file (548 references to one missing file are one line, the same line for
+    every command)."""
+    grouped: dict[str, list[str]] = {}
+    for path, said in arcs:
+        grouped.setdefault(said, []).append(path)
+    result = []
+    for said, paths in sorted(grouped.items()):
+        paths.sort()
+        who = paths[0] if len(paths) == 1 else f"{paths[0]} and {len(paths) - 1} other prims"
+        result.append((who, said))
+    return result
+
+
 def _usd_quiet(method):
     """``method`` of a :class:`UsdScene` with USD's own diagnostics (multi-line C++
     output on stderr) said as one warning line per distinct message, once per stage,
@@ -301,6 +317,12 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         if not self._shapes:
             why = (f"; references or payloads that do not resolve: {', '.join(unresolved)}"
                    if unresolved else "")
+            # What was seen and left out (a point instancer's reason) says why, in short
+            skipped = [line.removeprefix(f"{self._where}: ") for line in pending
+                       if "not rendered" in line and "reference or payload" not in line]
+            if skipped:
+                more = f" (and {len(skipped) - 2} more)" if len(skipped) > 2 else ""
+                why += "; " + "; ".join(skipped[:2]) + more
             raise ValueError(f"{self._where}: nothing renderable (no visible UsdGeom.Mesh "
                              f"of purpose default or render){why}")
         self._camera = self._pick_camera(camera)
@@ -479,7 +501,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         stats = _Stats()
         time = Usd.TimeCode(self._start)
         cache = UsdGeom.XformCache(time)
-        unresolved = _unresolved_arcs(self.stage)
+        unresolved = _grouped_arcs(_unresolved_arcs(self.stage))
         for path, said in unresolved:
             self._warn(f"{self._where}: {path}: a reference or payload does not resolve "
                        f"({said}); what it would bring is not rendered")

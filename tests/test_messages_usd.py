@@ -277,3 +277,55 @@ def test_the_sample_times_a_check_visits(tmp_path):
     for t in (-5, 0, 2.5, 7, 1e6 + 1):
         attribute.Set(Gf.Vec3d(t, 0, 0), t)
     assert usd._sample_times([attribute], 0.0, 1e6) == [0.0, 2.5, 7.0, 1e6]
+
+
+# ---- Issue 32 item 7: one line per missing file, the instancer's own reason -----------
+
+
+def _referencing(path, count, with_mesh):
+    """``count`` prims referencing one missing layer; with ``with_mesh`` a square too."""
+    stage = _stage(path, end=0)
+    for k in range(count):
+        stage.DefinePrim(f"/Set_{k:02d}").GetReferences().AddReference("./missing.usda")
+    if with_mesh:
+        _mesh(stage, "/Square", SQUARE, (4,), (0, 1, 2, 3))
+    stage.GetRootLayer().Save()
+    return path
+
+
+def test_many_references_to_one_missing_file_are_one_line_in_every_command(tmp_path,
+                                                                         capsys):
+    path = _referencing(tmp_path / "refs.usda", 30, with_mesh=False)
+    said = {}
+    for command in ("render", "compare"):
+        status, _, err = run_cli(capsys, command, path, "--out", tmp_path / command, *TINY)
+        assert status == 2 and len(err) == 1, err
+        said[command] = err[0].removeprefix(f"hlbvh {command}: ")
+    assert said["render"] == said["compare"]
+    missing = f"@{tmp_path / 'missing.usda'}@"
+    assert said["render"] == (
+        f"stage {str(path)!r}: nothing renderable (no visible UsdGeom.Mesh of purpose default "
+        f"or render); references or payloads that do not resolve: /Set_00 and 29 other "
+        f"prims (Could not open asset {missing})"), said
+    lines = []
+    lit = _referencing(tmp_path / "lit.usda", 30, with_mesh=True)
+    UsdScene(lit, warn=lines.append)
+    assert [line for line in lines if "resolve" in line] == [
+        f"stage {str(lit)!r}: /Set_00 and 29 other prims: a reference or payload does not "
+        f"resolve (Could not open asset {missing}); what it would bring is not rendered"]
+
+
+def test_a_point_instancer_alone_gives_its_own_reason(tmp_path, capsys):
+    path = _long_stage(tmp_path / "points.usda", end=2)
+    stage = Usd.Stage.Open(str(path))
+    stage.RemovePrim("/Mover")
+    UsdGeom.PointInstancer(stage.GetPrimAtPath("/Points")).GetProtoIndicesAttr().Set(
+        [0, 0, 0], 2)
+    UsdGeom.PointInstancer(stage.GetPrimAtPath("/Points")).GetPositionsAttr().Set(
+        [Gf.Vec3f(0, 0, 0)] * 3, 2)
+    stage.GetRootLayer().Save()
+    status, _, err = run_cli(capsys, "render", path, "--out", tmp_path / "out", *TINY)
+    assert status == 2 and err == [
+        f"hlbvh render: stage {str(path)!r}: nothing renderable (no visible UsdGeom.Mesh of "
+        f"purpose default or render); /Points: a PointInstancer whose number of points "
+        f"changes over time is not supported; it is not rendered"], err

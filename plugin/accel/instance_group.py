@@ -30,7 +30,7 @@ from hlbvh.kernels.instances import BadTransform, refit_top_level, two_level
 from hlbvh.accel.instance_shading import group_members, to_world_rows
 from hlbvh.accel.motion import member_states, members_changed
 from hlbvh.accel.policy import RefitOrRebuild, UpdatePolicy
-from hlbvh.accel.scene_geometry import ShapeError, _describe, collect_geometry
+from hlbvh.accel.scene_geometry import ShapeError, collect_geometry, describe_shape as _describe
 from hlbvh.timing import clock_ms
 
 

@@ -8,7 +8,7 @@ from hlbvh.kernels.arrays import concat
 from hlbvh.kernels.build import build
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.accel.policy import RefitOrRebuild, UpdatePolicy
-from hlbvh.accel.scene_geometry import _named_error, collect_geometry
+from hlbvh.accel.scene_geometry import collect_geometry, named_build_error as _named_error
 from hlbvh.timing import clock_ms
 
 

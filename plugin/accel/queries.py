@@ -1,5 +1,5 @@
 """``mi.Scene``'s three ray queries (``ray_intersect_preliminary``, ``ray_intersect``,
-``ray_test``) with its signatures, overloads and defaults, bound once in :class:`_Accel`
+``ray_test``) with its signatures, overloads and defaults, bound once in :class:`SceneQueries`
 for every intersector, and :class:`NativeAccel`, the scene's own accelerator behind
 them (the reference hlbvh's images are compared against)."""
 
@@ -39,7 +39,7 @@ def _bind_overloads(args: tuple, long_names: tuple, given: dict) -> dict:
     return bound
 
 
-def _checked_scene(scene):
+def checked_scene(scene):
     """``scene``, after checking it is a loaded ``mi.Scene`` (TypeError otherwise)."""
     if not isinstance(scene, mi.Scene):
         raise TypeError(
@@ -69,7 +69,7 @@ def _no_rays(ray) -> bool:
     return dr.width(ray.o) == 0 or dr.width(ray.d) == 0
 
 
-class _Accel:
+class SceneQueries:
     """The three query methods of ``mi.Scene`` with its signatures, keyword names and
     defaults (every overload: ``ray_intersect(ray, active)`` and ``ray_test(ray,
     active)`` included, and the keyword-only ``reorder``, ``reorder_hint``,
@@ -131,7 +131,7 @@ class _Accel:
         return pi.compute_surface_interaction(ray, ray_flags, active)
 
 
-class NativeAccel(_Accel):
+class NativeAccel(SceneQueries):
     """The scene's own accelerator (Embree or OptiX) behind the same interface as
     :class:`SceneAccel`: the reference our images are compared against. Every query is
     the scene's, with the same arguments.

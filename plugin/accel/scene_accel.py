@@ -78,8 +78,8 @@ from hlbvh.accel.mesh_group import MeshGroup
 from hlbvh.accel.motion import MeshState, shape_states
 from hlbvh.accel.native_group import NativeGroup, shape_groups
 from hlbvh.accel.policy import ACCELS, DECISIONS, UpdatePolicy, split_options
-from hlbvh.accel.queries import NativeAccel, _Accel, _checked_scene
-from hlbvh.accel.scene_geometry import _describe, scene_shapes, unmovable_error
+from hlbvh.accel.queries import NativeAccel, SceneQueries as _Accel, checked_scene as _checked_scene
+from hlbvh.accel.scene_geometry import describe_shape as _describe, scene_shapes, unmovable_error
 from hlbvh.timing import clock_ms
 
 

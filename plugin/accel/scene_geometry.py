@@ -40,7 +40,8 @@ class SceneGeometry:
         return len(self.prim_shape)
 
 
-def _describe(shape) -> str:
+def describe_shape(shape) -> str:
+    """The shape as every message names it: its id and its class."""
     return f"shape {shape.id()!r} ({shape.class_name()})"
 
 
@@ -87,7 +88,7 @@ def scene_shapes(shapes, static: str = "hlbvh") -> tuple[tuple, list, tuple]:
     for index, shape in enumerate(shapes):
         if shape.is_mesh():
             if shape.face_count() == 0:
-                name = _describe(shape)
+                name = describe_shape(shape)
                 raise ShapeError(name, f"{name} has no triangles: it would silently be "
                                  "missing from the image; give it faces or remove it from "
                                  "the scene")
@@ -97,7 +98,7 @@ def scene_shapes(shapes, static: str = "hlbvh") -> tuple[tuple, list, tuple]:
         elif static == "native":
             others.append(index)
         else:
-            name = _describe(shape)
+            name = describe_shape(shape)
             raise ShapeError(
                 name, f"{name}: with static='hlbvh', hlbvh intersects meshes and the "
                 f"analytic shapes {', '.join(s.lower() for s in _ANALYTIC)}; instances, "
@@ -111,7 +112,7 @@ def unmovable_error(shape) -> ValueError:
     (anything but a mesh or an analytic shape: an instance's ``to_world``, a curve's
     control points, an SDF grid): naming it and what to do."""
     return ValueError(
-        f"{_describe(shape)} moved: hlbvh traces moving meshes and the analytic shapes "
+        f"{describe_shape(shape)} moved: hlbvh traces moving meshes and the analytic shapes "
         f"{', '.join(s.lower() for s in _ANALYTIC)}, not moving {shape.class_name()} shapes; "
         "keep it still, or render this scene with accel='native'"
     )
@@ -164,11 +165,11 @@ def check_finite(shapes, indices) -> None:
 
 
 def _non_finite(mesh) -> ValueError:
-    return ValueError(f"{_describe(mesh)} has non-finite (NaN or infinite) vertex positions: "
+    return ValueError(f"{describe_shape(mesh)} has non-finite (NaN or infinite) vertex positions: "
                       "fix the mesh or the parameters written into it")
 
 
-def _named_error(shapes, indices, error: ValueError) -> ValueError:
+def named_build_error(shapes, indices, error: ValueError) -> ValueError:
     """A build or refit of the meshes ``indices`` failed with ``error``: the same
     error, naming the mesh with non-finite positions when there is one."""
     for index in indices:
