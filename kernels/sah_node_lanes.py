@@ -77,8 +77,9 @@ def build_by_node_lanes(ns, lo, hi, weight, leaf_items: int, bins: int) -> SahTr
             _write_block(rows[0], flags[0], through, records, *sizes[:3])
             dr.eval(records)
             break
-        _FROZEN_LEVEL(rows[0], flags[0], through, records, *sizes, lo, hi, centroid, weight,
-                      *slots, item_order, rows[1], flags[1], level_ids, leaf_items, bins)
+        _FROZEN_LEVEL(_Level(rows[0], flags[0], through, *sizes, lo, hi, centroid, weight,
+                             records, *slots, item_order, rows[1], flags[1], level_ids,
+                             leaf_items, bins))
         levels.append(dr.gather(UInt32, level_ids, dr.arange(UInt32, opened) + sizes[3]))
         width, internal = 2 * opened, internal + opened
         slots.reverse(), rows.reverse(), flags.reverse()
@@ -133,26 +134,74 @@ def _write_block(rows, is_open, through, records, block, next_block, width):
     return lane, open_lane, rank, node
 
 
-def _node_level(rows, is_open, through, records, block, next_block, width, internal, lo, hi,
-                centroid, weight, slots_in, slots_out, item_order, rows_out, is_open_out,
-                level_ids, leaf_items, bins):
+@dataclass
+class _Level:
+    """What one level of :func:`build_by_node_lanes` reads and writes: the frozen
+    kernel's one argument (``dr.freeze`` takes a dataclass's fields as it takes
+    positional arrays, and sees the ones the kernel writes in place).
+
+    Attributes:
+        rows, is_open, through: this level's children as the level above wrote them:
+            Float (``_CHILD`` per child), UInt32 open flags and their inclusive prefix.
+        block, next_block, width, internal: opaque UInt32: the level's first node, the
+            next level's, its number of children, the internal nodes before it.
+        lo, hi, centroid: Array3f (n): the items' boxes and centroids.
+        weight: UInt32 (n): the items' weights.
+        records: Float: the node records, written.
+        slots_in, slots_out: UInt32 (n): slot -> item in the open nodes' ranges, read
+            for this level and written for the next.
+        item_order: UInt32 (n): the final slot of each item that reached a leaf, written.
+        rows_out, is_open_out: the next level's children and open flags, written.
+        level_ids: UInt32 (n): the internal nodes, written from ``internal`` on.
+        leaf_items: opaque UInt32: most items in a leaf.
+        bins: bins per axis.
+    """
+
+    rows: Any
+    is_open: Any
+    through: Any
+    block: Any
+    next_block: Any
+    width: Any
+    internal: Any
+    lo: Any
+    hi: Any
+    centroid: Any
+    weight: Any
+    records: Any
+    slots_in: Any
+    slots_out: Any
+    item_order: Any
+    rows_out: Any
+    is_open_out: Any
+    level_ids: Any
+    leaf_items: Any
+    bins: int
+
+
+def _node_level(level: _Level):
     """One level of :func:`build_by_node_lanes`, one kernel: the block's records, its
     open nodes split, the next block's rows and open flags, the open nodes' ids (at
     ``internal`` on in ``level_ids``)."""
-    ns = namespace_of(rows)
+    ns = namespace_of(level.rows)
     UInt32 = ns.UInt32
-    lane, open_lane, rank, node = _write_block(rows, is_open, through, records, block,
-                                               next_block, width)
+    lane, open_lane, rank, node = _write_block(level.rows, level.is_open, level.through,
+                                               level.records, level.block, level.next_block,
+                                               level.width)
     first, count = node.first, node.count
-    left, right, n_left = _split_nodes(ns, (lo, hi, centroid, weight, slots_in), slots_out,
-                                       item_order, open_lane, node, leaf_items, bins)
-    dr.scatter(rows_out, ns.ArrayXf(_child_rows(ns, left, first, n_left)
-                                    + _child_rows(ns, right, first + n_left, count - n_left)),
+    left, right, n_left = _split_nodes(
+        ns, (level.lo, level.hi, level.centroid, level.weight, level.slots_in),
+        level.slots_out, level.item_order, open_lane, node, level.leaf_items, level.bins)
+    dr.scatter(level.rows_out,
+               ns.ArrayXf(_child_rows(ns, left, first, n_left)
+                          + _child_rows(ns, right, first + n_left, count - n_left)),
                rank, open_lane)
-    dr.scatter(is_open_out, ns.ArrayXu([UInt32(n_left > leaf_items),
-                                        UInt32(count - n_left > leaf_items)]), rank, open_lane)
-    dr.scatter(level_ids, block + lane, internal + rank, open_lane)
-    dr.eval(records, item_order, slots_out, rows_out, is_open_out, level_ids)
+    dr.scatter(level.is_open_out, ns.ArrayXu([UInt32(n_left > level.leaf_items),
+                                              UInt32(count - n_left > level.leaf_items)]),
+               rank, open_lane)
+    dr.scatter(level.level_ids, level.block + lane, level.internal + rank, open_lane)
+    dr.eval(level.records, level.item_order, level.slots_out, level.rows_out,
+            level.is_open_out, level.level_ids)
 
 
 #: Recorded once per item-count parity (and bins) and replayed: every input
