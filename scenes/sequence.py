@@ -456,10 +456,21 @@ def _changing_hint(shape_id: str) -> str:
 
 
 def _first_line(error: Exception) -> str:
-    """The first line of a loader error. Mitsuba's message about a corrupt file can
-    quote its bytes, which Python then fails to decode: those are replaced."""
+    """A loader error on one line: its first line and, when that one ends in a colon,
+    what it introduces: the traceback of a Python plugin's constructor (a bad property
+    of one of hlbvh's integrators) by its last line, the exception itself, a list (the
+    properties no plugin took) by its first items. Mitsuba's message about a corrupt
+    file can quote its bytes, which Python then fails to decode: those are replaced."""
     if isinstance(error, UnicodeDecodeError):
         text = bytes(error.object).decode("utf-8", "replace")
     else:
         text = str(error)
-    return text.strip().splitlines()[0] if text.strip() else type(error).__name__
+    lines = [line.strip() for line in text.strip().splitlines() if line.strip()]
+    if not lines:
+        return type(error).__name__
+    head = "Traceback (most recent call last):"
+    if lines[0].endswith(head) and len(lines) > 1:
+        return lines[0].removesuffix(head) + lines[-1]
+    if lines[0].endswith(":") and len(lines) > 1:
+        return " ".join(lines[:4])[:400]
+    return lines[0]

@@ -80,3 +80,26 @@ def test_a_render_settings_resolution_too_large_names_the_frame_not_a_flag(tmp_p
     assert status == 2 and err == [
         "hlbvh render: a frame of 100000x100000 pixels at 1 spp: 10000000000 samples, more "
         "than the 4294967295 a Dr.Jit array holds; lower it with --resolution or --spp"], err
+
+
+@pytest.mark.parametrize("prop, said", [
+    ('<string name="accel" value="bogus"/>',
+     "ValueError: integrator property accel='bogus': expected one of ('hlbvh', 'native')"),
+    ('<string name="bogus_property" value="1"/>',
+     'Found 1 unreferenced property in integrator plugin of type "hlbvh_path": - string '
+     '"bogus_property": "1"'),
+])
+def test_a_bad_integrator_property_in_a_scene_file_says_its_cause(tmp_path, capsys, prop,
+                                                                  said):
+    """Through ``hlbvh render``: the cause ends the line (it was cut off at Mitsuba's
+    "Traceback (most recent call last):")."""
+    from cli_helpers import write_twist_scene
+    xml, frames = write_twist_scene(tmp_path)
+    text = xml.read_text().replace('<integrator type="path">',
+                                   f'<integrator type="hlbvh_path">{prop}')
+    xml.write_text(text)
+    status, _, err = run_cli(capsys, "render", xml, "--frames-dir", frames, "--quiet",
+                             "--out", tmp_path / "out")
+    assert status == 2 and len(err) == 1 and err[0].startswith(
+        f"hlbvh render: scene {str(xml)!r}: Mitsuba cannot load it: "), err
+    assert err[0].endswith(said) and "Traceback" not in err[0], err
