@@ -8,9 +8,20 @@ without automatic differentiation.
 from __future__ import annotations
 
 import types
+from typing import Union
 
 import drjit as dr
 import numpy as np
+
+def _any_backend(kind: str):
+    """The type hint for a ``kind`` array ('Float', 'Array3f', ...) of either JIT
+    backend, plain or AD: kernels take the types of their input's backend."""
+    return Union[tuple(getattr(m, kind) for m in (dr.llvm, dr.cuda, dr.llvm.ad, dr.cuda.ad))]
+
+
+#: Type hints of the kernels' arrays (what :func:`namespace_of` hands out, of any backend).
+Float, UInt32, UInt64, Bool, Array3f, Array3u = (
+    _any_backend(kind) for kind in ("Float", "UInt32", "UInt64", "Bool", "Array3f", "Array3u"))
 
 # Dr.Jit's LLVM backend marks a vector load aligned only when the input's address is a
 # multiple of the packet size; its own allocations always are (64 bytes covers AVX-512).

@@ -38,6 +38,8 @@ import numbers
 from dataclasses import dataclass, field
 from typing import Any
 
+from .arrays import Array3f, UInt32
+
 BUILDERS = ("hlbvh", "lbvh", "sah")
 QUANTIZATIONS = ("cube", "axis", "rank")
 
@@ -223,16 +225,16 @@ class BVH:
     conveniences that hand the record to the stage that does the work (imported when
     called, so this module imports no stage)."""
 
-    node_min: Any
-    node_max: Any
-    node_first: Any
-    node_count: Any
-    prim_ids: Any
-    tri_p0: Any
-    tri_p1: Any
-    tri_p2: Any
-    faces: Any
-    levels: list
+    node_min: Array3f
+    node_max: Array3f
+    node_first: UInt32
+    node_count: UInt32
+    prim_ids: UInt32
+    tri_p0: Array3f
+    tri_p1: Array3f
+    tri_p2: Array3f
+    faces: UInt32
+    levels: list[UInt32]
     config: BuildConfig
     stats: BuildStats
     built_topology: tuple | None = None

@@ -17,11 +17,10 @@ pays while nodes are small: the root lane alone reads every item twice.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import drjit as dr
 
-from .arrays import low_half, namespace_of
+from .arrays import Array3f, Float, UInt32, low_half, namespace_of
 from .sah_planes import (NO_PLANE, RECORD, SahTree, bin_index, box_centroid, cheaper,
                          extent_scale, grow, plane_cost, plane_key, side_cost,
                          tree_from_records, write_records)
@@ -91,12 +90,12 @@ class _Node:
     """The node of each lane, as its row in the level above says: box, centroid bounds
     (Array3f), first slot and item count (UInt32)."""
 
-    box_lo: Any
-    box_hi: Any
-    cmin: Any
-    cmax: Any
-    first: Any
-    count: Any
+    box_lo: Array3f
+    box_hi: Array3f
+    cmin: Array3f
+    cmax: Array3f
+    first: UInt32
+    count: UInt32
 
 
 def _child_fields(ns, row) -> _Node:
@@ -157,25 +156,25 @@ class _Level:
         bins: bins per axis.
     """
 
-    rows: Any
-    is_open: Any
-    through: Any
-    block: Any
-    next_block: Any
-    width: Any
-    internal: Any
-    lo: Any
-    hi: Any
-    centroid: Any
-    weight: Any
-    records: Any
-    slots_in: Any
-    slots_out: Any
-    item_order: Any
-    rows_out: Any
-    is_open_out: Any
-    level_ids: Any
-    leaf_items: Any
+    rows: Float
+    is_open: UInt32
+    through: UInt32
+    block: UInt32
+    next_block: UInt32
+    width: UInt32
+    internal: UInt32
+    lo: Array3f
+    hi: Array3f
+    centroid: Array3f
+    weight: UInt32
+    records: Float
+    slots_in: UInt32
+    slots_out: UInt32
+    item_order: UInt32
+    rows_out: Float
+    is_open_out: UInt32
+    level_ids: UInt32
+    leaf_items: UInt32
     bins: int
 
 
@@ -298,11 +297,11 @@ def _read_cell(ns, mem, cell):
 class _Side:
     """One side of the planes on one axis, grown a bin at a time (a sweep's loop state)."""
 
-    lo: Any  # Array3f: the union of its bins' boxes
-    hi: Any
-    w: Any  # UInt32: their summed weight
-    items: Any = None  # UInt32: their item count (forward sweep only)
-    last: Any = None  # UInt32: the last occupied bin (forward sweep only)
+    lo: Array3f  # the union of its bins' boxes
+    hi: Array3f
+    w: UInt32  # their summed weight
+    items: UInt32 | None = None  # their item count (forward sweep only)
+    last: UInt32 | None = None  # the last occupied bin (forward sweep only)
 
 
 def _sweep_bins(ns, mem, active, s, zeros, empty, bins):
@@ -355,10 +354,10 @@ def _sweep_bins(ns, mem, active, s, zeros, empty, bins):
 class _Bounds:
     """A child's bounds, grown an item at a time (the partition's loop state)."""
 
-    box_lo: Any  # Array3f: the union of its items' boxes
-    box_hi: Any
-    cmin: Any  # Array3f: the bounds of its items' centroids
-    cmax: Any
+    box_lo: Array3f  # the union of its items' boxes
+    box_hi: Array3f
+    cmin: Array3f  # the bounds of its items' centroids
+    cmax: Array3f
 
     def grown(self, mine, i_lo, i_hi, c):
         """Grown by the item of box ``(i_lo, i_hi)``, centroid ``c`` where ``mine``."""
