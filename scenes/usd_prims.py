@@ -27,9 +27,6 @@ except ImportError as _error:  # pragma: no cover - depends on the installation
                       f"pip install 'hlbvh[usd]'") from None
 
 
-#: File suffixes that name a USD stage.
-SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
-
 DEFAULT_WIDTH = 640
 
 DEFAULT_SPP = 16

@@ -330,7 +330,8 @@ def usd_stage(scene) -> tuple[Path, dict] | None:
         UserError: an option the stage does not take, given twice, or a value that is
             not ``true``/``false``.
     """
-    match = re.fullmatch(r"(.*?\.(?:usd|usda|usdc|usdz))(?::(.*))?", str(scene), re.IGNORECASE)
+    suffixes = "|".join(re.escape(suffix) for suffix in USD_SUFFIXES)
+    match = re.fullmatch(rf"(.*?(?:{suffixes}))(?::(.*))?", str(scene), re.IGNORECASE)
     if not match:
         return None
     options = {}
