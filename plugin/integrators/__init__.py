@@ -1,12 +1,13 @@
-"""The integrators hlbvh registers with Mitsuba: ``hlbvh_path`` (Mitsuba's ``path``
-through an hlbvh intersector) and ``hlbvh_aov`` (primary-hit depth, shape, primitive,
-normal and position)."""
+"""The integrators hlbvh registers with Mitsuba: ``hlbvh_path``, ``hlbvh_direct``,
+``hlbvh_volpath`` and ``hlbvh_prb`` (Mitsuba's ``path``, ``direct``, ``volpath`` and
+``prb`` through an hlbvh intersector) and ``hlbvh_aov`` (primary-hit depth, shape,
+primitive, normal and position)."""
 
 import importlib
 import sys
 
 #: Modules of this package, ``common`` first: the others derive from its classes.
-_MODULES = ("common", "path", "direct", "volpath", "aov")
+_MODULES = ("common", "path", "direct", "volpath", "aov", "prb")
 
 
 def register():

@@ -1,0 +1,315 @@
+"""``hlbvh_prb``: Mitsuba's ``prb`` (path replay backpropagation) with every ray query
+through an hlbvh intersector, so that a shape optimisation's mesh, rewritten every
+iteration, is followed by our accelerator instead of Mitsuba's whole-scene rebuild."""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from .common import AccelIntegrator, mis_weight, skip_area_emitters
+
+_ad = mi.ad.integrators.common  # Mitsuba's differentiable-integrator base classes
+
+
+def _preliminary(accel, ray, coherent, active):
+    """The closest hit along ``ray`` found without derivatives, as Mitsuba's scene
+    finds it: the ray is detached, the hit's fields carry no gradient; only the
+    surface interaction computed from it is attached to the shapes' parameters."""
+    return accel.ray_intersect_preliminary(dr.detach(ray), coherent, active)
+
+
+def _attached_emitter_sample(accel, scene, si, ds, em_weight, active):
+    """The emitter sample ``ds`` and its weight, drawn without derivatives, attached
+    again (as ``prb`` does in its replay): the direction follows the shading point
+    (and, for a textured area emitter, the point it hits on the emitter, found
+    through the intersector), the weight is the emitter's value re-evaluated with
+    derivatives over the detached pdf, and the solid angle to area change of
+    variables follows a moving shading point."""
+    flags = ds.emitter.flags()
+    on_surface = mi.has_flag(flags, mi.EmitterFlags.Surface)
+    infinite = mi.has_flag(flags, mi.EmitterFlags.Infinite)
+    textured = active & on_surface & mi.has_flag(flags, mi.EmitterFlags.SpatiallyVarying)
+
+    # A ray that starts just short of the emitter point (its visibility is known)
+    ray = si.spawn_ray_to(ds.p)
+    ray.o = dr.fma(ray.d, ray.maxt, ray.o)
+    ray.maxt = dr.largest(ray.maxt)
+    si_em = accel.surface_interaction(_preliminary(accel, ray, False, textured), ray,
+                                      mi.RayFlags.All, textured)
+    attached = dr.select(textured, mi.DirectionSample3f(scene, si_em, si),
+                         dr.zeros(mi.DirectionSample3f))
+    attached.d = dr.select(textured, attached.d, dr.normalize(ds.p - si.p))
+    attached.d = dr.select(infinite, ds.d, attached.d)
+    ds = dr.replace_grad(ds, attached)
+
+    jacobian = _ad.solid_angle_to_area_jacobian(si.p, dr.detach(ds.p), dr.detach(ds.n),
+                                                active & on_surface)
+    value = scene.eval_emitter_direction(si, ds, active)
+    inv_pdf = dr.select(ds.pdf != 0, dr.rcp(ds.pdf), 0)
+    em_weight = dr.replace_grad(em_weight, value * dr.detach(inv_pdf))
+    return ds, em_weight * dr.relative_grad(jacobian)
+
+
+def _vertex_radiance(si, si_next, ray_next, bsdf, bsdf_ctx, L, Le, Lr_dir, active):
+    """The radiance leaving vertex ``si`` with its derivatives: the emission ``Le``
+    and emitter sample ``Lr_dir`` (attached already), plus the radiance reflected
+    from the rest of the path, ``L`` (known from the primal pass, detached), carried
+    by the relative derivatives of the BSDF value towards the next vertex ``si_next``
+    and of the solid angle to area change of variables (which move with the
+    vertices)."""
+    next_valid = si_next.is_valid()
+    jacobian = _ad.solid_angle_to_area_jacobian(si.p, si_next.p, si_next.n,
+                                                active & next_valid)
+    wo_world = dr.replace_grad(ray_next.d, dr.select(next_valid,
+                                                     dr.normalize(si_next.p - si.p),
+                                                     ray_next.d))
+    bsdf_val = bsdf.eval(bsdf_ctx, si, si.to_local(wo_world), active)
+    return Le + Lr_dir + L * dr.relative_grad(bsdf_val) * dr.relative_grad(jacobian)
+
+
+class PRBIntegrator(_ad.RBIntegrator):
+    r"""
+    .. _integrator-hlbvh_prb:
+
+    Path replay backpropagation through an hlbvh intersector (:monosp:`hlbvh_prb`)
+    -----------------------------------------------------------------------------
+
+    .. pluginparameters::
+
+     * - accel, builder, leaf_size, morton_bits, quantization, coarse_bits, p,
+         sah_bins, static, moving, update, ...
+       - |string| / |int|
+       - The intersector and its options, as for ``hlbvh_path``.
+     * - max_depth
+       - |int|
+       - Longest path depth (-1: unbounded). (Default: 6, as ``prb``)
+     * - rr_depth
+       - |int|
+       - Path depth at which Russian roulette starts. (Default: 5)
+     * - hide_emitters
+       - |bool|
+       - Hide directly visible emitters. (Default: |false|)
+
+    The algorithm of Mitsuba's ``prb``: a primal pass, then a replay of the same paths
+    (same sampler, same seed) that propagates derivatives vertex by vertex, in forward
+    mode (``render_forward``) or backward mode (``render_backward``), through
+    ``mi.render(scene, params)`` and Mitsuba's optimisers alike. It has ``prb``'s
+    limits: no projective sampling (visibility discontinuities are not
+    differentiated) and detached BSDF sampling.
+
+    The rays go through the chosen intersector: camera and continuation rays, shadow
+    rays of emitter samples (Mitsuba's ``test_visibility=True`` would trace them
+    through the scene), the rays past hidden area emitters and the rays that locate a
+    textured area emitter's point. Every hit is found on a detached ray and expanded
+    by Mitsuba (``compute_surface_interaction``), which attaches the interaction to
+    the mesh's vertex positions as Mitsuba's own ``ray_intersect`` does; so
+    derivatives reach vertex positions and every parameter ``prb`` differentiates.
+
+    The accelerator is brought up to date at the start of ``render``,
+    ``render_forward`` and ``render_backward``; with ``accel="hlbvh"``,
+    ``hlbvh.traverse(scene)``'s ``update(optimizer)`` skips Mitsuba's rebuild and the
+    meshes the optimiser rewrites become the moving ones. With the same seed,
+    ``accel="native"`` gives ``prb``'s image and gradients.
+
+    .. tabs::
+
+        .. code-tab:: python
+
+            'type': 'hlbvh_prb',
+            'accel': 'hlbvh',
+            'max_depth': 3
+    """
+
+    def __init__(self, props):
+        super().__init__(props)
+        # The intersector and its options, kept by an AccelIntegrator: a nanobind
+        # class takes one base, so this class cannot also derive from it.
+        self._tracer = AccelIntegrator(props)
+        self._tracer.max_depth = self.max_depth  # the depth its ray budget reads
+
+    @property
+    def accel_name(self) -> str:
+        """``"hlbvh"`` or ``"native"`` (what :func:`hlbvh.traverse` reads)."""
+        return self._tracer.accel_name
+
+    def update_accel(self, scene, *args, **kwargs):
+        """:meth:`AccelIntegrator.update_accel`, without derivative tracking: the
+        meshes' vertex buffers may be an optimiser's parameters, and a build or refit
+        over them must record nothing."""
+        with dr.suspend_grad():
+            return self._tracer.update_accel(scene, *args, **kwargs)
+
+    def accel(self, scene):
+        """:meth:`AccelIntegrator.accel`: the intersector as the last update left it."""
+        return self._tracer.accel(scene)
+
+    def updated(self):
+        """:meth:`AccelIntegrator.updated`: a block whose renders trust the
+        accelerator the caller just brought up to date."""
+        return self._tracer.updated()
+
+    def _bring_up_to_date(self, scene):
+        """Update the accelerator at the start of a render, as
+        :meth:`AccelIntegrator.render` does (not inside an :meth:`updated` block):
+        both passes of a differentiable render (the primal pass and its replay) then
+        trace the same accelerator, taken by ``sample()`` without another look."""
+        with dr.suspend_grad():
+            self._tracer.sample_accel(scene)
+
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        self._bring_up_to_date(scene)
+        return super().render(scene, sensor, seed, spp, develop, evaluate)
+
+    def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
+        self._bring_up_to_date(scene)
+        return super().render_forward(scene, params, sensor, seed, spp)
+
+    def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
+        self._bring_up_to_date(scene)
+        return super().render_backward(scene, params, grad_in, sensor, seed, spp)
+
+    @dr.syntax
+    def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
+        """One path per ray, as ``prb`` traces it: in ``dr.ADMode.Primal`` the
+        radiance; otherwise the replay, which starts from the primal radiance
+        ``state_in`` and subtracts each vertex's contribution while propagating its
+        derivatives (``δL``: the adjoint radiance in backward mode; the returned
+        derivative in forward mode). Returns (radiance or its derivative, valid,
+        no AOVs, the primal radiance)."""
+        accel = self.accel(scene)
+        primal = mode == dr.ADMode.Primal
+        bsdf_ctx = mi.BSDFContext()
+
+        # --------------------- Loop state ---------------------
+
+        ray = mi.Ray3f(dr.detach(ray))
+        depth = mi.UInt32(0)
+        L = mi.Spectrum(0 if primal else state_in)    # radiance (replay: what remains)
+        δL = mi.Spectrum(δL if δL is not None else 0)  # adjoint / derivative radiance
+        β = mi.Spectrum(1)                             # path throughput
+        η = mi.Float(1)                                # product of relative IORs
+        active = mi.Bool(active)
+        pi = _preliminary(accel, ray, True, active)    # camera rays are coherent
+
+        ray_prev = mi.Ray3f(ray)
+        pi_prev = dr.zeros(mi.PreliminaryIntersection3f)
+        si_prev = dr.zeros(mi.SurfaceInteraction3f)
+        bsdf_pdf_prev = mi.Float(1.0)
+        bsdf_delta_prev = mi.Bool(True)
+
+        if dr.hint(self.hide_emitters, mode="scalar"):
+            # Continue past every area emitter the camera ray meets first
+            skip = pi.is_valid() & (pi.shape.emitter() != None) & active  # noqa: E711
+            si_skip = accel.surface_interaction(pi, ray, mi.RayFlags.Minimal, skip)
+            pi[skip] = skip_area_emitters(accel, si_skip.spawn_ray(ray.d), True, skip)
+
+        while dr.hint(active, max_iterations=self.max_depth, label=f"hlbvh_prb ({mode.name})"):
+            active_next = mi.Bool(active)
+
+            # The interaction, attached to the shapes' parameters when differentiating
+            with dr.resume_grad(when=not primal):
+                si = accel.surface_interaction(pi, ray, mi.RayFlags.All)
+                if dr.hint(not primal, mode="scalar"):
+                    if depth >= 1:
+                        # The incoming direction follows the previous vertex's motion
+                        si_prev = dr.replace_grad(si_prev, accel.surface_interaction(
+                            pi_prev, ray_prev, mi.RayFlags.Minimal))
+                        here = dr.detach(si)
+                        si.wi = dr.replace_grad(
+                            si.wi, here.to_local(dr.normalize(si_prev.p - here.p)))
+
+            bsdf = si.bsdf(ray)
+
+            # --------------------- Emission hit by the last bounce ---------------------
+
+            if dr.hint(self.hide_emitters, mode="scalar"):
+                active_next &= ~((depth == 0) & ~si.is_valid())
+            ds = mi.DirectionSample3f(scene, si=si, ref=si_prev)
+            mis = mis_weight(bsdf_pdf_prev,
+                             scene.pdf_emitter_direction(si_prev, ds, ~bsdf_delta_prev))
+            with dr.resume_grad(when=not primal):
+                Le = β * mis * ds.emitter.eval(si, active_next)
+
+            # --------------------- Emitter sample ---------------------
+
+            active_next &= (depth + 1 < self.max_depth) & si.is_valid()
+            active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False,
+                                                           active_em)
+            active_em &= ds.pdf != 0.0
+            # Mitsuba's test_visibility=True, through the intersector
+            occluded = accel.ray_test(dr.detach(si.spawn_ray_to(ds.p)), active_em)
+            em_weight[occluded] = 0.0
+            ds.pdf[occluded] = 0.0
+            active_em &= ~occluded
+
+            with dr.resume_grad(when=not primal):
+                if dr.hint(not primal, mode="scalar"):
+                    ds, em_weight = _attached_emitter_sample(accel, scene, si, ds, em_weight,
+                                                             active_em)
+                wo = si.to_local(ds.d)
+                bsdf_value_em, bsdf_pdf_em = bsdf.eval_pdf(bsdf_ctx, si, wo, active_em)
+                mis_em = dr.select(ds.delta, 1, mis_weight(ds.pdf, bsdf_pdf_em))
+                Lr_dir = β * mis_em * bsdf_value_em * em_weight
+
+            # --------------------- BSDF sample (detached) ---------------------
+
+            bsdf_sample, bsdf_weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(),
+                                                   sampler.next_2d(), active_next)
+            L = (L + Le + Lr_dir) if primal else (L - Le - Lr_dir)
+            ray_next = si.spawn_ray(si.to_world(bsdf_sample.wo))
+            η *= bsdf_sample.eta
+            β *= bsdf_weight
+            si_prev = dr.detach(si, True)
+            bsdf_pdf_prev = bsdf_sample.pdf
+            bsdf_delta_prev = mi.has_flag(bsdf_sample.sampled_type, mi.BSDFFlags.Delta)
+
+            # --------------------- Russian roulette ---------------------
+
+            β_max = dr.max(mi.unpolarized_spectrum(β))
+            active_next &= β_max != 0
+            rr_prob = dr.minimum(β_max * η**2, 0.95)
+            rr_active = depth >= self.rr_depth
+            β[rr_active] *= dr.rcp(rr_prob)
+            rr_continue = sampler.next_1d() < rr_prob
+            active_next &= ~rr_active | rr_continue
+
+            pi_next = _preliminary(accel, ray_next, False, active_next)
+
+            # --------------------- Derivatives of this vertex ---------------------
+
+            if dr.hint(not primal, mode="scalar"):
+                si_next = accel.surface_interaction(pi_next, ray_next, mi.RayFlags.Minimal,
+                                                    active_next)
+                with dr.resume_grad():
+                    Lo = _vertex_radiance(si, si_next, ray_next, bsdf, bsdf_ctx, L, Le, Lr_dir,
+                                          active_next)
+                    if dr.hint(dr.flag(dr.JitFlag.SymbolicCalls) and not dr.grad_enabled(Lo),
+                               mode="scalar"):
+                        raise ValueError(
+                            "hlbvh_prb: the render's derivative depends on no parameter: "
+                            "enable gradients (dr.enable_grad) on a scene parameter that prb "
+                            "differentiates")
+                    if dr.hint(mode == dr.ADMode.Backward, mode="scalar"):
+                        dr.backward_from(δL * Lo)
+                    else:
+                        δL += dr.forward_to(Lo)
+
+            # Group lanes by the shape they hit next (CUDA; a no-op on LLVM)
+            hint = dr.reinterpret_array(mi.UInt32, pi_next.shape)
+            depth = dr.reorder_threads((hint << 1) | dr.select(active_next, 1, 0), 16, depth)
+
+            depth[si.is_valid()] += 1
+            active = active_next
+            pi_prev, pi = pi, pi_next
+            ray_prev, ray = ray, ray_next
+
+        return (L if primal else δL), depth != 0, [], L
+
+    def to_string(self):
+        return (f"hlbvh_prb[{self._tracer._options_string()}, max_depth={self.max_depth}, "
+                f"rr_depth={self.rr_depth}]")
+
+
+mi.register_integrator("hlbvh_prb", lambda props: PRBIntegrator(props))
