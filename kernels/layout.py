@@ -31,6 +31,7 @@ from typing import Any
 import drjit as dr
 
 from .arrays import concat, namespace_of
+from .bvh import BVH
 from .packing import check_tree, is_built, pack, packed_records
 from .slots import (EMPTY, LEAF_BIT, MAX_DEPTH, MAX_LEAF_SIZE, MAX_SLOTS, NODE_HI, NODE_LO,
                     NODE_REF, NODE_SLOTS, SLOT, TRI_FACE, TRI_HI, TRI_LO, TRI_P, WIDTH,
@@ -51,7 +52,7 @@ class Packed:
     root: int
 
 
-def joined(bvhs) -> Packed:
+def joined(bvhs: list[BVH]) -> Packed:
     """One traversal over up to ``WIDTH`` BVHs: a wide node over their roots (slots 0-1),
     then each BVH's slots in turn, its face indices offset by the faces before it (so a
     hit's face index counts the BVHs' faces in the order given). One BVH is packed as

@@ -12,11 +12,12 @@ from __future__ import annotations
 import drjit as dr
 
 from .arrays import namespace_of
+from .bvh import BVH
 from .placement import Placement, placement
 from .slots import SLOT, is_leaf, node_rows, triangle_rows
 
 
-def packed_records(bvh, slot_base: int = 0, face_base: int = 0):
+def packed_records(bvh: BVH, slot_base: int = 0, face_base: int = 0):
     """The packed slots of ``bvh`` (:mod:`hlbvh.kernels.slots`), built on first use
     and cached on the BVH object (keyed by the Dr.Jit variables of its arrays, so a
     refit, which assigns new arrays, repacks on the next call, from the placement kept
@@ -46,20 +47,20 @@ def packed_records(bvh, slot_base: int = 0, face_base: int = 0):
     return records
 
 
-def arrays_key(bvh) -> tuple:
+def arrays_key(bvh: BVH) -> tuple:
     """The Dr.Jit variables of every array the slots are packed from."""
     arrays = (bvh.node_min, bvh.node_max, bvh.node_first, bvh.node_count, bvh.prim_ids,
               bvh.tri_p0, bvh.tri_p1, bvh.tri_p2)
     return tuple(c.index for a in arrays for c in (a if dr.depth_v(a) > 1 else (a,)))
 
 
-def is_built(bvh) -> bool:
+def is_built(bvh: BVH) -> bool:
     """Whether ``bvh`` is a tree as the builder returned it (``built_topology`` still
     matches its arrays)."""
     return bvh.built_topology is not None and bvh.built_topology == bvh.topology_key()
 
 
-def check_tree(bvh):
+def check_tree(bvh: BVH):
     """Validate ``bvh`` as :func:`packed_records` validates a tree made by hand, whoever
     made it (the tests call it on every builder's trees, whose packing skips it).
 
@@ -69,7 +70,7 @@ def check_tree(bvh):
     pack(bvh, 0, 0, check=True)
 
 
-def pack(bvh, slot_base, face_base, check: bool, front: int = 0):
+def pack(bvh: BVH, slot_base: int, face_base: int, check: bool, front: int = 0):
     """``(records, root)`` of ``bvh`` (see :func:`packed_records`), validated first when
     ``check``; the records start with ``front`` slots left for the caller to fill.
 

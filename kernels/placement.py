@@ -13,6 +13,7 @@ from typing import Any
 import drjit as dr
 
 from .arrays import concat, namespace_of
+from .bvh import BVH
 from .slots import MAX_DEPTH, MAX_SLOTS, NODE_SLOTS, leaf_ref, node_ref
 from .validation import check_layout, checked_levels, too_deep
 
@@ -36,7 +37,7 @@ class Placement:
     total: int
 
 
-def placement(bvh, slot_base, check: bool):
+def placement(bvh: BVH, slot_base: int, check: bool):
     """Where ``bvh``'s nodes and triangles go (validated first when ``check``), their
     references counting from slot ``slot_base``: a :class:`Placement`."""
     ns = namespace_of(bvh.node_count)

@@ -13,8 +13,9 @@ from typing import Any
 
 import drjit as dr
 
-from .arrays import namespace_of
+from .arrays import Array3f, Array3u, Float, namespace_of
 from .bounds import node_bounds, sah_cost
+from .bvh import BVH
 from .geometry import (BOX_RECORD, box_records, checked_vertices, slot_triangles,
                        triangles_of)
 from .packing import arrays_key, is_built
@@ -22,7 +23,7 @@ from .placement import Placement
 from .slots import SLOT, TRI_HI, TRI_LO, box_rows, node_rows, triangle_rows
 
 
-def refit(bvh, vertices):
+def refit(bvh: BVH, vertices: Float | Array3f) -> BVH:
     """Update ``bvh`` in place for new vertex positions.
 
     Args:
@@ -66,7 +67,7 @@ def _slot_faces(bvh):
 # ---- The fused refit: boxes and slots in one pass over the wide levels ----
 
 
-def refit_packed(bvh, points, slot_faces) -> bool:
+def refit_packed(bvh: BVH, points: Float, slot_faces: Array3u) -> bool:
     """Refit ``bvh`` for new vertex ``points`` and write its slots in the same passes,
     where it was last packed (:func:`_write_packed`). The BVH's triangle arrays are left
     as lazy reads of ``points`` (computed only if read).

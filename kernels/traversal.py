@@ -49,10 +49,13 @@ from typing import Any
 
 import drjit as dr
 
-from .arrays import high_half, low_half, namespace_of, pack_halves, plain
+from .arrays import (Bool, Float, high_half, low_half, namespace_of, pack_halves,
+                     plain)
+from .bvh import BVH
 from .layout import Packed
 from .packing import packed_records  # noqa: F401  (what traversal reads, built on first use)
-from .ray_tests import (BARYCENTRIC_MARGIN, TFAR_SCALE, Ray, select_max, select_min,  # noqa: F401
+from .ray_tests import (BARYCENTRIC_MARGIN, TFAR_SCALE, Ray,  # noqa: F401
+                        select_max, select_min,
                         ray_setup, slab_test, triangle_test)
 from .slots import LEAF_BIT, MAX_DEPTH, SLOT, TRI_FACE, WIDTH, open_ref
 from .two_level import NO_INSTANCE, RETURN_REF, TwoLevel, enter_instance, select_ray
@@ -77,7 +80,8 @@ _MISS32 = 0xFFFFFFFF  # the same for any hit's 32-bit entries
 # ---------------------------------------------------------------------------------------
 
 
-def closest_hit(bvh, o, d, maxt, active=True):
+def closest_hit(bvh: BVH | Packed, o: dr.ArrayBase, d: dr.ArrayBase, maxt: Float | float,
+                active: Bool | bool = True):
     """Nearest intersection of each ray with the BVH's triangles.
 
     Args:
@@ -97,7 +101,8 @@ def closest_hit(bvh, o, d, maxt, active=True):
     return _trace(bvh, o, d, maxt, active, any_hit=False)
 
 
-def any_hit(bvh, o, d, maxt, active=True):
+def any_hit(bvh: BVH | Packed, o: dr.ArrayBase, d: dr.ArrayBase, maxt: Float | float,
+            active: Bool | bool = True):
     """Whether each ray hits any triangle at ``0 < t <= maxt`` (stops at the first hit).
 
     Arguments as in :func:`closest_hit`. Returns a Bool of width R.
@@ -105,14 +110,15 @@ def any_hit(bvh, o, d, maxt, active=True):
     return _trace(bvh, o, d, maxt, active, any_hit=True)
 
 
-def steps(bvh, o, d, maxt, active=True, any_hit=False):
+def steps(bvh: BVH | Packed, o: dr.ArrayBase, d: dr.ArrayBase, maxt: Float | float,
+          active: Bool | bool = True, any_hit: bool = False):
     """Loop iterations each ray takes in :func:`closest_hit` (or :func:`any_hit`): one
     per wide node and per triangle it visits; for benchmarks (a packet of rays costs
     its slowest lane's steps). Arguments as in :func:`closest_hit`; UInt32 of width R."""
     return _trace(bvh, o, d, maxt, active, any_hit, count_steps=True)
 
 
-def intersect(bvh, ray, active=True):
+def intersect(bvh: BVH | Packed, ray, active: Bool | bool = True):
     """Closest hit of ``ray`` (anything with ``o``, ``d``, ``maxt``) as a
     ``mi.PreliminaryIntersection3f``: ``valid``, ``t`` (``inf`` on a miss),
     ``prim_uv``, ``prim_index`` (the input face index); ``shape``, ``shape_index`` and
@@ -128,7 +134,7 @@ def intersect(bvh, ray, active=True):
     return pi
 
 
-def occluded(bvh, ray, active=True):
+def occluded(bvh: BVH | Packed, ray, active: Bool | bool = True):
     """Whether anything lies on ``ray`` at ``0 < t <= ray.maxt``: a ``mi.Bool``."""
     import mitsuba as mi
 
