@@ -49,14 +49,12 @@ from typing import Any
 
 import drjit as dr
 
-from .arrays import (Bool, Float, high_half, low_half, namespace_of, pack_halves,
-                     plain)
+from .arrays import Bool, Float, high_half, low_half, namespace_of, pack_halves, plain
 from .bvh import BVH
 from .layout import Packed
 from .packing import packed_records  # noqa: F401  (what traversal reads, built on first use)
-from .ray_tests import (BARYCENTRIC_MARGIN, TFAR_SCALE, Ray,  # noqa: F401
-                        select_max, select_min,
-                        ray_setup, slab_test, triangle_test)
+from .ray_tests import (BARYCENTRIC_MARGIN, TFAR_SCALE, Ray, ray_setup,  # noqa: F401
+                        select_max, select_min, slab_test, triangle_test)
 from .slots import LEAF_BIT, MAX_DEPTH, SLOT, TRI_FACE, WIDTH, open_ref
 from .two_level import NO_INSTANCE, RETURN_REF, TwoLevel, enter_instance, select_ray
 
@@ -103,18 +101,15 @@ def closest_hit(bvh: BVH | Packed, o: dr.ArrayBase, d: dr.ArrayBase, maxt: Float
 
 def any_hit(bvh: BVH | Packed, o: dr.ArrayBase, d: dr.ArrayBase, maxt: Float | float,
             active: Bool | bool = True):
-    """Whether each ray hits any triangle at ``0 < t <= maxt`` (stops at the first hit).
-
-    Arguments as in :func:`closest_hit`. Returns a Bool of width R.
-    """
+    """Whether each ray hits any triangle at ``0 < t <= maxt`` (stops at the first hit):
+    a Bool of width R. Arguments as in :func:`closest_hit`."""
     return _trace(bvh, o, d, maxt, active, any_hit=True)
 
 
 def steps(bvh: BVH | Packed, o: dr.ArrayBase, d: dr.ArrayBase, maxt: Float | float,
           active: Bool | bool = True, any_hit: bool = False):
-    """Loop iterations each ray takes in :func:`closest_hit` (or :func:`any_hit`): one
-    per wide node and per triangle it visits; for benchmarks (a packet of rays costs
-    its slowest lane's steps). Arguments as in :func:`closest_hit`; UInt32 of width R."""
+    """Loop iterations of each ray in :func:`closest_hit` (:func:`any_hit`), same arguments:
+    UInt32 (R), one per wide node and triangle visited (a packet costs its slowest lane's)."""
     return _trace(bvh, o, d, maxt, active, any_hit, count_steps=True)
 
 
