@@ -20,6 +20,7 @@ _SUITES = {
     "build": "hlbvh.comparison.bench_build",
     "trace": "hlbvh.comparison.bench_trace",
     "frame": "hlbvh.comparison.bench_frame",
+    "prb": "hlbvh.comparison.bench_prb",
 }
 
 

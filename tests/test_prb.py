@@ -5,6 +5,7 @@ is brought up to date by every render entry point; an Adam optimisation of a mes
 vertices through ``hlbvh.traverse`` lands where native's lands; bad properties."""
 
 import contextlib
+import json
 
 import drjit as dr
 import hlbvh
@@ -221,3 +222,23 @@ def test05_adam_optimisation_lands_where_natives_lands():
 def test06_bad_properties_raise_naming_them(props, message):
     with pytest.raises(Exception, match=message):
         mi.load_dict(dict(type="hlbvh_prb", **props))
+
+
+def test07_hlbvh_bench_prb(capsys):
+    """``hlbvh bench prb`` at a tiny size: one row, both loops timed, the ratio of their
+    medians, the two loops' flags where each other's are (same descent), the table."""
+    from cli_helpers import run_cli
+    from hlbvh.comparison import bench_prb
+
+    status, table, errors = run_cli(capsys, "bench", "prb", "--sizes", "1500", "--repeats",
+                                    "1", "--resolution", "8", "--json")
+    assert status == 0 and not errors
+    [row] = json.loads(table)
+    assert tuple(row) == bench_prb.ROW_KEYS
+    assert row["triangles"] >= 1500 and row["resolution"] == 8 and row["repeats"] == 1
+    assert all(row[k] > 0 for k in ("prb_min_ms", "hlbvh_min_ms", "prb_cold_ms"))
+    assert row["ratio"] == pytest.approx(row["prb_median_ms"] / row["hlbvh_median_ms"])
+    assert row["agree"] < 1e-4
+    lines = bench_prb.format_table([row]).splitlines()
+    assert lines[0].startswith("hlbvh prb benchmark") and lines[3].split()[0] == "world"
+    assert lines[3].split()[-2] == f"{row['ratio']:.2f}x"
