@@ -14,7 +14,7 @@ import json
 
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BUILDERS
-from hlbvh.cli.options import int_flag
+from hlbvh.cli.options import int_flag, parse_resolution
 
 _SUITES = {
     "build": "hlbvh.comparison.bench_build",
@@ -36,7 +36,12 @@ def configure(parser) -> None:
     parser.add_argument("--repeats", default="5", help="warm runs after the cold one (default 5)")
     parser.add_argument("--builder", default=None,
                         help=f"builders, comma separated ({', '.join(BUILDERS)})")
-    parser.add_argument("--resolution", default="512", help="image side in pixels (default 512)")
+    parser.add_argument("--resolution", default="512",
+                        help="image side in pixels (default 512); bench frame also takes "
+                             "WxH (1920x1080)")
+    parser.add_argument("--spp", default=None,
+                        help="bench frame: samples per pixel, comma separated (default "
+                             "1,4,16)")
     parser.add_argument("--scenes", default=None,
                         help="bench frame: procedural scenes, comma separated, each with its "
                              "options as NAME:KEY=VALUE+KEY=VALUE (e.g. "
@@ -62,14 +67,21 @@ def run(args) -> int:
     if args.suite == "build":
         if builders:
             kwargs["builders"] = builders
+    elif args.suite == "frame":
+        kwargs["resolution"] = parse_resolution(args.resolution)
     else:
         kwargs["resolution"] = int_flag("--resolution", args.resolution, least=1)
-        if builders:
-            if len(builders) > 1:
-                raise UserError(f"--builder {args.builder!r}: bench {args.suite} takes one builder")
-            kwargs["builder"] = builders[0]
-    if args.suite != "frame" and (args.scenes is not None or args.no_native):
-        raise UserError(f"--scenes and --no-native are for bench frame, not bench {args.suite}")
+    if args.suite != "build" and builders:
+        if len(builders) > 1:
+            raise UserError(f"--builder {args.builder!r}: bench {args.suite} takes one builder")
+        kwargs["builder"] = builders[0]
+    if args.suite != "frame" and (args.scenes is not None or args.no_native
+                                  or args.spp is not None):
+        raise UserError(f"--scenes, --spp and --no-native are for bench frame, not bench "
+                        f"{args.suite}")
+    if args.spp is not None:
+        kwargs["spps"] = [int_flag("--spp", s.strip(), least=1, most=2**20)
+                          for s in args.spp.split(",")]
     if args.scenes is not None:
         kwargs["scenes"] = _scene_specs(args.scenes)
     if args.no_native:

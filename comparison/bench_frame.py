@@ -46,12 +46,19 @@ Mitsuba does not rebuild its unused Embree tree; what Mitsuba still spends refre
 (``mitsuba_update_ms``, 0 on hlbvh frames) and not counted in the hlbvh frame. ``cold`` is the first frame at that spp (for the first spp: the scene's
 first build and kernel compilation).
 
+The **motion overhead** of each accelerator is its median frame over native's median
+render of the same frames without a rebuild (``native_render_ms``): what an animated
+frame costs over a still one, 1.0 the limit. ``moving`` says what traced the moving
+meshes on hlbvh's frames (``moving_accel="auto"`` chooses per render by measured cost,
+:mod:`hlbvh.accel.choice`: ``hlbvh``, ``native`` or ``scene``).
+
 The **crossover** is the spp from which native is faster per frame, from the median
 frame times (:func:`hlbvh.comparison.crossover.crossover_spp`: interpolated between
 measured spp; ``None`` when native is faster at every measured spp or at none, the
 table says which).
 
-Run: ``hlbvh bench frame [--sizes ...] [--resolution 512] [--repeats N]``, or
+Run: ``hlbvh bench frame [--sizes ...] [--resolution 512|1920x1080] [--spp 1,4,16]
+[--repeats N]``, or
 ``python -m hlbvh.comparison.bench_frame --help`` for every knob.
 """
 
@@ -94,11 +101,12 @@ ROW_KEYS = (
     "hlbvh_frame_cold_ms", "hlbvh_frame_min_ms", "hlbvh_frame_median_ms",
     "native_update_ms", "native_render_ms",
     "native_frame_cold_ms", "native_frame_min_ms", "native_frame_median_ms",
-    "native_over_hlbvh", "crossover_spp",
+    "native_over_hlbvh", "crossover_spp", "hlbvh_motion_overhead", "native_motion_overhead",
+    "moving_accel",
 )
 
 
-def run(repeats: int = 3, sizes=(1_000_000,), resolution: int = 512, builder: str = "hlbvh",
+def run(repeats: int = 3, sizes=(1_000_000,), resolution=512, builder: str = "hlbvh",
         scenes=SCENES, spps=SPPS, drift_frames: int = 100, max_depth: int = 8,
         native: bool = True) -> list[dict]:
     """Measure build, refit, SAH drift and frame time per scene, size and spp.
@@ -106,7 +114,7 @@ def run(repeats: int = 3, sizes=(1_000_000,), resolution: int = 512, builder: st
     Args:
         repeats: warm frames per spp after the cold one.
         sizes: triangle counts of the scenes (``triangles=`` of :func:`hlbvh.scenes.get`).
-        resolution: image width and height in pixels.
+        resolution: image side in pixels, or ``(width, height)``.
         builder: ``"hlbvh"``, ``"lbvh"`` or ``"sah"``.
         scenes: procedural scene names.
         spps: samples per pixel of the frame-time runs (2 or more for a crossover).
@@ -124,6 +132,7 @@ def run(repeats: int = 3, sizes=(1_000_000,), resolution: int = 512, builder: st
         raise ValueError(f"repeats={repeats}, drift_frames={drift_frames}, spps={spps}: "
                          "expected repeats >= 1, drift_frames >= 2 and at least one spp")
     hlbvh.BuildConfig.from_options(builder=builder)
+    resolution = (resolution, resolution) if isinstance(resolution, int) else tuple(resolution)
     rows = []
     for spec in scenes:
         name, options = parse_scene(spec)
@@ -161,12 +170,23 @@ def run(repeats: int = 3, sizes=(1_000_000,), resolution: int = 512, builder: st
                     "native_over_hlbvh": (native["min_ms"] / ours["min_ms"]
                                           if native["min_ms"] is not None else None),
                     "crossover_spp": crossover,
+                    "hlbvh_motion_overhead": _overhead(ours["median_ms"], native),
+                    "native_motion_overhead": _overhead(native["median_ms"], native),
+                    "moving_accel": ours["moving_accel"],
                 })
     return rows
 
 
 #: Keys of :func:`_frame_runs`' result per accelerator and spp.
-_FRAME_KEYS = ("cold_ms", "min_ms", "median_ms", "build_ms", "render_ms", "mitsuba_update_ms")
+_FRAME_KEYS = ("cold_ms", "min_ms", "median_ms", "build_ms", "render_ms", "mitsuba_update_ms",
+               "moving_accel")
+
+
+def _overhead(frame_ms, native: dict) -> float | None:
+    """``frame_ms`` over native's median render without its rebuild (None where native
+    was not run)."""
+    still = native["render_ms"]
+    return None if frame_ms is None or not still else frame_ms / still
 
 
 def _integrator(animation) -> str:
@@ -186,7 +206,7 @@ def _renderers(animation, resolution: int, max_depth: int, builder: str,
     for accel in ("hlbvh", "native") if native else ("hlbvh",):
         try:
             renderers[accel] = FrameRenderer(animation, RenderSettings(
-                resolution=(resolution, resolution), integrator=_integrator(animation),
+                resolution=tuple(resolution), integrator=_integrator(animation),
                 max_depth=max_depth, accel=accel, build_options={"builder": builder}))
         except UserError:
             if accel == "hlbvh":
@@ -324,6 +344,8 @@ def _frame_runs(renderers: dict, spps, repeats: int) -> dict:
                 "build_ms": statistics.median(r["build_ms"] for r in warm),
                 "render_ms": statistics.median(r["render_ms"] for r in warm),
                 "mitsuba_update_ms": statistics.median(r["mitsuba_update_ms"] for r in warm),
+                "moving_accel": "/".join(sorted({r["moving_accel"] for r in warm
+                                                 if r["moving_accel"]})) or None,
             }
     return results
 
@@ -369,8 +391,9 @@ def format_table(rows: list[dict]) -> str:
         )
     head = (f"{'scene':{w}} {'tris':>8} {'spp':>4} | {'build':>7} {'render':>8} "
             f"{'frame min/med/cold':>20} | {'update':>7} {'render':>8} "
-            f"{'frame min/med/cold':>20} | {'nat/ours':>8} {'crossover':>10}")
-    lines += ["", f"frame time (ms) at {rows[0]['resolution']}x{rows[0]['resolution']}"
+            f"{'frame min/med/cold':>20} | {'nat/ours':>8} {'crossover':>10} | "
+            f"{'overhead ours/nat':>17} {'moving':>7}")
+    lines += ["", "frame time (ms) at {}x{}".format(*rows[0]["resolution"])
               if rows else "frame time (ms)",
               f"{'':{w + 15}}| {'hlbvh (hlbvh_path, accel=hlbvh)':^37} | "
               f"{'native (hlbvh_path, accel=native)':^37} |", head, "-" * len(head)]
@@ -382,14 +405,18 @@ def format_table(rows: list[dict]) -> str:
             f"{_slash(r['hlbvh_frame_min_ms'], r['hlbvh_frame_median_ms'], r['hlbvh_frame_cold_ms']):>20} | "
             f"{_number(r['native_update_ms'], 7)} {_number(r['native_render_ms'], 8)} "
             f"{_slash(r['native_frame_min_ms'], r['native_frame_median_ms'], r['native_frame_cold_ms']):>20} | "
-            f"{_ratio(r['native_over_hlbvh'])} {crossover:>10}"
+            f"{_ratio(r['native_over_hlbvh'])} {crossover:>10} | "
+            f"{_slash(r['hlbvh_motion_overhead'], r['native_motion_overhead'], digits=2):>17} "
+            f"{r['moving_accel'] or '-':>7}"
         )
     if rows:
         update = statistics.median(r["mitsuba_update_ms"] for r in rows)
         lines.append(
             f"frame = build + render (median of warm frames for build/render; min/median/cold "
             f"of the sum). nat/ours = native frame / hlbvh frame (min; > 1: hlbvh faster). "
-            f"crossover = spp from which native is faster per frame. hlbvh frames rendered "
+            f"crossover = spp from which native is faster per frame. overhead = frame / "
+            f"native's render of the frame without a rebuild (1.0: a still frame's cost). "
+            f"moving = what traced the moving meshes on hlbvh's frames. hlbvh frames rendered "
             f"through Mitsuba also pay its own params.update() rebuild (median "
             f"{update:.1f} ms here), not counted. builder={rows[0]['builder']}, update="
             f"{_POLICY.update} (refit_tolerance {_POLICY.refit_tolerance}), variant "
@@ -425,7 +452,7 @@ def main(argv=None) -> int:
     parser.add_argument("--scenes", default=",".join(SCENES), help="comma separated")
     parser.add_argument("--sizes", type=ints, default=[1_000_000], help="triangle counts")
     parser.add_argument("--spp", type=ints, default=list(SPPS), help="samples per pixel")
-    parser.add_argument("--resolution", type=int, default=512, help="image side in pixels")
+    parser.add_argument("--resolution", default="512", help="image side in pixels, or WxH")
     parser.add_argument("--repeats", type=int, default=3, help="warm frames per spp")
     parser.add_argument("--drift-frames", type=int, default=100,
                         help="frames of the build, refit and SAH drift runs")
@@ -436,7 +463,9 @@ def main(argv=None) -> int:
                              "takes minutes)")
     parser.add_argument("--json", action="store_true", help="print JSON rows")
     args = parser.parse_args(argv)
-    rows = run(repeats=args.repeats, sizes=args.sizes, resolution=args.resolution,
+    width, _, height = args.resolution.partition("x")
+    rows = run(repeats=args.repeats, sizes=args.sizes,
+               resolution=(int(width), int(height or width)),
                builder=args.builder, scenes=args.scenes.split(","), spps=args.spp,
                drift_frames=args.drift_frames, max_depth=args.max_depth,
                native=not args.no_native)

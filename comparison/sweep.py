@@ -20,7 +20,10 @@ with last frame's order where that pays), ``fresh`` (the same, unseeded), ``refi
 (refit every frame), ``auto`` (refit while the SAH cost stays near the last build's:
 the accelerator's default); ``static_hlbvh`` (``static="hlbvh"``: the still shapes
 too in our BVHs and watertight traversal, the accuracy end of the trade; every other
-setting leaves them to Mitsuba's accelerator, ``static="native"``). A setting without
+setting leaves them to Mitsuba's accelerator, ``static="native"``); ``moving_native``,
+``moving_scene`` and ``moving_auto`` (``moving_accel``: the moving meshes in a Mitsuba
+sub-scene rebuilt each frame, the whole scene rebuilt, or the choice by measured cost;
+every other setting traces them with our BVH, the one it measures). A setting without
 an ``update`` rebuilds every frame, so that the builder settings measure their
 builder. A setting may also be spelled out: ``builder=lbvh+leaf_size=8+update=refit``
 or ``static=hlbvh+update=auto`` (its label is that text). ``native`` (Mitsuba's own
@@ -111,6 +114,9 @@ SETTINGS = {
     "refit": {"update": "refit"},
     "auto": {"update": "auto"},
     "static_hlbvh": {"static": "hlbvh", "update": "auto"},
+    "moving_native": {"moving_accel": "native"},
+    "moving_scene": {"moving_accel": "scene"},
+    "moving_auto": {"moving_accel": "auto", "update": "auto"},
 }
 
 #: The label of Mitsuba's own accelerator among the rows.
@@ -136,6 +142,9 @@ class Setting:
         update: our accelerator's per-frame policy, or ``None`` for a rebuild every frame.
         accel: ``"hlbvh"``, or ``"native"`` for Mitsuba's accelerator.
         static: what traces the still shapes (``"native"`` or ``"hlbvh"``).
+        moving_accel: what traces the moving meshes: ``"hlbvh"`` unless the setting
+            names another (a builder setting measures our BVH, so the choice by cost
+            is not left to pick Mitsuba's for it).
     """
 
     label: str
@@ -143,18 +152,22 @@ class Setting:
     update: str | None = None
     accel: str = "hlbvh"
     static: str = "native"
+    moving_accel: str = "hlbvh"
 
     def render_settings(self, base: RenderSettings) -> RenderSettings:
         """``base`` with this setting's accelerator, builder options and policy (a
         rebuild every frame when it names none)."""
         update = None if self.accel == NATIVE else (self.update or "rebuild")
         return replace(base, accel=self.accel, build_options=dict(self.build_options),
-                       update=update, static=self.static)
+                       update=update, static=self.static,
+                       moving_accel=None if self.accel == NATIVE else self.moving_accel)
 
     def description(self) -> str:
         """The options as ``key=value`` joined by ``+`` (``defaults`` when none)."""
         options = {**self.build_options, **({"update": self.update} if self.update else {}),
-                   **({"static": self.static} if self.static != "native" else {})}
+                   **({"static": self.static} if self.static != "native" else {}),
+                   **({"moving_accel": self.moving_accel}
+                      if self.moving_accel != "hlbvh" else {})}
         return "+".join(f"{k}={v}" for k, v in options.items()) or (
             "Mitsuba's accelerator" if self.accel == NATIVE else "defaults")
 
@@ -185,14 +198,15 @@ def parse_settings(text: str | None) -> list[Setting]:
                             f"{', '.join(SETTINGS)} or key=value+key=value")
         update = options.pop("update", None)
         static = options.pop("static", "native")
+        moving_accel = options.pop("moving_accel", "hlbvh")
         if update is not None and update not in UPDATES:
             raise UserError(f"--settings {word!r}: update={update!r}: expected one of "
                             f"{', '.join(UPDATES)}")
         try:
-            RenderSettings(build_options=options, static=static)
+            RenderSettings(build_options=options, static=static, moving_accel=moving_accel)
         except ValueError as error:
             raise UserError(f"--settings {word!r}: {error}") from None
-        settings.append(Setting(word, options, update, static=static))
+        settings.append(Setting(word, options, update, static=static, moving_accel=moving_accel))
     labels = [s.label for s in settings]
     twice = sorted({label for label in labels if labels.count(label) > 1})
     if twice:
@@ -200,14 +214,18 @@ def parse_settings(text: str | None) -> list[Setting]:
     return settings
 
 
+#: The accelerator's own options a spelled-out setting may name.
+_POLICY_KEYS = ("update", "static", "moving_accel")
+
+
 def _spelled_out(word: str) -> dict:
     options = {}
     for part in word.split("+"):
         key, _, value = part.partition("=")
         key = key.strip().replace("-", "_")
-        if key not in (*BUILD_OPTIONS, "update", "static") or not value.strip():
+        if key not in (*BUILD_OPTIONS, *_POLICY_KEYS) or not value.strip():
             raise UserError(f"--settings {word!r}: {part!r} is not key=value with a key among "
-                            f"{', '.join((*BUILD_OPTIONS, 'update', 'static'))}")
+                            f"{', '.join((*BUILD_OPTIONS, *_POLICY_KEYS))}")
         options[key] = option_value(value)
     return options
 

@@ -41,6 +41,10 @@ class Fog(World):
     def integrator_description(self) -> dict:
         return {"type": "volpath", "max_depth": 8}
 
+    def static_ids(self) -> list[str]:
+        """The world's still shapes and the fog's box (a cube mesh that never moves)."""
+        return super().static_ids() + ["fog"]
+
     def scene_dict(self, resolution=None, spp=None, integrator=None) -> dict:
         scene = super().scene_dict(resolution, spp, integrator=(
             self.integrator_description() if integrator is None else integrator))

@@ -198,7 +198,7 @@ def test07_hlbvh_bench_frame_through_the_cli(capsys, monkeypatch):
     status, table, errors = run_cli(capsys, "bench", "frame", "--sizes", "1500", "--repeats",
                                     "1", "--resolution", "8", "--builder", "lbvh")
     assert status == 0 and not errors
-    assert seen == {"repeats": 1, "sizes": [1500], "resolution": 8, "builder": "lbvh"}
+    assert seen == {"repeats": 1, "sizes": [1500], "resolution": (8, 8), "builder": "lbvh"}
     lines = table.splitlines()
     assert lines[0].startswith("per-frame build (ms)")
     assert lines[3].split()[0] == "fracture" and "(over 2 frames)" in lines[3]
@@ -219,7 +219,7 @@ def test08_bench_frame_main_flags_json(capsys):
     assert [(r["scene"], r["spp"]) for r in rows] == [("twist", 1), ("twist", 2)]
     for r in rows:
         assert set(r) == set(bench_frame.ROW_KEYS)
-        assert r["builder"] == "lbvh" and r["drift_frames"] == 3 and r["resolution"] == 8
+        assert r["builder"] == "lbvh" and r["drift_frames"] == 3 and r["resolution"] == [8, 8]
         assert r["triangles"] >= 1200
         assert positive(r["native_over_hlbvh"]) and positive(r["sah_drift_max"])
         assert r["sah_drift_max"] >= r["sah_drift_last"]

@@ -154,7 +154,9 @@ def test03_numbers_are_those_of_the_rendered_files(compared):
                 stats[accel][i]["build_ms"] + stats[accel][i]["render_ms"])
         assert row["build_speedup"] == pytest.approx(
             stats["native"][i]["build_ms"] / stats["hlbvh"][i]["build_ms"])
-        assert row["sah_cost"] == stats["hlbvh"][i]["sah_cost"] >= 1
+        assert row["sah_cost"] == stats["hlbvh"][i]["sah_cost"]
+        if stats["hlbvh"][i]["moving_accel"] == "hlbvh":  # else no tree of ours traced it
+            assert row["sah_cost"] >= 1
         # Same seed, box filter: ours equals native within the plugin's tolerance (one
         # pixel may branch differently), and the camera rays hit the same primitives
         # but for an edge tie or two.

@@ -371,13 +371,13 @@ def test14_ctrl_c_inside_a_dr_jit_loop_exits_130_with_complete_frames(tmp_path, 
     real = FrameRenderer._update_accel
     calls = []
 
-    def follow(self):
+    def follow(self, *args):
         calls.append(1)
         if len(calls) == 2:
             def body(k):
                 raise KeyboardInterrupt
             dr.while_loop((mi.UInt32(0),), lambda k: k < 3, body)
-        return real(self)
+        return real(self, *args)
 
     monkeypatch.setattr(FrameRenderer, "_update_accel", follow)
     out = tmp_path / "out"

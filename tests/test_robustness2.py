@@ -270,13 +270,17 @@ def test_the_scenes_own_integrator_is_honoured_and_a_flag_says_what_it_overrides
     edit(xml, '<integer name="max_depth" value="1"/></integrator>', '</integrator>')
     edit(xml, 'type="hlbvh_path"><string name="accel" value="native"/>', 'type="direct">')
     status, _, err = run_cli(capsys, *argv, "--out", tmp_path / "direct")
-    assert status == 2 and err == [
-        f"hlbvh render: scene {str(xml)!r}: its integrator 'direct' is not one hlbvh render "
-        f"runs (path, hlbvh_path, hlbvh_aov); pass --integrator path or aov to render with "
-        f"hlbvh's instead"], err
+    assert status == 0 and err == [
+        "hlbvh render: the scene's integrator 'direct' runs as hlbvh_direct (which mirrors "
+        "it, every ray through the chosen accelerator)"], err
+    edit(xml, 'type="direct">', 'type="ptracer">')
+    status, _, err = run_cli(capsys, *argv, "--out", tmp_path / "ptracer")
+    assert status == 2 and len(err) == 1 and err[0].startswith(
+        f"hlbvh render: scene {str(xml)!r}: its integrator 'ptracer' is not one hlbvh render "
+        f"runs ("), err
     status, _, err = run_cli(capsys, *argv, "--integrator", "aov", "--out", tmp_path / "aov")
     assert status == 0 and err == [
-        "hlbvh render: --integrator aov overrides the scene's integrator 'direct' (its "
+        "hlbvh render: --integrator aov overrides the scene's integrator 'ptracer' (its "
         "properties are not used)"], err
 
 

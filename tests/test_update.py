@@ -319,17 +319,19 @@ INTEGRATOR_XML = """
     <integer name="max_depth" value="4"/>
     <string name="update" value="auto"/>
     <float name="refit_tolerance" value="1.2"/>
+    <string name="moving_accel" value="hlbvh"/>
 </integrator>
 """
 
 
 def test09_renders_with_refit_and_auto_match_native():
-    """hlbvh_path with update="refit" (from a dict) and "auto" (from XML) against
-    native, frame by frame: test_integrators' tolerance (5e-4 absolute + 1e-4 relative
+    """hlbvh_path with update="refit" (from a dict) and "auto" (from XML), our HLBVH
+    tracing the moving meshes, against native, frame by frame: test_integrators' tolerance (5e-4 absolute + 1e-4 relative
     per pixel, one pixel may exceed it, mean difference below 1e-6)."""
     animation, scene, params = load("cloth")
     native = mi.load_dict(dict(type="hlbvh_path", accel="native", max_depth=4))
-    ours = {"refit": mi.load_dict(dict(type="hlbvh_path", max_depth=4, update="refit")),
+    ours = {"refit": mi.load_dict(dict(type="hlbvh_path", max_depth=4, update="refit",
+                                       moving_accel="hlbvh")),
             "auto": mi.load_string(INTEGRATOR_XML)}
     for i in (0,) + FRAMES:
         scenes.apply_frame(scene, params, animation.frame(i))

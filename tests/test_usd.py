@@ -740,7 +740,7 @@ def test21_the_stage_s_still_meshes_are_built_once_and_never_leave(shot):
     renderer = FrameRenderer(animation, RenderSettings(resolution=(8, 8), spp=1))
     for i in range(animation.frame_count):
         renderer.render(i)
-        accel = renderer.integrator.accel(renderer.scene)
+        accel = renderer.integrator.scene_accel
         assert accel.last_update["groups"]["static"]["left"] == []
         assert sorted(accel.last_update["moving"]) == sorted(animation.animated_ids())
     assert accel.static.builds == 1

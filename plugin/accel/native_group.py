@@ -28,16 +28,21 @@ from hlbvh.timing import clock_ms
 
 
 class NativeGroup:
-    """The static shapes of a scene in a Mitsuba sub-scene, and what its last update did.
+    """Shapes of a scene in a Mitsuba sub-scene, and what its last update did: the static
+    group (built once, again when a shape leaves it), or the moving meshes' native
+    group (built anew whenever they moved, :mod:`hlbvh.accel.choice`).
 
     Args:
-        groups: the scene's shape groups (see :func:`shape_groups`).
+        groups: the scene's shape groups (see :func:`shape_groups`); none for the
+            moving meshes' group.
+        name: its name in statistics (``"static"``, ``"native_moving"``).
 
     Attributes:
-        name: ``"static"`` (its name in statistics).
+        name: as given.
         indices: indices into ``scene.shapes()`` of the shapes it traces, ascending.
         scene: the sub-scene; None while it holds no shape.
         builds: how often it was built.
+        build_ms: how long its last build took (0 before one).
         last: what the last update did: ``decision`` (``"build"``, ``"rebuild"`` or
             ``"kept"``), ``ms``, ``shapes`` (how many it traces), ``triangles`` (of its
             meshes), ``left`` (ids of the shapes whose motion made this update rebuild
@@ -46,13 +51,13 @@ class NativeGroup:
             this update rebuild it).
     """
 
-    name = "static"
-
-    def __init__(self, groups: list):
+    def __init__(self, groups: list, name: str = "static"):
+        self.name = name
         self.groups = groups
         self.indices: tuple = ()
         self.scene = None
         self.builds = 0
+        self.build_ms = 0.0
         self.last = None
         self._shape_index = None  # UInt32: index into scene.shapes() per sub-scene shape
         self._built = False
@@ -66,29 +71,31 @@ class NativeGroup:
     def triangles(self) -> int:
         return self._triangles
 
-    def update(self, shapes, indices: tuple, left: list | None = None):
+    def update(self, shapes, indices: tuple, left: list | None = None, moved: bool = False):
         """Trace the shapes ``shapes[i]``, ``i`` in ``indices``: a new sub-scene when they
-        are not those of the last build (``left``: ids of the shapes that moved out),
-        nothing otherwise.
+        are not those of the last build (``left``: ids of the shapes that moved out) or
+        when they ``moved``, nothing otherwise.
 
         Raises:
-            ValueError: naming a mesh with non-finite vertex positions (first build).
+            ValueError: naming a mesh with non-finite vertex positions (first build, and
+                every build of moving shapes).
         """
         reshaped = self._changed_groups() if self._built else []
-        if self._built and tuple(indices) == self.indices and not reshaped:
+        if self._built and tuple(indices) == self.indices and not reshaped and not moved:
             self.keep()
             return
         start = clock_ms()
         decision = "rebuild" if self._built else "build"
         self._group_states = [member_states(m, self._handles) for m in self._members]
-        if not self._built:
-            check_finite(shapes, indices)  # later builds trace fewer of the same shapes
+        if not self._built or moved:
+            check_finite(shapes, indices)  # later static builds trace fewer of the same shapes
         self.indices = tuple(indices)
         self.scene, self._shape_index = _sub_scene(shapes, self.indices, self.groups)
         self._triangles = sum(shapes[i].face_count() for i in self.indices if shapes[i].is_mesh())
         self._built = True
         self.builds += 1
-        self.last = dict(decision=decision, ms=clock_ms() - start, shapes=len(self.indices),
+        self.build_ms = clock_ms() - start
+        self.last = dict(decision=decision, ms=self.build_ms, shapes=len(self.indices),
                          triangles=self._triangles, left=list(left or ()), sah_cost=None,
                          groups_changed=reshaped)
 

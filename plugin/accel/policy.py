@@ -17,13 +17,19 @@ ACCELS = ("hlbvh", "native")
 #: own accelerator (Embree on LLVM, OptiX on CUDA) over a sub-scene of those shapes,
 #: built once; ``"hlbvh"``, our BVH and watertight traversal for every mesh.
 STATICS = ("native", "hlbvh")
+#: What traces the moving meshes (option ``moving_accel``): ``"auto"`` picks per render
+#: by measured cost among the three others (:mod:`hlbvh.accel.choice`); ``"hlbvh"``, our
+#: HLBVH refit or rebuilt; ``"native"``, a Mitsuba sub-scene of the moving meshes built
+#: anew when they change; ``"scene"``, the whole scene through Mitsuba's own accelerator,
+#: rebuilt when anything moves.
+MOVING_ACCELS = ("auto", "hlbvh", "native", "scene")
 #: Per-frame policies of :meth:`SceneAccel.update` (option ``update``).
 UPDATES = ("rebuild", "fresh", "refit", "auto")
 #: The options of :func:`hlbvh.build` an accelerator accepts.
 BUILD_OPTIONS = tuple(f.name for f in dataclasses.fields(BuildConfig))
 #: The accelerator's own options (:class:`UpdatePolicy`).
 UPDATE_OPTIONS = ("update", "refit_tolerance", "static", "moving", "static_builder",
-                  "static_leaf_size")
+                  "static_leaf_size", "moving_accel")
 #: The static tree's leaf size with the "sah" builder under ``static_leaf_size="auto"``.
 STATIC_SAH_LEAF_SIZE = 2
 #: What an update did to a group, from the least work to the most: ``kept`` (nothing
@@ -70,6 +76,11 @@ class UpdatePolicy:
             with leaves of 2, while ``"hlbvh"`` trees trace slower with them; otherwise
             the scene's ``leaf_size``), ``"same"`` (the scene's ``leaf_size``) or an
             int in 1..16.
+        moving_accel: what traces the moving meshes with ``static="native"`` (one of
+            :data:`MOVING_ACCELS`): ``"auto"`` (default) chooses, per render, the one
+            whose update and rays cost least for that render's film, samples and depth
+            (:mod:`hlbvh.accel.choice`); the others force it. With ``static="hlbvh"``
+            every mesh is ours: only ``"auto"`` and ``"hlbvh"`` are accepted.
 
     The defaults' measurements (frame times of each policy, the static tree's builder
     and leaf size) are in docs/decisions.md.
@@ -81,6 +92,7 @@ class UpdatePolicy:
     moving: tuple = ()
     static_builder: str = "sah"
     static_leaf_size: int | str = "auto"
+    moving_accel: str = "auto"
 
     def validated(self) -> "UpdatePolicy":
         """Self, after checking every field; raises ValueError naming the bad one."""
@@ -96,6 +108,14 @@ class UpdatePolicy:
         self.refit_tolerance = float(tolerance)
         if self.static not in STATICS:
             raise ValueError(f"static={self.static!r}: expected one of {STATICS}")
+        if self.moving_accel not in MOVING_ACCELS:
+            raise ValueError(
+                f"moving_accel={self.moving_accel!r}: expected one of {MOVING_ACCELS}")
+        if self.static == "hlbvh" and self.moving_accel not in ("auto", "hlbvh"):
+            raise ValueError(
+                f"moving_accel={self.moving_accel!r} with static='hlbvh': every mesh is "
+                "traced by our BVH there; use static='native' to trace moving meshes "
+                "natively")
         self.moving = _shape_ids(self.moving)
         if self.static_builder not in BUILDERS + ("same",):
             raise ValueError(

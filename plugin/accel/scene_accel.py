@@ -63,6 +63,8 @@ traces coherent and incoherent rays alike.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import drjit as dr
 import mitsuba as mi
 
@@ -71,6 +73,7 @@ from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.kernels.geometry import half_area
 from hlbvh.kernels.layout import joined
 from hlbvh.kernels.traversal import any_hit, closest_hit
+from hlbvh.accel.choice import STRUCTURES, CostModel, Probe, RayBudget
 from hlbvh.accel.instance_group import InstanceGroup, group_of
 from hlbvh.accel.instance_shading import InstanceShading, is_instance
 from hlbvh.kernels.traversal import closest_instance_hit
@@ -113,7 +116,14 @@ class SceneAccel(_Accel):
         moving: indices into ``shapes`` of the shapes that move, ascending.
         static: the static group: a :class:`NativeGroup` (``static="native"``) or a
             :class:`MeshGroup` (``static="hlbvh"``).
-        dynamic: the moving meshes' :class:`MeshGroup`.
+        dynamic: the moving meshes' :class:`MeshGroup` (our HLBVH over them).
+        native_moving: the moving meshes' :class:`NativeGroup` (a Mitsuba sub-scene of
+            them, built anew when they moved).
+        moving_structure: what traces the moving meshes now: ``"hlbvh"`` (:attr:`dynamic`),
+            ``"native"`` (:attr:`native_moving`) or ``"scene"`` (the whole scene through
+            Mitsuba's own accelerator, which the integrator then queries instead of this
+            object); forced by ``moving_accel`` or chosen per render by :meth:`plan`.
+        costs: the :class:`hlbvh.accel.choice.CostModel` that chooses it.
         instances: the moving instances' :class:`InstanceGroup` (``static="native"``;
             None with ``"hlbvh"``).
         last_update: what the last :meth:`update` (or the construction) did:
@@ -123,7 +133,11 @@ class SceneAccel(_Accel):
             box's area over the area of the box around them, the cost of a ray through
             that box when each group is entered through its root box; None without
             triangles in our BVHs), ``moving`` (ids of the moving shapes), and
-            ``groups``: ``{"static": ..., "dynamic": ...}``, each group's ``last``.
+            ``groups``: ``{"static": ..., "dynamic": ..., "native_moving": ...}``, each
+            group's ``last``; ``moving_accel``: ``chosen`` (:attr:`moving_structure`),
+            ``estimates_ms`` (each structure's estimated frame at the last :meth:`plan`,
+            None before one), ``update_ms`` and ``query_ns`` (the measured costs) and
+            ``queries_per_sample``.
     """
 
     name = "hlbvh"
@@ -145,6 +159,15 @@ class SceneAccel(_Accel):
         groups = shape_groups(scene) if native else []
         self.static = NativeGroup(groups) if native else MeshGroup("static")
         self.dynamic = MeshGroup("dynamic")
+        self.native_moving = NativeGroup([], name="native_moving")
+        forced = policy.moving_accel
+        self.moving_structure = forced if forced in ("native", "scene") else "hlbvh"
+        self.costs = CostModel()
+        self._estimates = None  # each structure's estimated frame at the last plan()
+        # Structures whose view of the moving meshes is out of date: the scene's own
+        # accelerator may predate writes made before this accelerator existed.
+        self._behind = {"scene"}
+        self._probed = False  # whether the query costs were measured
         known = {}  # id(instance) -> its shape group, told once for both uses
 
         def told(instance, matrix=None):
@@ -204,32 +227,45 @@ class SceneAccel(_Accel):
         # ---- The static group: everything that never moved ----
         self._update_static(moving, started, first)
         self.moving = moving
-        # ---- The moving meshes ----
+        # ---- The moving meshes, in the structure that traces them now ----
         meshes = set(self.meshes)
         self.dynamic.indices = tuple(i for i in moving if i in meshes)
         dynamic_changed = [i for i in changed if i in self.dynamic.indices]
-        if (first and self.dynamic.indices) or dynamic_changed or self.dynamic.stale:
-            reshaped = first or any(
-                states[i].reshaped(self._states[i]) for i in dynamic_changed)
-            self.dynamic.update(self.shapes, self.config, self.policy, reshaped,
-                                decision="build" if first else "rebuild")
+        structure = self.moving_structure
+        if dynamic_changed or started:  # the structures not updated below fall behind
+            self._behind |= {"hlbvh", "native"} - {structure}
+        if changed:
+            self._behind.add("scene")
+        if structure == "hlbvh":
+            self._update_dynamic(states, dynamic_changed, first)
         else:
             self.dynamic.keep()
+        if structure == "native":
+            self._update_native_moving(moved=bool(dynamic_changed or started))
+        else:
+            self.native_moving.keep()
         # ---- The moving instances: the top level over them ----
         if self.shading is not None:
             self.shading.refresh([i for i in changed if is_instance(self.shapes[i])])
-        if self.instances is not None:
-            moving_instances = tuple(i for i in moving if is_instance(self.shapes[i]))
+        moving_instances = tuple(i for i in moving if is_instance(self.shapes[i]))
+        if not set(moving_instances).isdisjoint(changed):
+            self._behind.add("instances")
+        if self.instances is not None and structure != "scene":
             table = self.shading if self.shading is not None and self.shading.usable else None
             self.instances.update(self.shapes, moving_instances,
-                                  moved=not set(moving_instances).isdisjoint(changed),
+                                  moved="instances" in self._behind,
                                   rows_of=table.rows_of if table else None,
                                   policy=self.policy)
+            self._behind.discard("instances")
+        elif self.instances is not None:
+            self.instances.keep()
         self._states, self._current = states, True
-        traced = [g for g in (self.static, self.dynamic) if isinstance(g, MeshGroup) and g.bvh]
+        traced = [g for g in (self.static, self.dynamic) if isinstance(g, MeshGroup) and g.bvh
+                  and (g is not self.dynamic or structure == "hlbvh")]
         if traced != self._traced or any(g.last["decision"] != "kept" for g in traced):
             self._join(traced)
-        groups = (self.static, self.dynamic) + ((self.instances,) if self.instances else ())
+        groups = (self.static, self.dynamic, self.native_moving) + (
+            (self.instances,) if self.instances else ())
         self.last_update = dict(
             decision=max((g.last["decision"] for g in groups), key=DECISIONS.index),
             ms=clock_ms() - start,
@@ -237,8 +273,136 @@ class SceneAccel(_Accel):
             sah_cost=self._sah_cost(),
             moving=[self.shapes[i].id() for i in self.moving],
             groups={g.name: dict(g.last) for g in groups},
+            moving_accel=self._choice_record(),
         )
         return self
+
+    # ---- What traces the moving meshes: the choice by cost (hlbvh.accel.choice) ----
+
+    def _update_dynamic(self, states, changed: list, first: bool):
+        """Our HLBVH over the moving meshes, refit or rebuilt as the policy says (rebuilt
+        when it fell behind while another structure traced them)."""
+        behind = "hlbvh" in self._behind
+        if (first and self.dynamic.indices) or changed or self.dynamic.stale or behind:
+            reshaped = first or behind or any(
+                states[i].reshaped(self._states[i]) for i in changed)
+            self.dynamic.update(self.shapes, self.config, self.policy, reshaped,
+                                decision="build" if first else "rebuild")
+            if self.dynamic.indices:
+                self.costs.record_update("hlbvh", self.dynamic.last["ms"])
+        else:
+            self.dynamic.keep()
+        self._behind.discard("hlbvh")
+
+    def _update_native_moving(self, moved: bool = False):
+        """The Mitsuba sub-scene of the moving meshes, built anew when they ``moved`` (or
+        moved while another structure traced them)."""
+        self.native_moving.update(self.shapes, self.dynamic.indices,
+                                  moved=moved or "native" in self._behind)
+        if self.native_moving.last["decision"] != "kept" and self.dynamic.indices:
+            self.costs.record_update("native", self.native_moving.last["ms"])
+        self._behind.discard("native")
+
+    def _allowed(self) -> tuple:
+        """The structures ``moving_accel`` lets :meth:`plan` choose among."""
+        forced = self.policy.moving_accel
+        if forced != "auto":
+            return (forced,)
+        if not isinstance(self.static, NativeGroup):
+            return ("hlbvh",)
+        return STRUCTURES
+
+    def plan(self, budget: RayBudget, probe: Probe | None = None) -> str:
+        """Choose what traces the moving meshes for a render of ``budget`` (the
+        integrator calls this after :meth:`update`, and updates again when the choice
+        moved), by the measured costs of :mod:`hlbvh.accel.choice`; ``probe`` (a sample
+        of the render's own rays) times each structure's queries when they were not
+        timed yet. Returns :attr:`moving_structure`."""
+        allowed = self._allowed()
+        if len(allowed) == 1 or not self.dynamic.indices:
+            self.moving_structure = allowed[0] if len(allowed) == 1 else self.moving_structure
+            return self.moving_structure
+        if not self._probed and probe is not None:
+            self.probe(probe)
+        triangles = {"native": sum(self.shapes[i].face_count() for i in self.dynamic.indices),
+                     "scene": sum(s.face_count() for s in self.shapes if s.is_mesh())}
+        self.moving_structure, self._estimates = self.costs.choose(
+            budget, self.moving_structure, allowed, triangles)
+        return self.moving_structure
+
+    def probe(self, probe: Probe):
+        """Time the closest-hit queries of ``probe``'s rays through the still world alone
+        and through it with each structure of the moving meshes (ours and the native
+        sub-scene, each brought up to date first), and record them and the probe's hit
+        fractions in :attr:`costs`."""
+        if not self._current or not isinstance(self.static, NativeGroup):
+            return
+        ray = probe.rays
+        self.costs.hit_fractions = (probe.camera_hits, probe.bounce_hits)
+        current = self.moving_structure
+        self.costs.record_build_rate(self.static.build_ms, self.static.triangles)
+        for structure in ("hlbvh", "native"):
+            self.moving_structure = structure
+            if structure == "hlbvh" and ("hlbvh" in self._behind or self.dynamic.bvh is None):
+                self._update_dynamic(self._states, [], False)
+            if structure == "native":
+                self._update_native_moving()
+            self._join([g for g in (self.dynamic,) if g.bvh is not None and structure == "hlbvh"])
+            self.costs.record_queries(structure, query_ns(self.ray_intersect_preliminary, ray))
+        self.moving_structure = "still"
+        self._join([])
+        self.costs.record_queries("still", query_ns(self.ray_intersect_preliminary, ray))
+        self.moving_structure = current
+        self._join([self.dynamic] if current == "hlbvh" and self.dynamic.bvh is not None else [])
+        self._probed = True
+
+    def scene_rebuilt(self, ms: float, ns: float | None = None):
+        """The integrator rebuilt the whole scene's own accelerator (``"scene"``) in
+        ``ms``; ``ns``: the time of a query through it, when the integrator timed one."""
+        self.costs.record_update("scene", ms)
+        self._behind.discard("scene")
+        if ns is not None:
+            self.costs.record_queries("scene", ns)
+
+    def absorb(self, earlier: dict):
+        """Make :attr:`last_update` tell what ``earlier`` (the update just before it, in
+        the same frame: before :meth:`plan` moved the choice) did too: the most work of
+        both, their time together, and each group's record of the one that did more."""
+        now = self.last_update
+        rank = DECISIONS.index
+        now["decision"] = max(now["decision"], earlier["decision"], key=rank)
+        now["ms"] += earlier["ms"]
+        for name, group in earlier["groups"].items():
+            if rank(group["decision"]) > rank(now["groups"][name]["decision"]):
+                now["groups"][name] = group
+
+    def mark_moving_dirty(self):
+        """Tell the moving shapes that they changed, so that the scene's next
+        ``parameters_changed`` rebuilds its own accelerator over them: a Mitsuba
+        (sub-)scene built over a shape since it last changed (the moving meshes' native
+        group) has already cleared the mark its change left. A mesh is told its
+        positions and normals changed (so it keeps the normals it was given)."""
+        for i in self.moving:
+            shape = self.shapes[i]
+            shape.parameters_changed(["vertex_positions", "vertex_normals"]
+                                     if shape.is_mesh() else [])
+
+    @property
+    def needs_probe(self) -> bool:
+        """Whether :meth:`plan` would still time the structures (``moving_accel="auto"``
+        with moving meshes, and no probe yet)."""
+        return not self._probed and len(self._allowed()) > 1 and bool(self.dynamic.indices)
+
+    @property
+    def scene_behind(self) -> bool:
+        """Whether the scene's own accelerator misses motion since its last rebuild (the
+        ``"scene"`` structure: a rebuild is due before it is queried)."""
+        return "scene" in self._behind
+
+    def _choice_record(self) -> dict:
+        return dict(chosen=self.moving_structure, estimates_ms=self._estimates,
+                    update_ms=dict(self.costs.update_ms), query_ns=dict(self.costs.query_ns),
+                    hit_fractions=self.costs.hit_fractions)
 
     def surface_interaction(self, pi, ray, ray_flags=mi.RayFlags.All, active=True):
         """``pi.compute_surface_interaction(ray, ray_flags, active)``; in a scene with
@@ -291,6 +455,10 @@ class SceneAccel(_Accel):
         if not self._current:
             raise RuntimeError("SceneAccel: its last update() failed (see the error it "
                                "raised); fix the scene and call update() before tracing")
+        if self.moving_structure == "scene":
+            raise RuntimeError("SceneAccel: the whole scene traces the moving meshes "
+                               "(moving_accel 'scene'): query the scene itself, as the "
+                               "integrator does, after its accelerator was rebuilt")
         for i in self.meshes:
             shape = self.shapes[i]
             if MeshState(shape.vertex_positions_buffer(), shape.faces_buffer()).moved(
@@ -332,72 +500,40 @@ class SceneAccel(_Accel):
         return self.analytic
 
     def _preliminary(self, ray, coherent, active, reorder):
-        """The static group's closest hit, then our BVHs', then each analytic shape's
-        own routine, merged by nearest ``t`` (ties to the earlier)."""
+        """The static group's closest hit, then the moving meshes' (our BVHs' or their
+        native sub-scene's), then the instances', then each analytic shape's own
+        routine, merged by nearest ``t`` (ties to the earlier)."""
         self._check_current()
         n = dr.width(ray)
         active = mi.Bool(active) & dr.full(mi.Bool, True, n)
+        hit = _Hit.none(n)
         native = isinstance(self.static, NativeGroup) and self.static.scene is not None
         if native:
-            pi = self.static.preliminary(ray, coherent, active, reorder)
-            t = dr.select(pi.is_valid(), pi.t, dr.inf)
-            prim_uv, prim_index, shape_index = pi.prim_uv, pi.prim_index, pi.shape_index
-            from_native = pi.is_valid()
-        else:
-            t, prim_uv = dr.full(mi.Float, dr.inf, n), dr.zeros(mi.Point2f, n)
-            prim_index, shape_index = dr.zeros(mi.UInt32, n), dr.zeros(mi.UInt32, n)
-            from_native = dr.zeros(mi.Bool, n)
+            hit.take_native(self.static.preliminary(ray, coherent, active, reorder))
         # Each later structure looks no further than the nearest hit so far.
         ray = mi.Ray3f(ray)
         if self._tree is not None:
-            ray.maxt = dr.minimum(ray.maxt, t)
-            t, prim_uv, prim_index, shape_index, from_native = _nearer(
-                self._closest_mesh_hit(ray, active), t, prim_uv, prim_index, shape_index,
-                from_native)
-        from_instance = dr.zeros(mi.Bool, n)
+            ray.maxt = dr.minimum(ray.maxt, hit.t)
+            hit.take(*self._closest_mesh_hit(ray, active))
+        if self.moving_structure == "native" and self.native_moving.scene is not None:
+            ray.maxt = dr.minimum(ray.maxt, hit.t)
+            hit.take_native(self.native_moving.preliminary(ray, coherent, active, reorder))
         if self.instances is not None and self.instances.tree is not None:
-            ray.maxt = dr.minimum(ray.maxt, t)
+            ray.maxt = dr.minimum(ray.maxt, hit.t)
             t_i, u_i, v_i, prim_i, inst_i, valid_i = closest_instance_hit(
                 self.instances.tree, ray.o, ray.d, ray.maxt, active)
             valid_i = mi.Bool(valid_i)
             local, in_group, inst_index = self.instances.hit_fields(
                 mi.UInt32(prim_i), mi.UInt32(inst_i), valid_i)
-            closer = valid_i & (mi.Float(t_i) < t)
-            t = dr.select(closer, mi.Float(t_i), t)
-            prim_uv = dr.select(closer, mi.Point2f(mi.Float(u_i), mi.Float(v_i)), prim_uv)
-            prim_index = dr.select(closer, local, prim_index)
-            shape_index = dr.select(closer, in_group, shape_index)
-            from_native &= ~closer
-            from_instance = closer
+            hit.take(dr.select(valid_i, mi.Float(t_i), dr.inf),
+                     mi.Point2f(mi.Float(u_i), mi.Float(v_i)), local, in_group,
+                     instance=inst_index)
         for index, shape in self._routine_shapes():
-            ray.maxt = dr.minimum(ray.maxt, t)
+            ray.maxt = dr.minimum(ray.maxt, hit.t)
             pi_s = shape.ray_intersect_preliminary(ray, 0, active)
-            closer = pi_s.is_valid() & (pi_s.t < t)
-            t, prim_uv, prim_index, shape_index, from_native = _nearer(
-                (dr.select(pi_s.is_valid(), pi_s.t, dr.inf), pi_s.prim_uv, pi_s.prim_index,
-                 dr.full(mi.UInt32, index, n)), t, prim_uv, prim_index, shape_index,
-                from_native)
-            from_instance &= ~closer
-        result = dr.zeros(mi.PreliminaryIntersection3f, n)
-        result.valid = active & (t < dr.inf)
-        result.t = dr.select(result.valid, t, dr.inf)
-        result.prim_uv = mi.Point2f(prim_uv)
-        result.prim_index = dr.select(result.valid, prim_index, 0)
-        result.shape_index = dr.select(result.valid, shape_index, 0xFFFFFFFF)
-        if dr.width(self.shapes_dr) > 0:  # a scene may have no shape at all
-            ours = result.valid & ~from_native & ~from_instance
-            result.shape = dr.gather(mi.ShapePtr, self.shapes_dr, result.shape_index, ours)
-            if native:
-                result.shape = dr.select(from_native, pi.shape, result.shape)
-                result.instance = dr.select(from_native, pi.instance, result.instance)
-            if self.instances is not None and self.instances.tree is not None:
-                # As Mitsuba reports a hit inside an instance: no shape pointer, the
-                # shape's index in its group, the instance.
-                result.shape = dr.select(from_instance, dr.zeros(mi.ShapePtr, n), result.shape)
-                result.instance = dr.select(
-                    from_instance, dr.gather(mi.ShapePtr, self.shapes_dr, inst_index,
-                                             from_instance), result.instance)
-        return result
+            hit.take(dr.select(pi_s.is_valid(), pi_s.t, dr.inf), pi_s.prim_uv,
+                     pi_s.prim_index, dr.full(mi.UInt32, index, n))
+        return hit.preliminary(active, self.shapes_dr)
 
     def _closest_mesh_hit(self, ray, active):
         """(t, prim_uv, prim_index, shape_index) of the closest triangle hit of our
@@ -416,6 +552,8 @@ class SceneAccel(_Accel):
             hit |= self.static.test(ray, coherent, active)
         if self._tree is not None:
             hit |= mi.Bool(any_hit(self._tree, ray.o, ray.d, ray.maxt, active & ~hit))
+        if self.moving_structure == "native" and self.native_moving.scene is not None:
+            hit |= self.native_moving.test(ray, coherent, active & ~hit)
         if self.instances is not None and self.instances.tree is not None:
             hit |= mi.Bool(any_hit(self.instances.tree, ray.o, ray.d, ray.maxt, active & ~hit))
         for _, shape in self._routine_shapes():
@@ -423,14 +561,101 @@ class SceneAccel(_Accel):
         return hit & active
 
 
-def _nearer(hit, t, prim_uv, prim_index, shape_index, from_native):
-    """The nearest-hit fields after one more structure's ``hit`` (t, prim_uv,
-    prim_index, shape_index): taken where strictly nearer, so ties keep the earlier."""
-    t_h, uv_h, prim_h, shape_h = hit
-    closer = t_h < t
-    return (dr.select(closer, t_h, t), dr.select(closer, uv_h, prim_uv),
-            dr.select(closer, prim_h, prim_index), dr.select(closer, shape_h, shape_index),
-            from_native & ~closer)
+@dataclass
+class _Hit:
+    """The nearest hit so far of a query over several structures, as Mitsuba reports
+    it: ``t`` (infinite: none), ``prim_uv``, ``prim_index``, ``shape_index``; where a
+    Mitsuba (sub-)scene gave it, its ``shape`` and ``instance`` pointers
+    (``from_native``); inside one of our instances, the instance's index into
+    ``scene.shapes()`` (``instance``, where ``in_instance``)."""
+
+    t: mi.Float
+    prim_uv: mi.Point2f
+    prim_index: mi.UInt32
+    shape_index: mi.UInt32
+    from_native: mi.Bool
+    shape: mi.ShapePtr
+    instance_ptr: mi.ShapePtr
+    in_instance: mi.Bool
+    instance: mi.UInt32
+
+    @classmethod
+    def none(cls, n: int) -> "_Hit":
+        return cls(dr.full(mi.Float, dr.inf, n), dr.zeros(mi.Point2f, n),
+                   dr.zeros(mi.UInt32, n), dr.zeros(mi.UInt32, n), dr.zeros(mi.Bool, n),
+                   dr.zeros(mi.ShapePtr, n), dr.zeros(mi.ShapePtr, n),
+                   dr.zeros(mi.Bool, n), dr.zeros(mi.UInt32, n))
+
+    def take(self, t, prim_uv, prim_index, shape_index, instance=None) -> mi.Bool:
+        """Take the hit of one more structure (``t`` infinite where it has none) where
+        it is strictly nearer, so ties keep the earlier; ``instance``: for a hit inside
+        one of our instances, the instance's index. Returns where it was taken."""
+        closer = t < self.t
+        self.t = dr.select(closer, t, self.t)
+        self.prim_uv = dr.select(closer, mi.Point2f(prim_uv), self.prim_uv)
+        self.prim_index = dr.select(closer, prim_index, self.prim_index)
+        self.shape_index = dr.select(closer, shape_index, self.shape_index)
+        self.from_native &= ~closer
+        inside = closer & (instance is not None)
+        self.in_instance = dr.select(closer, inside, self.in_instance)
+        if instance is not None:
+            self.instance = dr.select(closer, instance, self.instance)
+        return closer
+
+    def take_native(self, pi: mi.PreliminaryIntersection3f):
+        """Take a Mitsuba (sub-)scene's hit (its ``shape_index`` already the index
+        into ``scene.shapes()`` for a hit outside an instance), pointers included."""
+        closer = self.take(dr.select(pi.is_valid(), pi.t, dr.inf), pi.prim_uv,
+                           pi.prim_index, pi.shape_index)
+        self.from_native |= closer
+        self.shape = dr.select(closer, pi.shape, self.shape)
+        self.instance_ptr = dr.select(closer, pi.instance, self.instance_ptr)
+
+    def preliminary(self, active: mi.Bool, shapes_dr) -> mi.PreliminaryIntersection3f:
+        """The hit as Mitsuba's query reports it: shape pointers gathered for our own
+        hits, a hit inside one of our instances with no shape pointer, the shape's index
+        in its group, and the instance."""
+        n = dr.width(self.t)
+        result = dr.zeros(mi.PreliminaryIntersection3f, n)
+        result.valid = active & (self.t < dr.inf)
+        result.t = dr.select(result.valid, self.t, dr.inf)
+        result.prim_uv = mi.Point2f(self.prim_uv)
+        result.prim_index = dr.select(result.valid, self.prim_index, 0)
+        result.shape_index = dr.select(result.valid, self.shape_index, 0xFFFFFFFF)
+        if dr.width(shapes_dr) > 0:  # a scene may have no shape at all
+            native = result.valid & self.from_native
+            inside = result.valid & self.in_instance
+            ours = result.valid & ~native & ~inside
+            result.shape = dr.gather(mi.ShapePtr, shapes_dr, result.shape_index, ours)
+            result.shape = dr.select(native, self.shape, result.shape)
+            result.instance = dr.select(native, self.instance_ptr, result.instance)
+            result.instance = dr.select(
+                inside, dr.gather(mi.ShapePtr, shapes_dr, self.instance, inside),
+                result.instance)
+        return result
+
+
+def query_ns(query, ray) -> float:
+    """Nanoseconds a closest-hit ``query(ray)`` costs per ray, without the launch's
+    fixed cost: the slope between the whole of ``ray`` and its even half, each the
+    fastest of two runs after one that may compile (the device synchronised); the mean
+    over the whole where noise makes the slope meaningless."""
+    n = dr.width(ray)
+    half = dr.gather(type(ray), ray, dr.arange(mi.UInt32, n // 2) * 2)
+
+    def fastest(r) -> float:
+        best = float("inf")
+        for _ in range(2):
+            start = clock_ms()
+            pi = query(r)
+            dr.eval(pi.t, pi.prim_index, pi.shape_index)
+            best = min(best, clock_ms() - start)
+        return best
+
+    fastest(half)  # compiles what the runs below launch
+    whole, part = fastest(ray), fastest(half)
+    slope = (whole - part) * 1e6 / max(n - n // 2, 1)
+    return slope if slope > 0 else whole * 1e6 / max(n, 1)
 
 
 def _declared(shapes, ids: tuple) -> tuple:

@@ -12,7 +12,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from hlbvh import scenes
-from hlbvh.accel.policy import ACCELS, BUILD_OPTIONS, STATICS, UPDATES
+from hlbvh.accel.policy import ACCELS, BUILD_OPTIONS, MOVING_ACCELS, STATICS, UPDATES
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.scenes.sequence import TOPOLOGIES
@@ -63,6 +63,10 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
         add("--static", help="what traces the shapes that do not move: native (Mitsuba's own "
                              "accelerator, the fastest; default) or hlbvh (our watertight "
                              "traversal for every mesh, the accurate end)")
+        add("--moving-accel", help="what traces the moving meshes: auto (default: per render, "
+                                   "the cheapest by measured cost), hlbvh (our BVH), native "
+                                   "(a Mitsuba sub-scene of them, rebuilt) or scene "
+                                   "(Mitsuba's whole scene, rebuilt)")
     add("--seed", default="0", help="frame i is rendered with seed SEED + i (default 0)")
     add("--out", help=f"output directory (default {out})")
     add("--quiet", action="store_true", help="no progress bars")
@@ -143,6 +147,7 @@ def render_settings(args, *, spp: int | None = None, integrator: str = "path",
                      if getattr(args, name, None) is not None}
     update = getattr(args, "update", None)
     static = getattr(args, "static", None)
+    moving_accel = getattr(args, "moving_accel", None)
     if spp is None and args.spp is not None:
         spp = int_flag("--spp", args.spp, least=1)
     return RenderSettings(
@@ -156,6 +161,8 @@ def render_settings(args, *, spp: int | None = None, integrator: str = "path",
         update=None if update is None else choice("--update", update, UPDATES),
         seed=seed_flag(args.seed),
         static="native" if static is None else choice("--static", static, STATICS),
+        moving_accel=(None if moving_accel is None
+                      else choice("--moving-accel", moving_accel, MOVING_ACCELS)),
     )
 
 
@@ -214,6 +221,9 @@ def scene_render_settings(args, animation, scene: str) -> tuple[RenderSettings, 
     if getattr(args, "static", None) is not None:
         override("--static", "static", flags.static, fields["static"])
         fields["static"] = flags.static
+    if flags.moving_accel is not None:
+        override("--moving-accel", "moving_accel", flags.moving_accel, fields["moving_accel"])
+        fields["moving_accel"] = flags.moving_accel
     # Mitsuba's path has always run as hlbvh_path (the README says so); the other
     # integrators that run as ours are said, once
     lines = [] if kind.startswith("hlbvh_") or kind == "path" else [

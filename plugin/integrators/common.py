@@ -14,8 +14,13 @@ import contextlib
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from hlbvh.accel import NativeAccel, SceneAccel
+from hlbvh.accel.choice import Probe, RayBudget
+from hlbvh.accel.scene_accel import query_ns
+from hlbvh.kernels.arrays import concat
+from hlbvh.timing import timed
 from hlbvh.accel.policy import ACCELS, BUILD_OPTIONS, UPDATE_OPTIONS, split_options
 
 
@@ -60,35 +65,91 @@ class AccelIntegrator(mi.SamplingIntegrator):
                               if name in props}
         self._policy, self._config = split_options(self.accel_options)  # parsed once
         self._accel = None
+        self._budget = None  # the ray budget of the render being prepared (update_accel)
+        self._probe_rays = None  # the rays the accelerator's structures are timed with
         self._rendering = False  # inside render (see render)
         self._updated = False  # inside updated() (see render)
 
-    def update_accel(self, scene):
-        """Bring the intersector of ``scene`` up to date and return it.
+    def update_accel(self, scene, sensor=0, spp: int = 0):
+        """Bring the intersector of ``scene`` up to date for a render of ``sensor`` at
+        ``spp`` samples per pixel (0: the sensor's sampler's) and return it.
 
         ``"native"``: a :class:`~hlbvh.NativeAccel`, made per call (it costs nothing,
         and a cached one would keep the scene alive through the scene's reference to
         this integrator). ``"hlbvh"``: a :class:`~hlbvh.SceneAccel`, built on the first
         call for a scene, built anew for another scene, otherwise updated (only the
         meshes whose buffers changed; a look at each mesh's buffers when none did), so
-        its ``last_update`` says what this call did.
+        its ``last_update`` says what this call did. Its :meth:`~SceneAccel.plan` then
+        chooses what traces the moving meshes for this render's ray budget (film,
+        samples, depth); when that is the whole scene (``"scene"``), the scene's own
+        accelerator is rebuilt here if anything moved, and :meth:`accel` hands out the
+        scene's own queries.
         """
         if self.accel_name == "native":
             return NativeAccel(scene)
+        self._budget = self.ray_budget(scene, sensor, spp)
         if self._accel is None or not self._accel.is_for(scene):
             self._accel = SceneAccel(scene, policy=self._policy, config=self._config)
+            self._probe_rays = None
         else:
+            self._accel.plan(self._budget)  # by the costs measured so far
             self._accel.update()
-        return self._accel
+        accel = self._accel
+        chosen, done = accel.moving_structure, accel.last_update
+        if accel.plan(self._budget, self._probe(scene, sensor)) != chosen:
+            accel.update()  # the newly chosen structure catches up
+            accel.absorb(done)
+        if accel.moving_structure == "scene" and accel.scene_behind:
+            ms, _ = timed(_rebuild_scene, scene, accel)
+            timed_once = "scene" not in accel.costs.query_ns and self._probe_rays is not None
+            accel.scene_rebuilt(ms, query_ns(scene.ray_intersect_preliminary,
+                                             self._probe_rays.rays) if timed_once else None)
+        return accel
 
     def accel(self, scene):
         """The intersector of ``scene`` as the last :meth:`update_accel` left it (the one
         :meth:`render` traces), without looking at the meshes; built by
         :meth:`update_accel` only when none exists for ``scene`` yet (``sample`` called
-        outside a render)."""
+        outside a render). The scene's own queries where the whole scene traces the
+        moving meshes (``"scene"``)."""
         if self.accel_name == "hlbvh" and self._accel is not None and self._accel.is_for(scene):
+            if self._accel.moving_structure == "scene":
+                return NativeAccel(scene)
             return self._accel
         return self.update_accel(scene)
+
+    @property
+    def scene_accel(self) -> SceneAccel | None:
+        """The :class:`~hlbvh.SceneAccel` this integrator keeps (None with
+        ``accel="native"`` or before a render): its groups and ``last_update``, whatever
+        :meth:`accel` hands out (the scene's own queries where the whole scene traces
+        the moving meshes)."""
+        return self._accel
+
+    def ray_budget(self, scene, sensor=0, spp: int = 0) -> RayBudget:
+        """What a render of ``sensor`` (an index or a sensor) at ``spp`` samples per pixel
+        (0: its sampler's) traces: film pixels times samples, and this integrator's
+        depth (``max_depth``; 1 for integrators without one)."""
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor] if scene.sensors() else None
+        if sensor is None:
+            return RayBudget(samples=0, depth=1)
+        size = sensor.film().crop_size()
+        spp = spp or sensor.sampler().sample_count()
+        depth = getattr(self, "max_depth", 1)
+        return RayBudget(samples=int(size[0]) * int(size[1]) * int(spp),
+                         depth=-1 if depth >= 0xFFFFFFFF else int(depth))
+
+    def _probe(self, scene, sensor):
+        """A sample of a render's own rays to time each structure with (made once per
+        accelerator, only while the choice has structures left to time): camera rays
+        through random pixels of ``sensor`` and a bounce from where they land."""
+        if self._probe_rays is None and self._accel.needs_probe:
+            if isinstance(sensor, int):
+                sensor = scene.sensors()[sensor] if scene.sensors() else None
+            if sensor is not None:
+                self._probe_rays = probe(self._accel, sensor)
+        return self._probe_rays
 
     def sample_accel(self, scene):
         """The intersector a ``sample()`` traces: inside this integrator's
@@ -114,12 +175,13 @@ class AccelIntegrator(mi.SamplingIntegrator):
         if self._updated:
             self.accel(scene)
         else:
-            self.update_accel(scene)
+            self.update_accel(scene, sensor, spp)
         self._rendering = True
         try:
             return super().render(scene, sensor, seed, spp, develop, evaluate)
         finally:
             self._rendering = False
+        return image
 
     @contextlib.contextmanager
     def updated(self):
@@ -135,6 +197,43 @@ class AccelIntegrator(mi.SamplingIntegrator):
     def _options_string(self) -> str:
         options = "".join(f", {k}={v!r}" for k, v in self.accel_options.items())
         return f"accel={self.accel_name!r}{options}"
+
+
+#: Camera rays (and as many bounces) a probe of the moving meshes' structures traces:
+#: enough that a query's cost per ray stands out of the launch's noise.
+PROBE_RAYS = 16384
+
+
+def probe(accel, sensor, n: int = PROBE_RAYS) -> Probe:
+    """A sample of what a render of ``sensor`` traces, fixed by a seed: ``n`` camera
+    rays through random film positions, and from where each lands (through ``accel``)
+    a bounce in a cosine-distributed direction about the surface's normal on the
+    camera's side (a diffuse bounce; a camera ray that missed bounces again from the
+    camera), with the fractions of each that meet a surface."""
+    rng = np.random.default_rng(7)
+    u = rng.random((5, n)).astype(np.float32)
+    camera, _ = sensor.sample_ray(0.0, mi.Float(u[0]), mi.Point2f(mi.Float(u[1]), mi.Float(u[2])),
+                                  mi.Point2f(0.5, 0.5))
+    si = accel.ray_intersect(camera)
+    local = mi.warp.square_to_cosine_hemisphere(mi.Point2f(mi.Float(u[3]), mi.Float(u[4])))
+    frame = mi.Frame3f(dr.select(dr.dot(si.n, camera.d) > 0, -si.n, si.n))
+    bounce = si.spawn_ray(frame.to_world(local))
+    valid = si.is_valid()
+    origins = dr.select(valid, bounce.o, camera.o)
+    directions = dr.select(valid, bounce.d, camera.d)
+    bounced = accel.ray_intersect_preliminary(mi.Ray3f(origins, directions)).is_valid() & valid
+    rays = mi.Ray3f(mi.Point3f(*[concat([camera.o[k], origins[k]]) for k in range(3)]),
+                    mi.Vector3f(*[concat([camera.d[k], directions[k]]) for k in range(3)]))
+    camera_hits, bounce_hits = dr.count(valid)[0], dr.count(bounced)[0]
+    dr.eval(rays)
+    return Probe(rays, camera_hits / n, bounce_hits / max(camera_hits, 1))
+
+
+def _rebuild_scene(scene, accel):
+    """Rebuild the scene's own accelerator over its shapes as they are now (its moving
+    shapes told first that they changed: :meth:`SceneAccel.mark_moving_dirty`)."""
+    accel.mark_moving_dirty()
+    scene.parameters_changed([])
 
 
 def depth_properties(props) -> tuple[int, int]:

@@ -21,7 +21,7 @@ from hlbvh.timing import clock_ms, timed
 
 #: Columns of ``stats.csv``, and keys of every row of ``stats.json``.
 STATS_FIELDS = ("frame", "accel", "triangles", "seed", "geometry_ms", "mitsuba_update_ms",
-                "build_ms", "render_ms", "sah_cost", "decision")
+                "build_ms", "render_ms", "sah_cost", "decision", "moving_accel")
 
 #: Most samples (width x height x spp) of one frame: Dr.Jit arrays hold at most
 #: 2^32 - 1 entries, and ``mi.render`` traces them as one wavefront.
@@ -116,9 +116,9 @@ class FrameRenderer:
 
         # ---- Our accelerator follows ----
         if self.settings.accel == "hlbvh":
-            build_ms, sah_cost, decision = self._update_accel()
+            build_ms, sah_cost, decision, moving_accel = self._update_accel(spp or 0)
         else:
-            build_ms, sah_cost, decision = parameters.update_ms, None, "native"
+            build_ms, sah_cost, decision, moving_accel = parameters.update_ms, None, "native", ""
 
         # ---- Render ----
         seed = self.settings.seed + i
@@ -133,15 +133,22 @@ class FrameRenderer:
             "seed": seed, "geometry_ms": round(geometry_ms, 3),
             "mitsuba_update_ms": round(parameters.update_ms, 3), "build_ms": round(build_ms, 3),
             "render_ms": round(render_ms, 3), "sah_cost": sah_cost, "decision": decision,
+            "moving_accel": moving_accel,
         }
         return image, row
 
-    def _update_accel(self) -> tuple[float, float | None, str]:
-        """Bring our accelerator up to date with the frame, before the render (whose own
-        update then finds nothing changed): (ms, SAH cost, decision), the last two as
-        the accelerator reports them (``last_update``)."""
-        ms, accel = timed(self.integrator.update_accel, self.scene)
-        return ms, accel.last_update["sah_cost"], accel.last_update["decision"]
+    def _update_accel(self, spp: int) -> tuple[float, float | None, str, str]:
+        """Bring our accelerator up to date with the frame, for a render at ``spp`` (0:
+        the scene's), before the render (whose own update then finds nothing changed):
+        (ms, SAH cost, decision, what traced the moving meshes), the last three as the
+        accelerator reports them (``last_update``; the whole scene's rebuild, when it
+        traces them, is in the ms and said ``"native"``)."""
+        ms, accel = timed(self.integrator.update_accel, self.scene, 0, spp)
+        chosen = accel.moving_structure
+        decision = accel.last_update["decision"]
+        if chosen == "scene" and accel.costs.update_ms.get("scene") is not None:
+            decision = "native" if decision == "kept" else decision
+        return ms, accel.last_update["sah_cost"], decision, chosen
 
     def triangle_count(self) -> int:
         """Triangles of every mesh of the scene as it is now, an instance's counted as

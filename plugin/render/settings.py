@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from hlbvh.accel.policy import ACCELS, BUILD_OPTIONS, STATICS, UPDATES
+from hlbvh.accel.policy import ACCELS, BUILD_OPTIONS, STATICS, UPDATES, UpdatePolicy
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BuildConfig
 
@@ -56,6 +56,10 @@ class RenderSettings:
         static: what traces the shapes that do not move, ``"native"`` (Mitsuba's own
             accelerator) or ``"hlbvh"`` (our watertight traversal); the integrator's
             ``static`` property.
+        moving_accel: what traces the moving meshes (``"auto"``, ``"hlbvh"``,
+            ``"native"``, ``"scene"``; :data:`hlbvh.accel.policy.MOVING_ACCELS`), or
+            ``None`` for the accelerator's default (``"auto"``); the integrator's
+            ``moving_accel`` property.
         seed: frame ``i`` is rendered with seed ``seed + i``.
         properties: the integrator's other properties (``rr_depth``,
             ``hide_emitters``, ...: what a scene's own integrator sets), handed on as
@@ -73,6 +77,7 @@ class RenderSettings:
     update: str | None = None
     seed: int = 0
     static: str = "native"
+    moving_accel: str | None = None
     properties: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -93,6 +98,8 @@ class RenderSettings:
             raise ValueError(f"update={self.update!r}: expected one of {UPDATES}")
         if self.static not in STATICS:
             raise ValueError(f"static={self.static!r}: expected one of {STATICS}")
+        if self.moving_accel is not None:
+            UpdatePolicy(static=self.static, moving_accel=self.moving_accel).validated()
         if not (_is_int(self.seed) and 0 <= self.seed <= MAX_SEED):
             raise ValueError(f"seed={self.seed!r}: expected an int in 0..{MAX_SEED}")
         for name, value in self.properties.items():
@@ -109,6 +116,8 @@ class RenderSettings:
         if self.update is not None:
             description["update"] = self.update
         description["static"] = self.static
+        if self.moving_accel is not None:
+            description["moving_accel"] = self.moving_accel
         return description
 
     def as_dict(self) -> dict:
@@ -134,6 +143,7 @@ def scene_integrator_fields(description: dict) -> dict:
                                if name in properties}
     fields["update"] = properties.pop("update", None)
     fields["static"] = properties.pop("static", "native")
+    fields["moving_accel"] = properties.pop("moving_accel", None)
     fields["properties"] = properties
     return fields
 

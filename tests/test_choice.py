@@ -1,0 +1,233 @@
+"""What traces the moving meshes, chosen per render by measured cost
+(hlbvh.accel.choice): our HLBVH, a Mitsuba sub-scene of the moving meshes, or the whole
+scene through Mitsuba's accelerator. With injected costs each is chosen where the costs
+say, and the choice follows the render's film and samples; a forced choice is honoured;
+hits through the native moving group are Mitsuba's, field for field; images under every
+choice equal native's within today's tolerances."""
+
+import drjit as dr
+import hlbvh
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from hlbvh import scenes
+from hlbvh.accel.choice import CostModel, RayBudget, queries_per_sample
+from hlbvh.scenes.animated import apply_frame
+
+T = mi.ScalarTransform4f
+
+
+def _costs(update, query, hits=(1.0, 0.0)) -> CostModel:
+    model = CostModel()
+    model.update_ms.update(update)
+    model.query_ns.update(query)
+    model.hit_fractions = hits
+    return model
+
+
+UPDATE = {"hlbvh": 5.0, "native": 40.0, "scene": 400.0}
+QUERY = {"hlbvh": 200.0, "native": 100.0, "still": 90.0}
+
+
+def test01_queries_per_sample_follow_hits_and_depth():
+    assert queries_per_sample(0.0, 0.5, 8) == 1.0  # every camera ray escapes
+    assert queries_per_sample(1.0, 0.0, 8) == 3.0  # one surface: a shadow ray, a bounce
+    assert queries_per_sample(1.0, 1.0, 4) == 9.0  # closed room: every bounce lands
+    assert queries_per_sample(0.5, 0.5, 1) == 2.0
+    assert queries_per_sample(1.0, 0.5, -1) == pytest.approx(5.0)  # unbounded
+
+
+@pytest.mark.parametrize("samples, expected", [
+    (10_000, "hlbvh"),         # a preview: our cheap update wins
+    (10_000_000, "native"),    # a final frame: Mitsuba's faster rays win
+])
+def test02_injected_costs_choose_where_they_say(samples, expected):
+    chosen, estimates = _costs(UPDATE, QUERY).choose(RayBudget(samples, 8), "hlbvh")
+    assert chosen == expected
+    assert min(estimates, key=estimates.get) == expected
+    # the whole scene before its rays were timed: counted at the still world's rate
+    assert estimates["scene"] == pytest.approx(400.0 + samples * 3 * 90e-6)
+
+
+def test03_the_whole_scene_wins_where_its_rebuild_pays():
+    model = _costs(UPDATE, {**QUERY, "scene": 50.0})
+    assert model.choose(RayBudget(100_000_000, 8), "native")[0] == "scene"
+    assert model.choose(RayBudget(100_000, 8), "native")[0] == "hlbvh"
+
+
+def test04_a_near_tie_keeps_the_current_structure():
+    model = _costs({"hlbvh": 10.0, "native": 10.0}, {"hlbvh": 100.0, "native": 98.0})
+    budget = RayBudget(10_000, 8)
+    assert model.choose(budget, "hlbvh", ("hlbvh", "native"))[0] == "hlbvh"
+    assert model.choose(budget, "native", ("hlbvh", "native"))[0] == "native"
+
+
+def test05_unmeasured_mitsuba_updates_are_estimated_from_the_measured_build_rate():
+    model = _costs({"hlbvh": 1.0}, QUERY)
+    model.record_build_rate(ms=50.0, triangles=100_000)
+    estimates = model.choose(RayBudget(1, 1), "hlbvh", triangles={"native": 20_000,
+                                                                    "scene": 1_000_000})[1]
+    assert estimates["native"] == pytest.approx(10.0 + 3 * 100e-6)
+    assert estimates["scene"] == pytest.approx(500.0 + 3 * 90e-6)
+
+
+# ---------------------------------------------------------------------------------------
+# Through the accelerator and the integrator
+# ---------------------------------------------------------------------------------------
+
+
+def _world(moving_accel="auto", integrator="hlbvh_path"):
+    animation = scenes.get("world", triangles=20_000, frames=8)
+    scene = mi.load_dict(animation.scene_dict(
+        resolution=(48, 27), spp=2,
+        integrator={"type": integrator, "max_depth": 4, "moving": "flag",
+                    "moving_accel": moving_accel}))
+    return animation, scene
+
+
+def _inject(accel):
+    """The test's costs in place of measured ones (no probe, updates not recorded)."""
+    accel.costs = _costs(UPDATE, QUERY)
+    accel.costs.record_update = lambda structure, ms: None
+    accel._probed = True
+
+
+def test06_the_choice_follows_the_film_and_samples_of_each_render():
+    animation, scene = _world()
+    params = hlbvh.traverse(scene)
+    integrator = scene.integrator()
+    apply_frame(scene, params, animation.frame(1))
+    accel = integrator.update_accel(scene, spp=1)
+    _inject(accel)
+    chosen = []
+    for spp in (1, 8192, 1):
+        apply_frame(scene, params, animation.frame(2 + len(chosen)))
+        accel = integrator.update_accel(scene, spp=spp)
+        chosen.append(accel.moving_structure)
+        assert accel.last_update["moving_accel"]["chosen"] == chosen[-1]
+        assert set(accel.last_update["moving_accel"]["estimates_ms"]) == {"hlbvh", "native",
+                                                                         "scene"}
+    assert chosen == ["hlbvh", "native", "hlbvh"]
+    # the native group was rebuilt for its frame, our BVH caught up after it
+    assert accel.last_update["groups"]["dynamic"]["decision"] == "rebuild"
+
+
+@pytest.mark.parametrize("forced", ["hlbvh", "native", "scene"])
+def test07_a_forced_choice_is_honoured_whatever_the_costs(forced):
+    animation, scene = _world(moving_accel=forced)
+    params = hlbvh.traverse(scene)
+    integrator = scene.integrator()
+    for frame, spp in ((1, 1), (2, 8192)):
+        apply_frame(scene, params, animation.frame(frame))
+        accel = integrator.update_accel(scene, spp=spp)
+        assert accel.moving_structure == forced
+    expected = hlbvh.NativeAccel if forced == "scene" else hlbvh.SceneAccel
+    assert isinstance(integrator.accel(scene), expected)
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"moving_accel": "bogus"}, "moving_accel='bogus': expected one of"),
+    ({"moving_accel": "native", "static": "hlbvh"}, "moving_accel='native' with static='hlbvh'"),
+])
+def test08_bad_choices_name_the_option(options, message):
+    scene = mi.load_dict({"type": "scene", "ball": {"type": "sphere"}})
+    with pytest.raises(ValueError, match=message):
+        hlbvh.SceneAccel(scene, **options)
+    with pytest.raises(Exception, match=message):
+        mi.load_dict({"type": "hlbvh_path", **options})
+
+
+def test09_a_bad_choice_on_the_command_line_is_one_line(capsys):
+    from hlbvh import cli
+
+    status = cli.main(["render", "cloth", "--moving-accel", "bogus", "--frames", "1",
+                       "--resolution", "8", "--spp", "1", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and len(err) == 1 and "--moving-accel" in err[0] and "bogus" in err[0]
+
+
+# ---------------------------------------------------------------------------------------
+# Hits through the native moving group: Mitsuba's, field for field
+# ---------------------------------------------------------------------------------------
+
+
+def _mesh(name, offset):
+    from meshes import grid
+
+    v, f = grid(8)
+    v = v + np.asarray(offset, np.float32)
+    mesh = mi.Mesh(name, len(v), len(f))
+    p = mi.traverse(mesh)
+    p["vertex_positions"] = mi.Float(v.ravel())
+    p["faces"] = mi.UInt32(f.ravel())
+    p.update()
+    return mesh
+
+
+def _fields(pi) -> dict:
+    return {name: np.array(getattr(pi, name)) for name in
+            ("t", "prim_uv", "prim_index", "shape_index")} | {
+        "shape": np.array(dr.reinterpret_array(mi.UInt32, pi.shape)),
+        "instance": np.array(dr.reinterpret_array(mi.UInt32, pi.instance))}
+
+
+def test10_native_moving_group_hits_are_mitsubas_field_for_field():
+    scene = mi.load_dict({
+        "type": "scene",
+        "still": _mesh("still", (0, 0, 0)), "mover": _mesh("mover", (0.3, 0.2, 0.5)),
+        "later": _mesh("later", (-0.4, 0.1, 0.9)),
+        "ball": {"type": "sphere", "center": [0.5, 0.5, -0.5], "radius": 0.3},
+        "group": {"type": "shapegroup", "tri": _mesh("tri", (0, 0, 0))},
+        "inst": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"},
+                 "to_world": T().translate([0.2, -0.3, 1.3])}})
+    accel = hlbvh.SceneAccel(scene, moving=["mover"], moving_accel="native")
+    params = mi.traverse(scene)  # Mitsuba's own rebuild: its query is the reference
+    rng = np.random.default_rng(3)
+    o = rng.uniform(-1, 2, (4000, 3)).astype(np.float32)
+    o[:, 2] = 3
+    d = (rng.uniform(-0.2, 1.2, (4000, 3)) - o).astype(np.float32)
+    d[:, 2] = -3
+    ray = mi.Ray3f(mi.Point3f(*o.T), mi.Vector3f(*d.T))
+
+    def check():
+        ours, theirs = _fields(accel.ray_intersect_preliminary(ray)), _fields(
+            scene.ray_intersect_preliminary(ray))
+        valid = np.isfinite(theirs["t"])
+        assert valid.sum() > 1000
+        np.testing.assert_array_equal(np.isfinite(ours["t"]), valid)
+        for name in ours:
+            np.testing.assert_array_equal(ours[name][..., valid], theirs[name][..., valid], name)
+        np.testing.assert_array_equal(np.array(accel.ray_test(ray)),
+                                      np.array(scene.ray_test(ray)))
+
+    check()
+    for key, shift in (("mover", 0.1), ("later", -0.2)):  # "later" enters the group
+        v = np.array(params[f"{key}.vertex_positions"]).reshape(-1, 3)
+        v[:, 2] += shift
+        params[f"{key}.vertex_positions"] = mi.Float(v.ravel())
+        params.update()
+        accel.update()
+        assert accel.last_update["groups"]["native_moving"]["decision"] == "rebuild"
+        check()
+    assert accel.native_moving.indices == accel.dynamic.indices and len(accel.dynamic.indices) == 2
+
+
+@pytest.mark.parametrize("forced", ["hlbvh", "native", "scene", "auto"])
+def test11_images_under_every_choice_equal_native(forced):
+    animation, scene = _world(moving_accel=forced)
+    params = hlbvh.traverse(scene)
+    reference = mi.load_dict(animation.scene_dict(
+        resolution=(48, 27), spp=2, integrator={"type": "hlbvh_path", "max_depth": 4,
+                                                 "accel": "native"}))
+    ref_params = mi.traverse(reference)
+    for frame in (1, 2):
+        apply_frame(scene, params, animation.frame(frame))
+        apply_frame(reference, ref_params, animation.frame(frame))
+        ours = np.array(mi.render(scene, seed=frame))
+        theirs = np.array(mi.render(reference, seed=frame))
+        diff = np.abs(ours - theirs)
+        outside = (diff > 5e-4 + 1e-4 * np.abs(theirs)).any(axis=-1)
+        assert outside.sum() <= 1 and diff.mean() < 1e-6, (forced, frame)
+        if forced in ("native", "scene"):  # Mitsuba's own queries: bit for bit
+            np.testing.assert_array_equal(ours, theirs)
