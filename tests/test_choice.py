@@ -12,8 +12,14 @@ import numpy as np
 import pytest
 
 from hlbvh import scenes
+from hlbvh.accel import scene_accel
 from hlbvh.accel.choice import CostModel, RayBudget, queries_per_sample
+from hlbvh.accel.scene_accel import native_moving_possible
 from hlbvh.scenes.animated import apply_frame
+
+#: The native moving group needs a second Mitsuba scene in a kernel (not on OptiX).
+needs_native_moving = pytest.mark.skipif(not native_moving_possible(),
+                                         reason="OptiX traces one scene per kernel")
 
 T = mi.ScalarTransform4f
 
@@ -108,12 +114,13 @@ def test06_the_choice_follows_the_film_and_samples_of_each_render():
         assert accel.last_update["moving_accel"]["chosen"] == chosen[-1]
         assert set(accel.last_update["moving_accel"]["estimates_ms"]) == {"hlbvh", "native",
                                                                          "scene"}
-    assert chosen == ["hlbvh", "native", "hlbvh"]
+    assert chosen == ["hlbvh", "native" if native_moving_possible() else "scene", "hlbvh"]
     # the native group was rebuilt for its frame, our BVH caught up after it
     assert accel.last_update["groups"]["dynamic"]["decision"] == "rebuild"
 
 
-@pytest.mark.parametrize("forced", ["hlbvh", "native", "scene"])
+@pytest.mark.parametrize("forced", ["hlbvh", pytest.param("native", marks=needs_native_moving),
+                                    "scene"])
 def test07_a_forced_choice_is_honoured_whatever_the_costs(forced):
     animation, scene = _world(moving_accel=forced)
     params = hlbvh.traverse(scene)
@@ -136,6 +143,24 @@ def test08_bad_choices_name_the_option(options, message):
         hlbvh.SceneAccel(scene, **options)
     with pytest.raises(Exception, match=message):
         mi.load_dict({"type": "hlbvh_path", **options})
+
+
+def test08b_without_a_second_native_scene_the_native_group_is_never_chosen(monkeypatch):
+    """Where a kernel traces one Mitsuba scene at most (OptiX), "auto" chooses between
+    ours and the whole scene, and a forced "native" is one line saying why."""
+    monkeypatch.setattr(scene_accel, "native_moving_possible", lambda: False)
+    animation, scene = _world()
+    params = hlbvh.traverse(scene)
+    integrator = scene.integrator()
+    apply_frame(scene, params, animation.frame(1))
+    accel = integrator.update_accel(scene, spp=1)
+    _inject(accel)
+    for spp in (1, 8192):
+        accel = integrator.update_accel(scene, spp=spp)
+        assert "native" not in accel.last_update["moving_accel"]["estimates_ms"]
+        assert accel.moving_structure in ("hlbvh", "scene")
+    with pytest.raises(ValueError, match="moving_accel='native'.*OptiX"):
+        hlbvh.SceneAccel(scene, moving_accel="native")
 
 
 def test09_a_bad_choice_on_the_command_line_is_one_line(capsys):
@@ -172,6 +197,7 @@ def _fields(pi) -> dict:
         "instance": np.array(dr.reinterpret_array(mi.UInt32, pi.instance))}
 
 
+@needs_native_moving
 def test10_native_moving_group_hits_are_mitsubas_field_for_field():
     scene = mi.load_dict({
         "type": "scene",
@@ -213,7 +239,8 @@ def test10_native_moving_group_hits_are_mitsubas_field_for_field():
     assert accel.native_moving.indices == accel.dynamic.indices and len(accel.dynamic.indices) == 2
 
 
-@pytest.mark.parametrize("forced", ["hlbvh", "native", "scene", "auto"])
+@pytest.mark.parametrize("forced", ["hlbvh", pytest.param("native", marks=needs_native_moving),
+                                    "scene", "auto"])
 def test11_images_under_every_choice_equal_native(forced):
     animation, scene = _world(moving_accel=forced)
     params = hlbvh.traverse(scene)

@@ -161,6 +161,11 @@ class SceneAccel(_Accel):
         self.dynamic = MeshGroup("dynamic")
         self.native_moving = NativeGroup([], name="native_moving")
         forced = policy.moving_accel
+        if forced == "native" and not native_moving_possible():
+            raise ValueError(
+                "moving_accel='native': a second Mitsuba scene traced in the same kernel as "
+                "the still world's is refused by OptiX on CUDA; use 'scene', 'hlbvh' or "
+                "'auto' there")
         self.moving_structure = forced if forced in ("native", "scene") else "hlbvh"
         self.costs = CostModel()
         self._estimates = None  # each structure's estimated frame at the last plan()
@@ -304,13 +309,14 @@ class SceneAccel(_Accel):
         self._behind.discard("native")
 
     def _allowed(self) -> tuple:
-        """The structures ``moving_accel`` lets :meth:`plan` choose among."""
+        """The structures ``moving_accel`` lets :meth:`plan` choose among (on CUDA not the
+        native moving group: see :func:`native_moving_possible`)."""
         forced = self.policy.moving_accel
         if forced != "auto":
             return (forced,)
         if not isinstance(self.static, NativeGroup):
             return ("hlbvh",)
-        return STRUCTURES
+        return STRUCTURES if native_moving_possible() else ("hlbvh", "scene")
 
     def plan(self, budget: RayBudget, probe: Probe | None = None) -> str:
         """Choose what traces the moving meshes for a render of ``budget`` (the
@@ -341,7 +347,7 @@ class SceneAccel(_Accel):
         self.costs.hit_fractions = (probe.camera_hits, probe.bounce_hits)
         current = self.moving_structure
         self.costs.record_build_rate(self.static.build_ms, self.static.triangles)
-        for structure in ("hlbvh", "native"):
+        for structure in [s for s in ("hlbvh", "native") if s in self._allowed()]:
             self.moving_structure = structure
             if structure == "hlbvh" and ("hlbvh" in self._behind or self.dynamic.bvh is None):
                 self._update_dynamic(self._states, [], False)
@@ -633,6 +639,13 @@ class _Hit:
                 inside, dr.gather(mi.ShapePtr, shapes_dr, self.instance, inside),
                 result.instance)
         return result
+
+
+def native_moving_possible() -> bool:
+    """Whether the moving meshes can have a Mitsuba sub-scene of their own beside the
+    still world's: a kernel traces one OptiX scene at most (Dr.Jit disables the queries
+    of a second, leaving rays unanswered), so not on CUDA; Embree takes any number."""
+    return dr.backend_v(mi.Float) != dr.JitBackend.CUDA
 
 
 def query_ns(query, ray) -> float:
