@@ -78,6 +78,32 @@ def test05_unmeasured_mitsuba_updates_are_estimated_from_the_measured_build_rate
     assert estimates["scene"] == pytest.approx(500.0 + 3 * 90e-6)
 
 
+def test05b_renders_correct_what_the_probe_guessed():
+    """A structure's first render compiles its kernel and is not counted; then its own
+    renders decide: at a number of samples where another structure's estimate comes
+    near the best measured frame, that one is tried once, and the better kept."""
+    model = _costs({"hlbvh": 4.0, "native": 40.0, "scene": 400.0}, QUERY, hits=(0.6, 0.1))
+    budget = RayBudget(500_000, 8)
+    model.record_render("hlbvh", 900.0, budget.samples)  # compiling: not counted
+    assert model.renders == {}
+    model.record_render("hlbvh", 120.0, budget.samples)
+    assert model.renders == {"hlbvh": {500_000: 120.0}}
+    # the probe says native's rays cost half: it is tried at this budget
+    assert model.choose(budget, "hlbvh")[0] == "native"
+    model.record_render("native", 500.0, budget.samples)  # its first render compiles
+    assert model.choose(budget, "native")[0] == "native"  # still to be measured here
+    model.record_render("native", 100.0, budget.samples)
+    chosen, estimates = model.choose(budget, "native")
+    assert chosen == "hlbvh" and estimates == {"hlbvh": 124.0, "native": 140.0,
+                                               "scene": pytest.approx(estimates["scene"])}
+    # four times the samples: measured per sample, the line through its renders
+    model.record_render("hlbvh", 40.0, 125_000)
+    assert model.render_ms("hlbvh", RayBudget(2_000_000, 8)) == pytest.approx(440.0)
+    # native, measured at one count only, takes the fixed cost hlbvh's line showed
+    assert model.render_ms("native", RayBudget(2_000_000, 8)) == pytest.approx(
+        13.333333 + (100.0 - 13.333333) * 4)
+
+
 # ---------------------------------------------------------------------------------------
 # Through the accelerator and the integrator
 # ---------------------------------------------------------------------------------------

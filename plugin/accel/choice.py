@@ -29,10 +29,19 @@ uses, all measured on this machine and this scene:
   whole scene walks at least that tree);
 * **queries per sample**: from the same sample: a camera ray, and for each surface a
   path reaches a shadow ray and a bounce, which continues where the bounce met a
-  surface (:func:`queries_per_sample`), up to the integrator's depth.
-
-The shading of a sample costs the same whichever structure traces it, so only these
-differences decide.
+  surface (:func:`queries_per_sample`), up to the integrator's depth;
+* **the renders themselves**: each render's time through the structure it used, by
+  its number of samples. A structure that rendered is estimated from its own renders
+  (at that number of samples, or along the line through its two nearest); one that did
+  not, from a structure that did plus the difference of their queries (the shading of
+  a sample costs the same whichever structure traces it). A probe's queries are not a
+  render's (the render's rays come in other orders, shadow rays are any-hit queries;
+  on a 2-core EPYC the probe put our penalty per sample at three times the renders'),
+  and the line through one measured sample count says little about another, so at
+  each number of samples the structures that could still win (their estimate within
+  :data:`TRY_MARGIN` of the best frame measured there, their update alone below it)
+  are tried once there (a structure's very first render compiles its kernel and is not
+  counted), and from then on judged by their own renders.
 
 A structure replaces the current one only when its estimated frame is at least
 :data:`SWITCH_MARGIN` cheaper, so noise in the measurements does not flip the choice
@@ -50,6 +59,9 @@ STRUCTURES = ("hlbvh", "native", "scene")
 DEPTH_CAP = 64
 #: How much cheaper (relative) another structure's frame must be for the choice to move.
 SWITCH_MARGIN = 0.05
+#: How close (relative) to the best frame measured at a render's number of samples
+#: another structure's estimate must come for it to be tried there.
+TRY_MARGIN = 0.3
 #: Embree's build rate assumed before any sub-scene build was measured (ms a triangle).
 DEFAULT_BUILD_MS_PER_TRIANGLE = 4e-4
 #: Weight of a new measurement in a running mean.
@@ -86,6 +98,35 @@ def queries_per_sample(camera_hits: float, bounce_hits: float, depth: int) -> fl
     return 1.0 + 2.0 * surfaces
 
 
+def _along(times: dict, samples: int, fixed: float = 0.0) -> float:
+    """A render time at ``samples`` from ``times`` (``{samples: ms}``): the one measured
+    there, else on the line through the two nearest measured (a render's fixed cost and
+    a cost per sample), else through the one measured and ``fixed`` (the fixed cost
+    other structures' renders showed)."""
+    if samples in times:
+        return times[samples]
+    near = sorted(times, key=lambda n: abs(n - samples))[:2]
+    if len(near) == 1:
+        n0, t0 = near[0], times[near[0]]
+        fixed = min(fixed, t0)
+        return fixed + (t0 - fixed) * samples / n0
+    (n0, n1), (t0, t1) = near, (times[near[0]], times[near[1]])
+    slope = max((t1 - t0) / (n1 - n0), 0.0)
+    return max(t0 + slope * (samples - n0), 0.0)
+
+
+def _fixed_ms(renders: dict) -> float:
+    """A render's fixed cost (launch, film), from the structures measured at two or
+    more sample counts (the intercept of the line through their two smallest)."""
+    intercepts = []
+    for times in renders.values():
+        if len(times) >= 2:
+            n0, n1 = sorted(times)[:2]
+            slope = (times[n1] - times[n0]) / (n1 - n0)
+            intercepts.append(max(times[n0] - slope * n0, 0.0))
+    return min(intercepts, default=0.0)
+
+
 @dataclass
 class CostModel:
     """Measured costs of each structure and the choice they make (see the module
@@ -97,12 +138,17 @@ class CostModel:
         build_ms_per_triangle: Mitsuba's build rate, from the still world's build.
         hit_fractions: ``(camera_hits, bounce_hits)`` of the probe's rays, once
             measured (None before).
+        renders: each structure's render times by number of samples (``{structure:
+            {samples: ms}}``, each a running mean), from its second render on (the
+            first compiles the render's kernel with that structure in it).
     """
 
     update_ms: dict = field(default_factory=dict)
     query_ns: dict = field(default_factory=dict)
     build_ms_per_triangle: float = DEFAULT_BUILD_MS_PER_TRIANGLE
     hit_fractions: tuple | None = None
+    renders: dict = field(default_factory=dict)
+    compiled: set = field(default_factory=set)  # structures past their first render
 
     def record_update(self, structure: str, ms: float):
         """An update of ``structure`` took ``ms``."""
@@ -119,6 +165,17 @@ class CostModel:
         """A query through ``structure`` took ``ns`` (a probe's mean)."""
         self.query_ns[structure] = ns
 
+    def record_render(self, structure: str, ms: float, samples: int):
+        """A render of ``samples`` samples through ``structure`` took ``ms`` (not counted
+        for a structure's first render, which compiles its kernel)."""
+        if structure not in self.compiled:
+            self.compiled.add(structure)
+            return
+        if samples > 0:
+            times = self.renders.setdefault(structure, {})
+            old = times.get(samples)
+            times[samples] = ms if old is None else (1 - _NEW) * old + _NEW * ms
+
     def queries(self, budget: RayBudget) -> float:
         """Queries a sample of ``budget`` makes (:func:`queries_per_sample`), from the
         probe's hit fractions (every ray meeting a surface before a probe)."""
@@ -126,19 +183,44 @@ class CostModel:
         return queries_per_sample(camera, bounce, budget.depth)
 
     def frame_ms(self, structure: str, budget: RayBudget, triangles: dict) -> float | None:
-        """Estimated frame time through ``structure`` (update and queries), None when its
-        query cost is not known. ``triangles``: the triangles each structure rebuilds
-        (``"native"``: the moving meshes', ``"scene"``: the whole scene's)."""
-        ns = self.query_ns.get(structure)
-        if structure == "scene" and ns is None:
-            ns = self.query_ns.get("still")
-        if ns is None:
-            return None
+        """Estimated frame time through ``structure`` (its update and its render), None
+        when neither a render nor a probe timed it. ``triangles``: the triangles each
+        structure rebuilds (``"native"``: the moving meshes', ``"scene"``: the whole
+        scene's)."""
+        render = self.render_ms(structure, budget)
+        return None if render is None else self.update_estimate(structure, triangles) + render
+
+    def update_estimate(self, structure: str, triangles: dict) -> float:
+        """Its update as measured, else Mitsuba's build rate times the triangles it
+        rebuilds (ours before a first build: nothing)."""
         update = self.update_ms.get(structure)
         if update is None:
             update = (self.build_ms_per_triangle * triangles.get(structure, 0)
                       if structure != "hlbvh" else 0.0)
-        return update + budget.samples * self.queries(budget) * ns * 1e-6
+        return update
+
+    def render_ms(self, structure: str, budget: RayBudget) -> float | None:
+        """A render of ``budget`` through ``structure``: from its own renders; otherwise
+        from a structure that rendered, plus the difference of their queries (probe);
+        otherwise the queries alone (comparable among structures no render timed)."""
+        fixed = _fixed_ms(self.renders)
+        if structure in self.renders:
+            return _along(self.renders[structure], budget.samples, fixed)
+        ns = self._query_ns(structure)
+        if ns is None:
+            return None
+        queries = budget.samples * self.queries(budget) * 1e-6
+        for other, times in self.renders.items():
+            other_ns = self._query_ns(other)
+            if other_ns is not None:
+                return _along(times, budget.samples, fixed) + queries * (ns - other_ns)
+        return queries * ns
+
+    def _query_ns(self, structure: str) -> float | None:
+        """A query's cost through ``structure``; the whole scene's, until timed, counted
+        at the still world's (a ray through it walks at least that tree)."""
+        ns = self.query_ns.get(structure)
+        return self.query_ns.get("still") if ns is None and structure == "scene" else ns
 
     def choose(self, budget: RayBudget, current: str, allowed=STRUCTURES,
                triangles: dict | None = None) -> tuple[str, dict]:
@@ -150,6 +232,16 @@ class CostModel:
         if not known:
             return current, estimates
         best = min(known, key=known.get)
+        here = [s for s in known if budget.samples in self.renders.get(s, {})]
+        if here:
+            # Try, at this number of samples, each structure that could still win: its
+            # estimate near the best measured here, and its update alone below it
+            measured = min(known[s] for s in here)
+            untried = [s for s in known if s not in here
+                       and known[s] <= (1 + TRY_MARGIN) * measured
+                       and self.update_estimate(s, triangles or {}) < measured]
+            if untried:
+                return (current if current in untried else min(untried, key=known.get)), estimates
         if current in known and known[best] >= (1 - SWITCH_MARGIN) * known[current]:
             return current, estimates
         return best, estimates

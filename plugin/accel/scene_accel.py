@@ -293,7 +293,10 @@ class SceneAccel(_Accel):
                 states[i].reshaped(self._states[i]) for i in changed)
             self.dynamic.update(self.shapes, self.config, self.policy, reshaped,
                                 decision="build" if first else "rebuild")
-            if self.dynamic.indices:
+            if self.dynamic.indices and not first and not behind:
+                # a frame's update as the policy makes it (not a first or catch-up build)
+                self.costs.record_update("hlbvh", self.dynamic.last["ms"])
+            elif self.dynamic.indices and "hlbvh" not in self.costs.update_ms:
                 self.costs.record_update("hlbvh", self.dynamic.last["ms"])
         else:
             self.dynamic.keep()
@@ -361,6 +364,11 @@ class SceneAccel(_Accel):
         self.moving_structure = current
         self._join([self.dynamic] if current == "hlbvh" and self.dynamic.bvh is not None else [])
         self._probed = True
+
+    def record_render(self, ms: float, samples: int):
+        """A render of ``samples`` samples through :attr:`moving_structure` took ``ms``
+        (the integrator times its renders; the costs learn from them)."""
+        self.costs.record_render(self.moving_structure, ms, samples)
 
     def scene_rebuilt(self, ms: float, ns: float | None = None):
         """The integrator rebuilt the whole scene's own accelerator (``"scene"``) in

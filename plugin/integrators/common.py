@@ -20,7 +20,7 @@ from hlbvh.accel import NativeAccel, SceneAccel
 from hlbvh.accel.choice import Probe, RayBudget
 from hlbvh.accel.scene_accel import query_ns
 from hlbvh.kernels.arrays import concat
-from hlbvh.timing import timed
+from hlbvh.timing import clock_ms, timed
 from hlbvh.accel.policy import ACCELS, BUILD_OPTIONS, UPDATE_OPTIONS, split_options
 
 
@@ -177,10 +177,16 @@ class AccelIntegrator(mi.SamplingIntegrator):
         else:
             self.update_accel(scene, sensor, spp)
         self._rendering = True
+        start = clock_ms()
         try:
-            return super().render(scene, sensor, seed, spp, develop, evaluate)
+            image = super().render(scene, sensor, seed, spp, develop, evaluate)
         finally:
             self._rendering = False
+        accel = self._accel
+        if accel is not None and accel.is_for(scene) and self._budget is not None:
+            dr.eval(image)  # what Mitsuba evaluates right after: timed for the choice
+            accel.record_render(clock_ms() - start, self._budget.samples)
+        return image
         return image
 
     @contextlib.contextmanager
@@ -206,10 +212,11 @@ PROBE_RAYS = 16384
 
 def probe(accel, sensor, n: int = PROBE_RAYS) -> Probe:
     """A sample of what a render of ``sensor`` traces, fixed by a seed: ``n`` camera
-    rays through random film positions, and from where each lands (through ``accel``)
-    a bounce in a cosine-distributed direction about the surface's normal on the
-    camera's side (a diffuse bounce; a camera ray that missed bounces again from the
-    camera), with the fractions of each that meet a surface."""
+    rays through random film positions, and from where each lands (through ``accel``) a
+    bounce in a cosine-distributed direction about the surface's normal on the camera's
+    side (a diffuse bounce; a camera ray that missed bounces again from the camera),
+    with the fractions of each that meet a surface. Random positions, since most of a
+    render's queries (its bounces and shadow rays) are as incoherent."""
     rng = np.random.default_rng(7)
     u = rng.random((5, n)).astype(np.float32)
     camera, _ = sensor.sample_ray(0.0, mi.Float(u[0]), mi.Point2f(mi.Float(u[1]), mi.Float(u[2])),
