@@ -45,7 +45,10 @@ What is compared, per frame
   accelerator's update (build, rebuild or refit: ``decision``); ``build_speedup`` =
   native / hlbvh; ``render_ms`` of each; ``frame_ms`` = build + render (an hlbvh frame
   rendered through Mitsuba today also pays Mitsuba's own rebuild: not counted, it
-  measures the algorithm); ``sah_cost`` of our tree.
+  measures the algorithm); ``motion_overhead`` of each = its frame over native's render
+  of the frame without a rebuild (1.0: an animated frame that costs what a still frame
+  costs); ``moving_accel``: what traced the moving meshes on hlbvh's frame (chosen by
+  cost: ``hlbvh``, ``native`` or ``scene``); ``sah_cost`` of our tree.
 
 The first frame of each render includes compiling the kernels Dr.Jit's disk cache did
 not hold. The four renders run one after the other, so their times see the machine
@@ -240,6 +243,11 @@ def _frame_row(i: int, native: dict, ours: dict, image: dict, hits: dict) -> dic
         "build_speedup": build["native"] / build["hlbvh"] if build["hlbvh"] > 0 else math.inf,
         "render_ms": render,
         "frame_ms": {accel: build[accel] + render[accel] for accel in ACCELS},
+        # frame time over native's render of the frame without a rebuild (1.0: a still
+        # frame's cost)
+        "motion_overhead": {accel: (build[accel] + render[accel]) / render["native"]
+                            if render["native"] > 0 else math.inf for accel in ACCELS},
+        "moving_accel": ours["moving_accel"],
         "sah_cost": ours["sah_cost"],
         "image": {key: image[key] for key in _IMAGE_COLUMNS},
         "hits": {"fraction_agree": hits["fraction_agree"],
@@ -272,9 +280,16 @@ def verdict(rows: list[dict], tolerance: float) -> str:
               f"pixels over the {len(rows)} frames (at most {max(outside)} in a frame, at "
               f"least {100 * min(m['fraction_within_tolerance'] for m in image):.4f}% of a "
               f"frame's pixels within it)")
+    overhead = {accel: statistics.median(row["motion_overhead"][accel] for row in rows)
+                for accel in ACCELS}
+    moving = sorted({row["moving_accel"] for row in rows if row.get("moving_accel")})
     return (
         f"A frame (build + render, median of {len(rows)}) takes {ours:.1f} ms with hlbvh "
-        f"and {native:.1f} ms with native: hlbvh is {faster}. Median build speedup "
+        f"and {native:.1f} ms with native: hlbvh is {faster}. Motion overhead (a frame "
+        f"over native's render of it without a rebuild; 1.0 is a still frame): hlbvh "
+        f"{overhead['hlbvh']:.2f}, native {overhead['native']:.2f}"
+        f"{' (moving meshes traced by ' + ', '.join(moving) + ')' if moving else ''}. "
+        f"Median build speedup "
         f"{statistics.median(r['build_speedup'] for r in rows):.2f}x (Mitsuba's rebuild / "
         f"ours). Images: {images}; largest pixel difference "
         f"{max(m['max_abs_diff'] for m in image):.3g}, at least "

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from hlbvh import scenes
-from hlbvh.accel import scene_accel
+from hlbvh.accel import moving
 from hlbvh.accel.choice import CostModel, RayBudget, queries_per_sample
-from hlbvh.accel.scene_accel import native_moving_possible
+from hlbvh.accel.moving import native_moving_possible
 from hlbvh.scenes.animated import apply_frame
 
 #: The native moving group needs a second Mitsuba scene in a kernel (not on OptiX).
@@ -120,9 +120,9 @@ def _world(moving_accel="auto", integrator="hlbvh_path"):
 
 def _inject(accel):
     """The test's costs in place of measured ones (no probe, updates not recorded)."""
-    accel.costs = _costs(UPDATE, QUERY)
+    accel.moving_meshes.costs = _costs(UPDATE, QUERY)
     accel.costs.record_update = lambda structure, ms: None
-    accel._probed = True
+    accel.moving_meshes.probed = True
 
 
 def test06_the_choice_follows_the_film_and_samples_of_each_render():
@@ -174,7 +174,7 @@ def test08_bad_choices_name_the_option(options, message):
 def test08b_without_a_second_native_scene_the_native_group_is_never_chosen(monkeypatch):
     """Where a kernel traces one Mitsuba scene at most (OptiX), "auto" chooses between
     ours and the whole scene, and a forced "native" is one line saying why."""
-    monkeypatch.setattr(scene_accel, "native_moving_possible", lambda: False)
+    monkeypatch.setattr(moving, "native_moving_possible", lambda: False)
     animation, scene = _world()
     params = hlbvh.traverse(scene)
     integrator = scene.integrator()

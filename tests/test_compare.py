@@ -211,8 +211,10 @@ def test06_other_settings_in_the_directory_are_refused(compared, capsys):
 def test07_verdict_states_the_numbers_of_the_rows():
     """The report's opening paragraph, on hand-made rows: medians of frame time and build
     speedup, pixels outside the tolerance counted, the worst hit agreement."""
-    def row(ours, native, outside, speedup, agree):
+    def row(ours, native, outside, speedup, agree, still=40.0):
         return {"frame_ms": {"hlbvh": ours, "native": native}, "build_speedup": speedup,
+                "motion_overhead": {"hlbvh": ours / still, "native": native / still},
+                "moving_accel": "hlbvh",
                 "image": {"outside_tolerance_pixels": outside,
                           "fraction_within_tolerance": 1 - outside / 1000,
                           "max_abs_diff": 0.01 * outside, "fraction_identical": 0.5},
@@ -224,6 +226,8 @@ def test07_verdict_states_the_numbers_of_the_rows():
     assert text.startswith("A frame (build + render, median of 3) takes 60.0 ms with hlbvh "
                            "and 95.0 ms with native: hlbvh is 1.58x faster.")
     assert "Median build speedup 5.00x" in text
+    assert ("Motion overhead (a frame over native's render of it without a rebuild; 1.0 is "
+            "a still frame): hlbvh 1.50, native 2.38 (moving meshes traced by hlbvh)") in text
     assert "but for 3 pixels over the 3 frames (at most 2 in a frame, at least 99.8000%" in text
     assert "largest pixel difference 0.02" in text and "at least 99.900% of pixels" in text
     clean = compare.verdict([row(50.0, 40.0, 0, 0.5, 1.0)], 5e-4)

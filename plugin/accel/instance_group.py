@@ -30,7 +30,7 @@ from hlbvh.kernels.instances import BadTransform, refit_top_level, two_level
 from hlbvh.accel.instance_shading import group_members, to_world_rows
 from hlbvh.accel.motion import member_states, members_changed
 from hlbvh.accel.policy import RefitOrRebuild, UpdatePolicy
-from hlbvh.accel.scene_geometry import ShapeError, collect_geometry, describe_shape as _describe
+from hlbvh.accel.scene_geometry import ShapeError, collect_geometry, describe_shape
 from hlbvh.timing import clock_ms
 
 
@@ -138,7 +138,7 @@ class InstanceGroup:
                     lambda seed: self._build_top(which, rows, seed),
                     lambda: self._refit_top(which, rows))
             except BadTransform as error:
-                name = _describe(shapes[indices[error.index]])
+                name = describe_shape(shapes[indices[error.index]])
                 raise ShapeError(name, f"{name}: its to_world is {error.what}") from None
         self._scene_index = mi.UInt32(list(indices))
         decision = "build" if first else chosen
@@ -189,7 +189,7 @@ class InstanceGroup:
         """The group's BVH and its faces' fields, for the first instance of it."""
         members = group_members(group)
         if not members or not all(m.is_mesh() for m in members):
-            raise ValueError(f"{_describe(instance)} moved, and its shape group holds shapes "
+            raise ValueError(f"{describe_shape(instance)} moved, and its shape group holds shapes "
                              "other than meshes, which hlbvh cannot trace moving; keep it "
                              "still or render with accel='native'")
         bvh, part, states = self._group_bvh(group)
@@ -228,14 +228,14 @@ def group_of(instance, groups: list, why: str = "is traced by hlbvh", matrix=Non
     found = [g for g in groups if g.primitive_count() == count
              and _same_box(_transformed(g.bbox(), matrix), box)]
     if not found:
-        raise ValueError(f"{_describe(instance)} {why}, and no shape group of the scene "
+        raise ValueError(f"{describe_shape(instance)} {why}, and no shape group of the scene "
                          "matches its box and primitive count; render it with "
                          "accel='native'")
     if len(found) > 1:
         named = [g for g in found if g.id() == _group_name(instance)]
         found = named if len(named) == 1 else found
     if len(found) > 1:
-        raise ValueError(f"{_describe(instance)} {why}, and {len(found)} shape groups "
+        raise ValueError(f"{describe_shape(instance)} {why}, and {len(found)} shape groups "
                          "match its box and primitive count: which it instances "
                          "cannot be told; give the groups different geometry, or "
                          "render with accel='native'")

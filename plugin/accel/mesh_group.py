@@ -4,11 +4,14 @@ last update did."""
 
 from __future__ import annotations
 
+import drjit as dr
+
+from hlbvh.accel.policy import RefitOrRebuild, UpdatePolicy
+from hlbvh.accel.scene_geometry import collect_geometry, named_build_error
 from hlbvh.kernels.arrays import concat
 from hlbvh.kernels.build import build
 from hlbvh.kernels.bvh import BuildConfig
-from hlbvh.accel.policy import RefitOrRebuild, UpdatePolicy
-from hlbvh.accel.scene_geometry import collect_geometry, named_build_error as _named_error
+from hlbvh.kernels.geometry import half_area
 from hlbvh.timing import clock_ms
 
 
@@ -107,7 +110,7 @@ class MeshGroup:
             try:
                 bvh = build(geometry.vertices, geometry.faces, previous=previous, config=config)
             except ValueError as error:
-                raise _named_error(shapes, self.indices, error) from error
+                raise named_build_error(shapes, self.indices, error) from error
         self.geometry, self.bvh, self._built_indices = geometry, bvh, self.indices
         self.built_sah = None if bvh is None else bvh.stats.sah_cost
         self.builds += 1
@@ -119,7 +122,27 @@ class MeshGroup:
         try:
             self.bvh.refit(vertices)
         except ValueError as error:
-            raise _named_error(shapes, self.indices, error) from error
+            raise named_build_error(shapes, self.indices, error) from error
         self.geometry.vertices = vertices
         self.refits += 1
         return self.bvh.stats.sah_cost / self.built_sah
+
+
+def joined_sah_cost(groups: list) -> float | None:
+    """SAH cost of the groups' BVHs traced together: each group's SAH cost weighted by
+    its root box's area over the area of the box around them (a ray through that box
+    enters each group through its root box); None without a group."""
+    if len(groups) < 2:
+        return float(groups[0].bvh.stats.sah_cost) if groups else None
+    boxes = [g.root_box() for g in groups]
+    union = _half_area([min(lo[k] for lo, _ in boxes) for k in range(3)],
+                       [max(hi[k] for _, hi in boxes) for k in range(3)])
+    return sum((_half_area(*box) / union if union > 0 else 1.0) * g.bvh.stats.sah_cost
+               for g, box in zip(groups, boxes))
+
+
+def _half_area(lo, hi) -> float:
+    """Half the surface area of the box ``lo``..``hi`` (lists of Python floats), in
+    double precision as the SAH cost's areas."""
+    extent = dr.maximum(dr.scalar.Array3f64(hi) - dr.scalar.Array3f64(lo), 0.0)
+    return float(half_area(extent))

@@ -1,92 +1,56 @@
-"""The intersectors our integrators trace through: :class:`SceneAccel` (only what moves
-through our HLBVHs, the rest through the scene's own accelerator, or everything
-through ours) and :class:`NativeAccel` (the scene's own accelerator, Embree on the
-LLVM backend, OptiX on CUDA), behind the same three methods as ``mi.Scene``.
+"""The intersector our integrators trace through, :class:`SceneAccel`: a Mitsuba scene's
+three ray queries (``mi.Scene``'s signatures) over groups sorted by motion, each hit
+with exactly the fields Mitsuba's own query gives (``t``, ``prim_uv``, ``prim_index``,
+``shape``, ``shape_index``, ``instance``), so that Mitsuba's
+``compute_surface_interaction`` shades it. Mitsuba does not let Python supply its
+accelerator's intersection routine, so the integrator is the integration point.
 
-Mitsuba 3 does not let Python supply the intersection routine of its native
-accelerator, so the integration point is the integrator: every ray query of our
-integrators goes to one of these objects, and a hit comes back as a
-``mi.PreliminaryIntersection3f`` whose ``t``/``prim_uv``/``prim_index``/``shape``/
-``shape_index``/``instance`` are exactly what Mitsuba's own query would have produced,
-so that ``compute_surface_interaction`` (Mitsuba's code) fills in the surface
-interaction.
+A shape is *moving* once declared (option ``moving``) or once it changed
+(:mod:`hlbvh.accel.motion`), and stays so. With ``static="native"`` (default) the still
+shapes, of any type, are a Mitsuba sub-scene built once (:mod:`hlbvh.accel.native_group`;
+rebuilt when a shape leaves it); the moving meshes are traced by our HLBVH, a Mitsuba
+sub-scene of them, or the whole scene, as :mod:`hlbvh.accel.moving` chooses per render;
+moving instances go under our top level (:mod:`hlbvh.accel.instance_group`); moving
+spheres, disks and cylinders by their own routine (a call through a shape pointer in a
+symbolic loop would trace every registered shape); any other moving shape is refused,
+naming it. With ``static="hlbvh"`` every mesh is in our BVHs and traced by our
+watertight traversal; instances, curves and the like are refused.
 
-Groups by motion
-----------------
-Every shape starts *static*; a shape is *moving* once it was declared so (option
-``moving``, ids; the animations of :mod:`hlbvh.scenes` declare their animated shapes)
-or once it changed (see :mod:`hlbvh.accel.motion`). Then it stays moving.
-
-* ``static="native"`` (default): the static shapes, of any type Mitsuba intersects
-  (meshes, analytic shapes, instances, curves, SDF grids, ellipsoids), are traced by
-  Mitsuba's own accelerator over a sub-scene of those shapes
-  (:class:`hlbvh.accel.native_group.NativeGroup`), built on the first update and rebuilt
-  only when a shape leaves it (``last_update["groups"]["static"]["left"]`` names it).
-  Moving meshes are in the dynamic :class:`MeshGroup`'s HLBVH; moving ``sphere``,
-  ``disk`` and ``cylinder`` shapes are intersected by their own routine
-  (``shape.ray_intersect_preliminary``, once per shape: a call through a shape
-  pointer inside a symbolic loop would trace every registered shape); moving instances
-  go through our two-level hierarchy (:class:`hlbvh.accel.instance_group.InstanceGroup`: their
-  groups' BVHs built once, the top level rebuilt when one moves); any other shape that
-  moves is refused with a ``ValueError`` naming it.
-* ``static="hlbvh"``: every mesh in our BVHs (the static :class:`MeshGroup`, built
-  once with the static builder, and the dynamic one), traced by our watertight
-  traversal; the analytic shapes by their own routine; instances, curves, SDF grids
-  and ellipsoids are refused, naming the shape.
-
-A query asks each structure and keeps the nearest hit. Ties (the same ``t`` from two
-structures) go to the structure asked first: the static one, then the dynamic meshes,
-then the analytic shapes in scene order; ``ray_test`` stops asking once a ray is
-occluded.
-
-Meshes without triangles are refused, naming the shape: Mitsuba's own ``obj`` and
-``ply`` loaders refuse a file without faces, so such a mesh comes from Python code
-(``mi.Mesh(name, 0, 0)``) or a ``params.update()`` that emptied it, where it is more
-likely a mistake than an intent. A scene without geometry is valid: every ray misses.
-
-Per-frame update
-----------------
-:meth:`SceneAccel.update` (after the scene changed: ``params.update()``, or
-:func:`hlbvh.traverse`'s cheaper update) brings the groups up to date, doing only what
-the scene requires: the dynamic group is refit or rebuilt as the
-:class:`UpdatePolicy` says (``update="auto"``, the default: refit while the tree's SAH
-cost stays within ``refit_tolerance`` of its last build's, rebuilt otherwise;
-``"rebuild"``, with the CSD sort seeded by last frame's order where that pays;
-``"fresh"``; ``"refit"``); new faces, a changed vertex count or a change of its meshes
-always rebuild. A query on an accelerator whose meshes changed since its last update
-is refused (naming the mesh): it would answer from old geometry.
-:attr:`SceneAccel.last_update` says what the last update did per group.
-
-``coherent`` is passed on to Mitsuba's accelerator (a hint of Embree's); our traversal
-traces coherent and incoherent rays alike.
+A query asks each structure and keeps the nearest hit (:class:`NearestHit`); ties go
+to the one asked first (the still world, our meshes, the moving meshes' sub-scene, the
+instances, the analytic shapes in scene order). Meshes without triangles are refused,
+naming them (more likely a mistake than an intent); a scene without geometry misses
+everywhere. :meth:`SceneAccel.update` does only what changed (the dynamic group refit
+or rebuilt as the :class:`UpdatePolicy` says); a query after a change the accelerator
+has not followed is refused, naming the mesh. ``coherent`` is passed on to Mitsuba's
+accelerator; our traversal traces coherent and incoherent rays alike.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import drjit as dr
 import mitsuba as mi
 
-from hlbvh.kernels.arrays import concat
-from hlbvh.kernels.bvh import BuildConfig
-from hlbvh.kernels.geometry import half_area
-from hlbvh.kernels.layout import joined
-from hlbvh.kernels.traversal import any_hit, closest_hit
-from hlbvh.accel.choice import STRUCTURES, CostModel, Probe, RayBudget
+from hlbvh.accel.choice import CostModel, Probe, RayBudget
+from hlbvh.accel.hits import NearestHit
 from hlbvh.accel.instance_group import InstanceGroup, group_of
 from hlbvh.accel.instance_shading import InstanceShading, is_instance
-from hlbvh.kernels.traversal import closest_instance_hit
-from hlbvh.accel.mesh_group import MeshGroup
+from hlbvh.accel.mesh_group import MeshGroup, joined_sah_cost
 from hlbvh.accel.motion import MeshState, shape_states
+from hlbvh.accel.moving import MovingMeshes, query_ns
 from hlbvh.accel.native_group import NativeGroup, shape_groups
 from hlbvh.accel.policy import ACCELS, DECISIONS, UpdatePolicy, split_options
-from hlbvh.accel.queries import NativeAccel, SceneQueries as _Accel, checked_scene as _checked_scene
-from hlbvh.accel.scene_geometry import describe_shape as _describe, scene_shapes, unmovable_error
+from hlbvh.accel.queries import NativeAccel, SceneQueries, checked_scene
+from hlbvh.accel.scene_geometry import (declared_indices, describe_shape, scene_shapes,
+                                        unmovable_error)
+from hlbvh.kernels.arrays import concat
+from hlbvh.kernels.bvh import BuildConfig
+from hlbvh.kernels.layout import joined
+from hlbvh.kernels.traversal import any_hit, closest_hit, closest_instance_hit
 from hlbvh.timing import clock_ms
 
 
-class SceneAccel(_Accel):
+class SceneAccel(SceneQueries):
     """The ray queries of a Mitsuba scene, with ``mi.Scene``'s own signatures, over
     the groups the module docstring describes, updated per frame.
 
@@ -144,7 +108,7 @@ class SceneAccel(_Accel):
 
     def __init__(self, scene, *, policy: UpdatePolicy | None = None,
                  config: BuildConfig | None = None, **options):
-        _checked_scene(scene)
+        checked_scene(scene)
         if policy is None or config is None:
             policy, config = split_options(options)
         elif options:
@@ -155,24 +119,11 @@ class SceneAccel(_Accel):
         native = self.policy.static == "native"
         self.meshes, self.analytic, others = scene_shapes(self.shapes, self.policy.static)
         self._others = set(others)  # shapes our BVHs do not intersect
-        self.moving = _declared(self.shapes, self.policy.moving)
+        self.moving = declared_indices(self.shapes, self.policy.moving)
         groups = shape_groups(scene) if native else []
         self.static = NativeGroup(groups) if native else MeshGroup("static")
-        self.dynamic = MeshGroup("dynamic")
-        self.native_moving = NativeGroup([], name="native_moving")
-        forced = policy.moving_accel
-        if forced == "native" and not native_moving_possible():
-            raise ValueError(
-                "moving_accel='native': a second Mitsuba scene traced in the same kernel as "
-                "the still world's is refused by OptiX on CUDA; use 'scene', 'hlbvh' or "
-                "'auto' there")
-        self.moving_structure = forced if forced in ("native", "scene") else "hlbvh"
-        self.costs = CostModel()
-        self._estimates = None  # each structure's estimated frame at the last plan()
-        # Structures whose view of the moving meshes is out of date: the scene's own
-        # accelerator may predate writes made before this accelerator existed.
-        self._behind = {"scene"}
-        self._probed = False  # whether the query costs were measured
+        self.moving_meshes = MovingMeshes(policy.moving_accel, choosable=native)
+        self._instances_behind = False  # moving instances moved while the scene traced them
         known = {}  # id(instance) -> its shape group, told once for both uses
 
         def told(instance, matrix=None):
@@ -237,31 +188,20 @@ class SceneAccel(_Accel):
         self.dynamic.indices = tuple(i for i in moving if i in meshes)
         dynamic_changed = [i for i in changed if i in self.dynamic.indices]
         structure = self.moving_structure
-        if dynamic_changed or started:  # the structures not updated below fall behind
-            self._behind |= {"hlbvh", "native"} - {structure}
-        if changed:
-            self._behind.add("scene")
-        if structure == "hlbvh":
-            self._update_dynamic(states, dynamic_changed, first)
-        else:
-            self.dynamic.keep()
-        if structure == "native":
-            self._update_native_moving(moved=bool(dynamic_changed or started))
-        else:
-            self.native_moving.keep()
+        self.moving_meshes.fell_behind(bool(dynamic_changed or started), bool(changed))
+        self.moving_meshes.update(self.shapes, states, None if first else self._states,
+                                  dynamic_changed, self.config, self.policy)
         # ---- The moving instances: the top level over them ----
         if self.shading is not None:
             self.shading.refresh([i for i in changed if is_instance(self.shapes[i])])
         moving_instances = tuple(i for i in moving if is_instance(self.shapes[i]))
-        if not set(moving_instances).isdisjoint(changed):
-            self._behind.add("instances")
+        self._instances_behind |= not set(moving_instances).isdisjoint(changed)
         if self.instances is not None and structure != "scene":
             table = self.shading if self.shading is not None and self.shading.usable else None
-            self.instances.update(self.shapes, moving_instances,
-                                  moved="instances" in self._behind,
+            self.instances.update(self.shapes, moving_instances, moved=self._instances_behind,
                                   rows_of=table.rows_of if table else None,
                                   policy=self.policy)
-            self._behind.discard("instances")
+            self._instances_behind = False
         elif self.instances is not None:
             self.instances.keep()
         self._states, self._current = states, True
@@ -275,51 +215,34 @@ class SceneAccel(_Accel):
             decision=max((g.last["decision"] for g in groups), key=DECISIONS.index),
             ms=clock_ms() - start,
             triangles=self.static.triangles + self.dynamic.triangles,
-            sah_cost=self._sah_cost(),
+            sah_cost=joined_sah_cost(self._traced),
             moving=[self.shapes[i].id() for i in self.moving],
             groups={g.name: dict(g.last) for g in groups},
-            moving_accel=self._choice_record(),
+            moving_accel=self.moving_meshes.record(),
         )
         return self
 
-    # ---- What traces the moving meshes: the choice by cost (hlbvh.accel.choice) ----
+    # ---- What traces the moving meshes: the choice by cost (hlbvh.accel.moving) ----
 
-    def _update_dynamic(self, states, changed: list, first: bool):
-        """Our HLBVH over the moving meshes, refit or rebuilt as the policy says (rebuilt
-        when it fell behind while another structure traced them)."""
-        behind = "hlbvh" in self._behind
-        if (first and self.dynamic.indices) or changed or self.dynamic.stale or behind:
-            reshaped = first or behind or any(
-                states[i].reshaped(self._states[i]) for i in changed)
-            self.dynamic.update(self.shapes, self.config, self.policy, reshaped,
-                                decision="build" if first else "rebuild")
-            if self.dynamic.indices and not first and not behind:
-                # a frame's update as the policy makes it (not a first or catch-up build)
-                self.costs.record_update("hlbvh", self.dynamic.last["ms"])
-            elif self.dynamic.indices and "hlbvh" not in self.costs.update_ms:
-                self.costs.record_update("hlbvh", self.dynamic.last["ms"])
-        else:
-            self.dynamic.keep()
-        self._behind.discard("hlbvh")
+    @property
+    def dynamic(self) -> MeshGroup:
+        """Our HLBVH over the moving meshes (:attr:`MovingMeshes.ours`)."""
+        return self.moving_meshes.ours
 
-    def _update_native_moving(self, moved: bool = False):
-        """The Mitsuba sub-scene of the moving meshes, built anew when they ``moved`` (or
-        moved while another structure traced them)."""
-        self.native_moving.update(self.shapes, self.dynamic.indices,
-                                  moved=moved or "native" in self._behind)
-        if self.native_moving.last["decision"] != "kept" and self.dynamic.indices:
-            self.costs.record_update("native", self.native_moving.last["ms"])
-        self._behind.discard("native")
+    @property
+    def native_moving(self) -> NativeGroup:
+        """The moving meshes' Mitsuba sub-scene (:attr:`MovingMeshes.native`)."""
+        return self.moving_meshes.native
 
-    def _allowed(self) -> tuple:
-        """The structures ``moving_accel`` lets :meth:`plan` choose among (on CUDA not the
-        native moving group: see :func:`native_moving_possible`)."""
-        forced = self.policy.moving_accel
-        if forced != "auto":
-            return (forced,)
-        if not isinstance(self.static, NativeGroup):
-            return ("hlbvh",)
-        return STRUCTURES if native_moving_possible() else ("hlbvh", "scene")
+    @property
+    def moving_structure(self) -> str:
+        """What traces the moving meshes now (:attr:`MovingMeshes.structure`)."""
+        return self.moving_meshes.structure
+
+    @property
+    def costs(self) -> CostModel:
+        """The measured costs that choose it (:attr:`MovingMeshes.costs`)."""
+        return self.moving_meshes.costs
 
     def plan(self, budget: RayBudget, probe: Probe | None = None) -> str:
         """Choose what traces the moving meshes for a render of ``budget`` (the
@@ -327,17 +250,9 @@ class SceneAccel(_Accel):
         moved), by the measured costs of :mod:`hlbvh.accel.choice`; ``probe`` (a sample
         of the render's own rays) times each structure's queries when they were not
         timed yet. Returns :attr:`moving_structure`."""
-        allowed = self._allowed()
-        if len(allowed) == 1 or not self.dynamic.indices:
-            self.moving_structure = allowed[0] if len(allowed) == 1 else self.moving_structure
-            return self.moving_structure
-        if not self._probed and probe is not None:
+        if self.moving_meshes.needs_probe and probe is not None:
             self.probe(probe)
-        triangles = {"native": sum(self.shapes[i].face_count() for i in self.dynamic.indices),
-                     "scene": sum(s.face_count() for s in self.shapes if s.is_mesh())}
-        self.moving_structure, self._estimates = self.costs.choose(
-            budget, self.moving_structure, allowed, triangles)
-        return self.moving_structure
+        return self.moving_meshes.plan(budget, self.shapes)
 
     def probe(self, probe: Probe):
         """Time the closest-hit queries of ``probe``'s rays through the still world alone
@@ -346,24 +261,26 @@ class SceneAccel(_Accel):
         fractions in :attr:`costs`."""
         if not self._current or not isinstance(self.static, NativeGroup):
             return
-        ray = probe.rays
-        self.costs.hit_fractions = (probe.camera_hits, probe.bounce_hits)
-        current = self.moving_structure
-        self.costs.record_build_rate(self.static.build_ms, self.static.triangles)
-        for structure in [s for s in ("hlbvh", "native") if s in self._allowed()]:
-            self.moving_structure = structure
-            if structure == "hlbvh" and ("hlbvh" in self._behind or self.dynamic.bvh is None):
-                self._update_dynamic(self._states, [], False)
-            if structure == "native":
-                self._update_native_moving()
-            self._join([g for g in (self.dynamic,) if g.bvh is not None and structure == "hlbvh"])
-            self.costs.record_queries(structure, query_ns(self.ray_intersect_preliminary, ray))
-        self.moving_structure = "still"
+        moving, ray = self.moving_meshes, probe.rays
+        costs, current = moving.costs, moving.structure
+        costs.hit_fractions = (probe.camera_hits, probe.bounce_hits)
+        costs.record_build_rate(self.static.build_ms, self.static.triangles)
+        for structure in [s for s in ("hlbvh", "native") if s in moving.allowed()]:
+            moving.structure = structure
+            if structure == "hlbvh":
+                if self.dynamic.bvh is None or moving.behind("hlbvh"):
+                    moving.update_ours(self.shapes, self._states, self._states, [],
+                                       self.config, self.policy)
+            else:
+                moving.update_native(self.shapes)
+            self._join([self.dynamic] if structure == "hlbvh" and self.dynamic.bvh else [])
+            costs.record_queries(structure, query_ns(self.ray_intersect_preliminary, ray))
+        moving.structure = "still"  # neither: the still world alone
         self._join([])
-        self.costs.record_queries("still", query_ns(self.ray_intersect_preliminary, ray))
-        self.moving_structure = current
-        self._join([self.dynamic] if current == "hlbvh" and self.dynamic.bvh is not None else [])
-        self._probed = True
+        costs.record_queries("still", query_ns(self.ray_intersect_preliminary, ray))
+        moving.structure = current
+        self._join([self.dynamic] if current == "hlbvh" and self.dynamic.bvh else [])
+        moving.probed = True
 
     def record_render(self, ms: float, samples: int):
         """A render of ``samples`` samples through :attr:`moving_structure` took ``ms``
@@ -373,10 +290,7 @@ class SceneAccel(_Accel):
     def scene_rebuilt(self, ms: float, ns: float | None = None):
         """The integrator rebuilt the whole scene's own accelerator (``"scene"``) in
         ``ms``; ``ns``: the time of a query through it, when the integrator timed one."""
-        self.costs.record_update("scene", ms)
-        self._behind.discard("scene")
-        if ns is not None:
-            self.costs.record_queries("scene", ns)
+        self.moving_meshes.scene_rebuilt(ms, ns)
 
     def absorb(self, earlier: dict):
         """Make :attr:`last_update` tell what ``earlier`` (the update just before it, in
@@ -403,20 +317,14 @@ class SceneAccel(_Accel):
 
     @property
     def needs_probe(self) -> bool:
-        """Whether :meth:`plan` would still time the structures (``moving_accel="auto"``
-        with moving meshes, and no probe yet)."""
-        return not self._probed and len(self._allowed()) > 1 and bool(self.dynamic.indices)
+        """Whether :meth:`plan` would still time the structures."""
+        return self.moving_meshes.needs_probe
 
     @property
     def scene_behind(self) -> bool:
         """Whether the scene's own accelerator misses motion since its last rebuild (the
         ``"scene"`` structure: a rebuild is due before it is queried)."""
-        return "scene" in self._behind
-
-    def _choice_record(self) -> dict:
-        return dict(chosen=self.moving_structure, estimates_ms=self._estimates,
-                    update_ms=dict(self.costs.update_ms), query_ns=dict(self.costs.query_ns),
-                    hit_fractions=self.costs.hit_fractions)
+        return self.moving_meshes.scene_behind
 
     def surface_interaction(self, pi, ray, ray_flags=mi.RayFlags.All, active=True):
         """``pi.compute_surface_interaction(ray, ray_flags, active)``; in a scene with
@@ -434,7 +342,7 @@ class SceneAccel(_Accel):
         if i in self._others and not (self.instances is not None and is_instance(shape)):
             raise unmovable_error(shape)
         if shape.is_mesh() and shape.face_count() == 0:
-            raise ValueError(f"{_describe(shape)} has no triangles any more: it would "
+            raise ValueError(f"{describe_shape(shape)} has no triangles any more: it would "
                              "silently be missing from the image; give it faces")
 
     def _update_static(self, moving: tuple, started: list, first: bool):
@@ -478,7 +386,7 @@ class SceneAccel(_Accel):
             if MeshState(shape.vertex_positions_buffer(), shape.faces_buffer()).moved(
                     self._states[i]):
                 raise RuntimeError(
-                    f"SceneAccel: {_describe(shape)} changed since the accelerator's last "
+                    f"SceneAccel: {describe_shape(shape)} changed since the accelerator's last "
                     "update(); call update() before tracing (it would answer from the old "
                     "geometry)")
         if self.static.stale or (self.instances is not None and self.instances.stale):
@@ -496,16 +404,6 @@ class SceneAccel(_Accel):
         self._prim_shape = concat([g.geometry.prim_shape for g in traced]) if traced else None
         self._prim_local = concat([g.geometry.prim_local for g in traced]) if traced else None
 
-    def _sah_cost(self):
-        """SAH cost of our groups together (see :attr:`last_update`)."""
-        if len(self._traced) < 2:
-            return float(self._traced[0].bvh.stats.sah_cost) if self._traced else None
-        boxes = [g.root_box() for g in self._traced]
-        union = _half_area([min(lo[k] for lo, _ in boxes) for k in range(3)],
-                           [max(hi[k] for _, hi in boxes) for k in range(3)])
-        return sum((_half_area(*box) / union if union > 0 else 1.0) * g.bvh.stats.sah_cost
-                   for g, box in zip(self._traced, boxes))
-
     def _routine_shapes(self):
         """``(index, shape)`` of the analytic shapes traced by their own routine: all of
         them with ``static="hlbvh"``, the moving ones with ``"native"``."""
@@ -520,7 +418,7 @@ class SceneAccel(_Accel):
         self._check_current()
         n = dr.width(ray)
         active = mi.Bool(active) & dr.full(mi.Bool, True, n)
-        hit = _Hit.none(n)
+        hit = NearestHit.none(n)
         native = isinstance(self.static, NativeGroup) and self.static.scene is not None
         if native:
             hit.take_native(self.static.preliminary(ray, coherent, active, reorder))
@@ -575,129 +473,6 @@ class SceneAccel(_Accel):
         return hit & active
 
 
-@dataclass
-class _Hit:
-    """The nearest hit so far of a query over several structures, as Mitsuba reports
-    it: ``t`` (infinite: none), ``prim_uv``, ``prim_index``, ``shape_index``; where a
-    Mitsuba (sub-)scene gave it, its ``shape`` and ``instance`` pointers
-    (``from_native``); inside one of our instances, the instance's index into
-    ``scene.shapes()`` (``instance``, where ``in_instance``)."""
-
-    t: mi.Float
-    prim_uv: mi.Point2f
-    prim_index: mi.UInt32
-    shape_index: mi.UInt32
-    from_native: mi.Bool
-    shape: mi.ShapePtr
-    instance_ptr: mi.ShapePtr
-    in_instance: mi.Bool
-    instance: mi.UInt32
-
-    @classmethod
-    def none(cls, n: int) -> "_Hit":
-        return cls(dr.full(mi.Float, dr.inf, n), dr.zeros(mi.Point2f, n),
-                   dr.zeros(mi.UInt32, n), dr.zeros(mi.UInt32, n), dr.zeros(mi.Bool, n),
-                   dr.zeros(mi.ShapePtr, n), dr.zeros(mi.ShapePtr, n),
-                   dr.zeros(mi.Bool, n), dr.zeros(mi.UInt32, n))
-
-    def take(self, t, prim_uv, prim_index, shape_index, instance=None) -> mi.Bool:
-        """Take the hit of one more structure (``t`` infinite where it has none) where
-        it is strictly nearer, so ties keep the earlier; ``instance``: for a hit inside
-        one of our instances, the instance's index. Returns where it was taken."""
-        closer = t < self.t
-        self.t = dr.select(closer, t, self.t)
-        self.prim_uv = dr.select(closer, mi.Point2f(prim_uv), self.prim_uv)
-        self.prim_index = dr.select(closer, prim_index, self.prim_index)
-        self.shape_index = dr.select(closer, shape_index, self.shape_index)
-        self.from_native &= ~closer
-        inside = closer & (instance is not None)
-        self.in_instance = dr.select(closer, inside, self.in_instance)
-        if instance is not None:
-            self.instance = dr.select(closer, instance, self.instance)
-        return closer
-
-    def take_native(self, pi: mi.PreliminaryIntersection3f):
-        """Take a Mitsuba (sub-)scene's hit (its ``shape_index`` already the index
-        into ``scene.shapes()`` for a hit outside an instance), pointers included."""
-        closer = self.take(dr.select(pi.is_valid(), pi.t, dr.inf), pi.prim_uv,
-                           pi.prim_index, pi.shape_index)
-        self.from_native |= closer
-        self.shape = dr.select(closer, pi.shape, self.shape)
-        self.instance_ptr = dr.select(closer, pi.instance, self.instance_ptr)
-
-    def preliminary(self, active: mi.Bool, shapes_dr) -> mi.PreliminaryIntersection3f:
-        """The hit as Mitsuba's query reports it: shape pointers gathered for our own
-        hits, a hit inside one of our instances with no shape pointer, the shape's index
-        in its group, and the instance."""
-        n = dr.width(self.t)
-        result = dr.zeros(mi.PreliminaryIntersection3f, n)
-        result.valid = active & (self.t < dr.inf)
-        result.t = dr.select(result.valid, self.t, dr.inf)
-        result.prim_uv = mi.Point2f(self.prim_uv)
-        result.prim_index = dr.select(result.valid, self.prim_index, 0)
-        result.shape_index = dr.select(result.valid, self.shape_index, 0xFFFFFFFF)
-        if dr.width(shapes_dr) > 0:  # a scene may have no shape at all
-            native = result.valid & self.from_native
-            inside = result.valid & self.in_instance
-            ours = result.valid & ~native & ~inside
-            result.shape = dr.gather(mi.ShapePtr, shapes_dr, result.shape_index, ours)
-            result.shape = dr.select(native, self.shape, result.shape)
-            result.instance = dr.select(native, self.instance_ptr, result.instance)
-            result.instance = dr.select(
-                inside, dr.gather(mi.ShapePtr, shapes_dr, self.instance, inside),
-                result.instance)
-        return result
-
-
-def native_moving_possible() -> bool:
-    """Whether the moving meshes can have a Mitsuba sub-scene of their own beside the
-    still world's: a kernel traces one OptiX scene at most (Dr.Jit disables the queries
-    of a second, leaving rays unanswered), so not on CUDA; Embree takes any number."""
-    return dr.backend_v(mi.Float) != dr.JitBackend.CUDA
-
-
-def query_ns(query, ray) -> float:
-    """Nanoseconds a closest-hit ``query(ray)`` costs per ray, without the launch's
-    fixed cost: the slope between the whole of ``ray`` and its even half, each the
-    fastest of two runs after one that may compile (the device synchronised); the mean
-    over the whole where noise makes the slope meaningless."""
-    n = dr.width(ray)
-    half = dr.gather(type(ray), ray, dr.arange(mi.UInt32, n // 2) * 2)
-
-    def fastest(r) -> float:
-        best = float("inf")
-        for _ in range(2):
-            start = clock_ms()
-            pi = query(r)
-            dr.eval(pi.t, pi.prim_index, pi.shape_index)
-            best = min(best, clock_ms() - start)
-        return best
-
-    fastest(half)  # compiles what the runs below launch
-    whole, part = fastest(ray), fastest(half)
-    slope = (whole - part) * 1e6 / max(n - n // 2, 1)
-    return slope if slope > 0 else whole * 1e6 / max(n, 1)
-
-
-def _declared(shapes, ids: tuple) -> tuple:
-    """Indices into ``shapes`` of the shapes whose ids are ``ids`` (every shape of an
-    id); ValueError naming the ids that name no shape."""
-    wanted = set(ids)
-    found = [i for i, shape in enumerate(shapes) if shape.id() in wanted]
-    unknown = sorted(set(ids) - {shapes[i].id() for i in found})
-    if unknown:
-        raise ValueError(f"moving={list(ids)}: no shape of the scene has the id(s) {unknown} "
-                         f"(its shapes: {sorted({s.id() for s in shapes})})")
-    return tuple(found)
-
-
-def _half_area(lo, hi) -> float:
-    """Half the surface area of the box ``lo``..``hi`` (lists of Python floats), in
-    double precision as the SAH cost's areas."""
-    extent = dr.maximum(dr.scalar.Array3f64(hi) - dr.scalar.Array3f64(lo), 0.0)
-    return float(half_area(extent))
-
-
 def make_accel(scene, accel: str = "hlbvh", **options):
     """The intersector named ``accel`` for ``scene``.
 
@@ -710,7 +485,7 @@ def make_accel(scene, accel: str = "hlbvh", **options):
     Raises:
         ValueError: for any other ``accel``, or an unknown or invalid option.
     """
-    _checked_scene(scene)
+    checked_scene(scene)
     if accel not in ACCELS:
         raise ValueError(f"accel={accel!r}: expected one of {ACCELS}")
     policy, config = split_options(options)

@@ -178,3 +178,15 @@ def named_build_error(shapes, indices, error: ValueError) -> ValueError:
             return _non_finite(mesh)
     names = ", ".join(repr(shapes[i].id()) for i in indices)
     return ValueError(f"building the HLBVH of the meshes {names} failed: {error}")
+
+
+def declared_indices(shapes, ids: tuple) -> tuple:
+    """Indices into ``shapes`` of the shapes whose ids are ``ids`` (the option
+    ``moving``; every shape of an id); ValueError naming the ids that name no shape."""
+    wanted = set(ids)
+    found = [i for i, shape in enumerate(shapes) if shape.id() in wanted]
+    unknown = sorted(set(ids) - {shapes[i].id() for i in found})
+    if unknown:
+        raise ValueError(f"moving={list(ids)}: no shape of the scene has the id(s) {unknown} "
+                         f"(its shapes: {sorted({s.id() for s in shapes})})")
+    return tuple(found)

@@ -1,0 +1,187 @@
+"""The moving meshes of a :class:`hlbvh.SceneAccel` and the structures that can trace
+them: our HLBVH (:class:`MeshGroup`), a Mitsuba sub-scene of them (:class:`NativeGroup`),
+or the whole scene through Mitsuba's own accelerator; which one traces them now, which
+fell behind while another did, and the measured costs that choose among them
+(:mod:`hlbvh.accel.choice`)."""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from hlbvh.accel.choice import STRUCTURES, CostModel, RayBudget
+from hlbvh.accel.mesh_group import MeshGroup
+from hlbvh.accel.native_group import NativeGroup
+from hlbvh.timing import clock_ms
+
+
+class MovingMeshes:
+    """The moving meshes' structures and the choice among them.
+
+    Args:
+        moving_accel: the policy's ``moving_accel`` (``"auto"`` or a forced structure).
+        choosable: whether the still world is Mitsuba's (``static="native"``): only then
+            may anything but our HLBVH trace the moving meshes.
+    Raises:
+        ValueError: ``"native"`` forced where it cannot be traced
+            (:func:`native_moving_possible`).
+
+    Attributes:
+        ours: our HLBVH's :class:`MeshGroup` (``"dynamic"`` in statistics).
+        native: the Mitsuba sub-scene's :class:`NativeGroup` (``"native_moving"``).
+        structure: what traces them now, one of :data:`hlbvh.accel.choice.STRUCTURES`.
+        costs: the :class:`hlbvh.accel.choice.CostModel`.
+        estimates: each structure's estimated frame at the last :meth:`plan` (None
+            before one).
+        probed: whether the probe timed the structures' queries.
+    """
+
+    def __init__(self, moving_accel: str, choosable: bool):
+        if moving_accel == "native" and not native_moving_possible():
+            raise ValueError(
+                "moving_accel='native': a second Mitsuba scene traced in the same kernel as "
+                "the still world's is refused by OptiX on CUDA; use 'scene', 'hlbvh' or "
+                "'auto' there")
+        self.ours = MeshGroup("dynamic")
+        self.native = NativeGroup([], name="native_moving")
+        self.structure = moving_accel if moving_accel in ("native", "scene") else "hlbvh"
+        self.costs = CostModel()
+        self.estimates = None
+        self.probed = False
+        self._forced = moving_accel
+        self._choosable = choosable
+        # Structures whose view of the moving meshes is out of date: the scene's own
+        # accelerator may predate writes made before the accelerator existed.
+        self._behind = {"scene"}
+
+    @property
+    def indices(self) -> tuple:
+        """Indices into ``scene.shapes()`` of the moving meshes, ascending."""
+        return self.ours.indices
+
+    def allowed(self) -> tuple:
+        """The structures :meth:`plan` chooses among."""
+        if self._forced != "auto":
+            return (self._forced,)
+        if not self._choosable:
+            return ("hlbvh",)
+        return STRUCTURES if native_moving_possible() else ("hlbvh", "scene")
+
+    def fell_behind(self, meshes_moved: bool, anything_moved: bool):
+        """Record what a frame's motion leaves behind: the structures not updated this
+        frame when the moving meshes moved, the whole scene when anything did."""
+        if meshes_moved:
+            self._behind |= {"hlbvh", "native"} - {self.structure}
+        if anything_moved:
+            self._behind.add("scene")
+
+    def update(self, shapes, states: dict, before: dict | None, changed: list, config,
+               policy):
+        """Bring the structure that traces the moving meshes up to date (``changed``: the
+        moving meshes whose state differs from ``before``, the last update's states;
+        ``before`` None at the first update); the others keep."""
+        if self.structure == "hlbvh":
+            self.update_ours(shapes, states, before, changed, config, policy)
+        else:
+            self.ours.keep()
+        if self.structure == "native":
+            self.update_native(shapes, moved=bool(changed))
+        else:
+            self.native.keep()
+
+    def update_ours(self, shapes, states, before, changed, config, policy):
+        """Our HLBVH over the moving meshes, refit or rebuilt as the policy says (rebuilt
+        when it fell behind while another structure traced them)."""
+        first = before is None
+        behind = "hlbvh" in self._behind
+        group = self.ours
+        if (first and group.indices) or changed or group.stale or behind:
+            reshaped = first or behind or any(states[i].reshaped(before[i]) for i in changed)
+            group.update(shapes, config, policy, reshaped, decision="build" if first else "rebuild")
+            if group.indices and (not (first or behind) or "hlbvh" not in self.costs.update_ms):
+                # a frame's update as the policy makes it (a first or catch-up build only
+                # until one is measured)
+                self.costs.record_update("hlbvh", group.last["ms"])
+        else:
+            group.keep()
+        self._behind.discard("hlbvh")
+
+    def update_native(self, shapes, moved: bool = False):
+        """The Mitsuba sub-scene of the moving meshes, built anew when they ``moved`` (or
+        moved while another structure traced them)."""
+        self.native.update(shapes, self.indices, moved=moved or "native" in self._behind)
+        if self.native.last["decision"] != "kept" and self.indices:
+            self.costs.record_update("native", self.native.last["ms"])
+        self._behind.discard("native")
+
+    def plan(self, budget: RayBudget, shapes) -> str:
+        """Choose the structure for a render of ``budget`` by the measured costs; returns
+        it."""
+        allowed = self.allowed()
+        if len(allowed) == 1:
+            self.structure = allowed[0]
+        elif self.indices:
+            triangles = {"native": sum(shapes[i].face_count() for i in self.indices),
+                         "scene": sum(s.face_count() for s in shapes if s.is_mesh())}
+            self.structure, self.estimates = self.costs.choose(
+                budget, self.structure, allowed, triangles)
+        return self.structure
+
+    @property
+    def needs_probe(self) -> bool:
+        """Whether :meth:`plan` still wants a probe (a choice among several structures,
+        moving meshes to trace, no probe yet)."""
+        return not self.probed and len(self.allowed()) > 1 and bool(self.indices)
+
+    def behind(self, structure: str) -> bool:
+        """Whether ``structure`` misses motion since it last traced the moving meshes."""
+        return structure in self._behind
+
+    @property
+    def scene_behind(self) -> bool:
+        """Whether the scene's own accelerator misses motion since its last rebuild."""
+        return self.behind("scene")
+
+    def scene_rebuilt(self, ms: float, ns: float | None = None):
+        """The whole scene's accelerator was rebuilt in ``ms``; ``ns``: a query's time
+        through it, when timed."""
+        self.costs.record_update("scene", ms)
+        self._behind.discard("scene")
+        if ns is not None:
+            self.costs.record_queries("scene", ns)
+
+    def record(self) -> dict:
+        """What ``last_update["moving_accel"]`` says: the choice and its costs."""
+        return dict(chosen=self.structure, estimates_ms=self.estimates,
+                    update_ms=dict(self.costs.update_ms), query_ns=dict(self.costs.query_ns),
+                    hit_fractions=self.costs.hit_fractions)
+
+
+def native_moving_possible() -> bool:
+    """Whether the moving meshes can have a Mitsuba sub-scene of their own beside the
+    still world's: a kernel traces one OptiX scene at most (Dr.Jit disables the queries
+    of a second, leaving rays unanswered), so not on CUDA; Embree takes any number."""
+    return dr.backend_v(mi.Float) != dr.JitBackend.CUDA
+
+
+def query_ns(query, ray) -> float:
+    """Nanoseconds a closest-hit ``query(ray)`` costs per ray, without the launch's
+    fixed cost: the slope between the whole of ``ray`` and its even half, each the
+    fastest of two runs after one that may compile (the device synchronised); the mean
+    over the whole where noise makes the slope meaningless."""
+    n = dr.width(ray)
+    half = dr.gather(type(ray), ray, dr.arange(mi.UInt32, n // 2) * 2)
+
+    def fastest(r) -> float:
+        best = float("inf")
+        for _ in range(2):
+            start = clock_ms()
+            pi = query(r)
+            dr.eval(pi.t, pi.prim_index, pi.shape_index)
+            best = min(best, clock_ms() - start)
+        return best
+
+    fastest(half)  # compiles what the runs below launch
+    whole, part = fastest(ray), fastest(half)
+    slope = (whole - part) * 1e6 / max(n - n // 2, 1)
+    return slope if slope > 0 else whole * 1e6 / max(n, 1)
