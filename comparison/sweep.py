@@ -88,8 +88,10 @@ from hlbvh.comparison.metrics import image_metrics
 from hlbvh.errors import UserError
 from hlbvh.render.frame import FrameRenderer, check_frame_fits
 from hlbvh.render.images import as_image
-from hlbvh.cli.options import (add_scene_options, int_flag, open_animation, option_value, out_flag,
-                           render_settings)
+from hlbvh.cli.options import (add_scene_options, option_value, out_flag,
+                               render_settings)
+from hlbvh.errors import int_flag
+from hlbvh.render.source import SceneSpec, open_animation
 from hlbvh.render.output import output_directory
 from hlbvh.render.settings import RenderSettings, check_seed
 from hlbvh.timing import timed
@@ -498,9 +500,9 @@ def run(args) -> int:
     spp = DEFAULT_SPP if args.spp is None else int_flag("--spp", args.spp, least=1)
     curve = [int_flag("--spp-curve", s, least=1) for s in args.spp_curve.split(",")]
     base = render_settings(args, spp=spp)
-    animation, source, frames = open_animation(
+    animation, source, frames = open_animation(SceneSpec.of(
         args.scene, args.frames_dir, args.triangles,
-        DEFAULT_FRAMES if args.frames is None else args.frames, args.topology)
+        DEFAULT_FRAMES if args.frames is None else args.frames, args.topology))
     if len(frames) < 2:
         raise UserError(f"--frames {args.frames}: a sweep needs at least two frames")
     check_seed(base.seed, frames)
