@@ -14,7 +14,8 @@ import json
 
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BUILDERS
-from hlbvh.cli.options import int_flag, parse_resolution
+from hlbvh.cli.options import parse_resolution
+from hlbvh.errors import int_flag
 
 _SUITES = {
     "build": "hlbvh.comparison.bench_build",

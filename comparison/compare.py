@@ -10,7 +10,7 @@ Usage::
 
 ``SCENE``, ``--frames``, ``--resolution``, ``--spp``, ``--triangles``, the builder
 options, ``--update``, ``--max-depth`` and ``--seed`` mean what they mean for
-``hlbvh render`` (see :mod:`hlbvh.render.animation`), which does the rendering.
+``hlbvh render`` (see :mod:`hlbvh.cli.render`), which does the rendering.
 
 What is rendered
 ----------------
@@ -89,7 +89,8 @@ from hlbvh.comparison import plots, report
 from hlbvh.comparison.metrics import hit_agreement, image_metrics, within_tolerance
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BuildConfig
-from hlbvh.cli.options import (add_scene_options, open_animation, out_flag, render_settings,
+from hlbvh.render.source import SceneSpec, open_animation
+from hlbvh.cli.options import (add_scene_options, out_flag, render_settings,
                                scene_render_settings)
 from hlbvh.render.output import frame_name, output_directory
 from hlbvh.render.animation import render_animation
@@ -321,8 +322,8 @@ def run(args) -> int:
     hlbvh's images are within the tolerance of native's on every frame, 1 when not."""
     settings = render_settings(args)
     tolerance = _tolerance(args.tolerance)
-    animation, source, frames = open_animation(args.scene, args.frames_dir, args.triangles,
-                                               args.frames, args.topology)
+    animation, source, frames = open_animation(SceneSpec.of(
+        args.scene, args.frames_dir, args.triangles, args.frames, args.topology))
     own = animation.integrator_description()
     if own is not None and SCENE_INTEGRATORS.get(own["type"]) in ("direct", "volpath"):
         # The scene's direct or volpath runs as ours (path scenes keep --max-depth's path)

@@ -39,7 +39,7 @@ from hlbvh.comparison import bench_build, bench_frame, bench_trace, sweep
 from hlbvh.comparison.machine import cpu_model
 from hlbvh.comparison.tables import flatten, markdown_table, read_results, to_json
 from hlbvh.render.images import atomic_output
-from hlbvh.cli.options import open_animation
+from hlbvh.render.source import SceneSpec, open_animation
 from hlbvh.render.settings import RenderSettings
 
 #: What the README's figures are measured on (each overridable on the command line).
@@ -106,8 +106,8 @@ def measure(sizes: dict, progress: bool = True) -> dict:
     results["frame"] += bench_frame.run(scenes=sizes["frame_scenes"],
                                         sizes=sizes["frame_sizes"], **frame)
     log("readme_figures: sweep")
-    animation, _, frames = open_animation(sizes["sweep_scene"], None,
-                                          str(sizes["sweep_triangles"]), sizes["frames"])
+    animation, _, frames = open_animation(SceneSpec(
+        sizes["sweep_scene"], triangles=str(sizes["sweep_triangles"]), frames=sizes["frames"]))
     base = RenderSettings(resolution=(sizes["resolution"], sizes["resolution"]),
                           spp=sizes["spp"])
     chosen = None if sizes["sweep_settings"] == "all" else sizes["sweep_settings"]

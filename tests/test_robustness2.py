@@ -376,7 +376,7 @@ sys.exit(main(["render", "cloth", "--frames", "0:1", "--out", {out!r}]))
 """
 
 
-@pytest.mark.parametrize("module", ["mitsuba", "hlbvh.render.animation"])
+@pytest.mark.parametrize("module", ["mitsuba", "hlbvh.cli.render"])
 def test_ctrl_c_while_the_command_starts_is_one_line(tmp_path, module):
     """The console script (a file named ``hlbvh``) interrupted while it imports
     Mitsuba (the package) or a verb's module (the parser)."""

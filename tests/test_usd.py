@@ -22,7 +22,7 @@ from hlbvh import scenes  # noqa: E402
 from hlbvh.render import cluster  # noqa: E402
 from hlbvh.render import images  # noqa: E402
 from hlbvh.errors import UserError  # noqa: E402
-from hlbvh.cli.options import open_animation  # noqa: E402
+from hlbvh.render.source import SceneSpec, open_animation  # noqa: E402
 from hlbvh.scenes.usd import UsdScene  # noqa: E402
 from test_render import assert_close_to_native  # noqa: E402
 
@@ -530,17 +530,16 @@ def test09_bad_stages_are_one_line_through_the_cli(tmp_path, capsys, shot, case,
 
 def test10_usd_options_that_do_not_apply_are_refused(shot):
     with pytest.raises(UserError, match="--frames-dir is not for USD stages"):
-        open_animation(str(shot), "frames", None, None)
+        open_animation(SceneSpec(str(shot), frames_dir="frames"))
     with pytest.raises(UserError, match="--triangles is not for USD stages"):
-        open_animation(str(shot), None, "100", None)
+        open_animation(SceneSpec(str(shot), triangles="100"))
 
 
 def test11_a_cluster_worker_reopens_the_stage_from_its_spec(shot, monkeypatch):
     monkeypatch.chdir(shot.parent)
-    spec = cluster.SceneSpec.of(shot.name, None, None, range(0, 2))
+    spec = SceneSpec.of(shot.name, None, None, range(0, 2)).absolute()
     assert spec.scene == str(shot.resolve())
-    animation, _, frames = open_animation(spec.scene, spec.frames_dir, spec.triangles,
-                                          spec.frames, spec.topology)
+    animation, _, frames = open_animation(spec)
     assert isinstance(animation, UsdScene) and frames == range(0, 2)
 
 
@@ -622,19 +621,19 @@ def test16_a_local_cluster_renders_a_stage_as_one_process(shot, tmp_path, capsys
 @pytest.mark.parametrize("before", [True, False])
 def test17_camera_flag_picks_the_camera_and_travels_to_cluster_specs(tmp_path, capsys,
                                                                      before):
-    from hlbvh.render import animation as render
+    from hlbvh.cli import render
     import argparse
     path = write_shot_camera(tmp_path / "cams.usda")
     parser = argparse.ArgumentParser()
     render.configure(parser)
     argv = ["--camera", "/Other", str(path)] if before else [str(path), "--camera", "/Other"]
     args = parser.parse_args(argv)
-    animation, source, _ = open_animation(args.scene, None, None, None)
+    animation, source, _ = open_animation(SceneSpec.of(args.scene))
     assert source["camera"] == "/Other"
     camera = animation.scene_dict(spp=1)["camera"]
     np.testing.assert_allclose(np.array(camera["to_world"].matrix)[:3, 3], [3, 1, 3],
                                atol=1e-6)
-    spec = cluster.SceneSpec.of(args.scene, None, None, range(0, 1))
+    spec = SceneSpec.of(args.scene, None, None, range(0, 1)).absolute()
     assert spec.camera == "/Other" and type(spec.scene) is str
     status, _, err = run_cli(capsys, "render", path, "--camera", "/Nope", "--out",
                              tmp_path / "x", *TINY)
@@ -1010,10 +1009,10 @@ def test27_stage_options_on_the_command_line(tmp_path, capsys, monkeypatch):
     spec carries it; an unknown option or value is one line."""
     path = write_crowd(tmp_path / "crowd.usda")
     flat = f"{path}:instancing=false"
-    animation, source, _ = open_animation(flat, None, None, "0:1")
+    animation, source, _ = open_animation(SceneSpec(flat, frames="0:1"))
     assert animation.instance_groups() == {} and source["scene"] == f"{path.resolve()}:instancing=false"
-    assert open_animation(str(path), None, None, "0:1")[0].instance_groups()
-    spec = cluster.SceneSpec.of(flat, None, None, range(0, 1))
+    assert open_animation(SceneSpec(str(path), frames="0:1"))[0].instance_groups()
+    spec = SceneSpec.of(flat, None, None, range(0, 1)).absolute()
     assert spec.scene == source["scene"]
     status, _, err = run_cli(capsys, "render", flat, "--frames", "0:1", "--out",
                              tmp_path / "out", *TINY)

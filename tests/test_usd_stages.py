@@ -13,7 +13,8 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade, UsdSkel, Vt  # noqa: E4
 
 from cli_helpers import run_cli  # noqa: E402
 from hlbvh.render import cluster  # noqa: E402
-from hlbvh.cli.options import SceneArgument, open_animation  # noqa: E402
+from hlbvh.cli.options import SceneArgument  # noqa: E402
+from hlbvh.render.source import SceneSpec, open_animation  # noqa: E402
 from hlbvh.scenes.usd import UsdScene  # noqa: E402
 from hlbvh.scenes.usd_lights import DEFAULT_LIGHTS  # noqa: E402
 
@@ -69,10 +70,10 @@ def test_a_stage_without_light_is_said_and_lit_by_the_default_sky_and_sun(tmp_pa
 
     # The flag, through the command line, a resume's source and a cluster's spec.
     scene = SceneArgument.of(str(path), None, default_light=False)
-    animation, source, _ = open_animation(scene, None, None, "0:1")
+    animation, source, _ = open_animation(SceneSpec.of(scene, frames="0:1"))
     assert source["scene"].endswith(":default_light=false")
     assert "default_sky" not in animation.scene_dict(resolution=(8, 8), spp=1)
-    assert cluster.SceneSpec.of(scene, None, None, range(0, 1)).scene.endswith(
+    assert SceneSpec.of(scene, None, None, range(0, 1)).absolute().scene.endswith(
         ":default_light=false")
     status, _, err = run_cli(capsys, "render", path, "--no-default-light", "--frames", "0:1",
                              "--out", tmp_path / "out", "--resolution", "8", "--spp", "1",

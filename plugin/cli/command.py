@@ -41,7 +41,7 @@ def _doctor(args) -> int:
 # Each verb lives in its own module with ``configure(parser)`` and ``run(args) -> int``;
 # modules are imported only when their verb runs.
 _VERBS = {
-    "render": ("hlbvh.render.animation", "render an animation to EXR/PNG with per-frame statistics"),
+    "render": ("hlbvh.cli.render", "render an animation to EXR/PNG with per-frame statistics"),
     "compare": ("hlbvh.comparison.compare", "native vs hlbvh, frame by frame, with a report"),
     "sweep": ("hlbvh.comparison.sweep", "the speed/accuracy trade of builder settings"),
     "bench": ("hlbvh.comparison.bench", "build, trace and frame benchmarks against native"),

@@ -7,15 +7,13 @@ from __future__ import annotations
 
 import argparse
 import re
-import sys
 from dataclasses import replace
 from pathlib import Path
 
 from hlbvh import scenes
 from hlbvh.accel.policy import ACCELS, BUILD_OPTIONS, MOVING_ACCELS, STATICS, UPDATES
-from hlbvh.errors import UserError
+from hlbvh.errors import UserError, int_flag
 from hlbvh.kernels.bvh import BuildConfig
-from hlbvh.scenes.sequence import TOPOLOGIES
 from hlbvh.render.settings import (DEFAULT_MAX_DEPTH, DEPTH_INTEGRATORS, INTEGRATORS,
                                    MAX_SEED, SCENE_INTEGRATORS, RenderSettings,
                                    scene_integrator_fields)
@@ -75,8 +73,7 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
 class SceneArgument(str):
     """The SCENE string, carrying ``camera`` (``--camera``) and ``default_light``
     (False with ``--no-default-light``): the options that qualify SCENE travel with it
-    to :func:`open_animation` and to the cluster's :class:`hlbvh.render.cluster.SceneSpec`,
-    whichever command parsed them."""
+    into :class:`hlbvh.render.source.SceneSpec`, whichever command parsed them."""
 
     camera: str | None = None
     default_light: bool = True
@@ -241,193 +238,6 @@ def seed_flag(text: str) -> int:
     return int_flag("--seed", text, least=0, most=MAX_SEED)
 
 
-def open_animation(scene: str, frames_dir, triangles, frames, topology=None,
-                   camera: str | None = None) -> tuple:
-    """The animated scene, what identifies it, and the frame range, from the command
-    line's strings (``topology``: ``--topology``, see :func:`parse_topology`;
-    ``camera``: ``--camera``, of a USD stage, else the one a :class:`SceneArgument`
-    carries).
-
-    Returns:
-        ``(animation, source, range)``.
-    Raises:
-        UserError: an unknown scene, a missing file, options that do not fit the kind
-            of scene, a bad frame range.
-    """
-    start, stop = parse_frames(frames)
-    camera = camera if camera is not None else getattr(scene, "camera", None)
-    stage = usd_stage(scene)
-    if camera is not None and stage is None:
-        raise UserError(f"--camera picks a camera of a USD stage; {str(scene)!r} is not one")
-    if not getattr(scene, "default_light", True) and stage is None:
-        raise UserError(f"--no-default-light is for USD stages without lights; "
-                        f"{str(scene)!r} is not a USD stage")
-    if str(scene).partition(":")[0] in scenes.names():
-        if frames_dir is not None:
-            raise UserError(f"--frames-dir is for XML scenes; {scene!r} is procedural")
-        if topology is not None:
-            raise UserError(f"--topology is for the meshes of an XML scene's --frames-dir; "
-                            f"{scene!r} is procedural")
-        try:
-            name, options = scenes.parse(str(scene))
-        except ValueError as error:
-            raise UserError(str(error)) from None
-        if triangles is not None:
-            options["triangles"] = int_flag("--triangles", triangles, least=1)
-        try:
-            default = scenes.get(name, **options).frame_count
-        except ValueError as error:
-            raise UserError(str(error)) from None
-        # A procedural scene's motion is a function of time: frames past its own count
-        # are as valid as the others.
-        stop = default if stop is None else stop
-        animation = scenes.get(name, **options, frames=max(default, stop))
-        source = {"scene": str(scene), "triangles": animation.triangles}
-    elif stage is not None:
-        held: list[str] = []  # the stage's warnings, said once the frames are valid
-        animation, source = _open_usd(stage, scene, frames_dir, triangles, topology, camera,
-                                      held.append)
-        stop = animation.frame_count if stop is None else stop
-        if stop > animation.frame_count:
-            last = animation.frame_count - 1
-            raise UserError(f"--frames {frames}: {scene!r} has frames 0:{animation.frame_count} "
-                            f"(time codes {animation.time_code(0):g}..{animation.time_code(last):g},"
-                            f" startTimeCode..endTimeCode)")
-        if start < stop:
-            for line in held:
-                print(f"hlbvh: {line}", file=sys.stderr)
-        animation.warn_with(None)
-    else:
-        path = Path(scene)
-        if path.suffix.lower() != ".xml" or not path.is_file():
-            raise UserError(
-                f"scene {scene!r}: not a procedural scene ({', '.join(scenes.names())}) "
-                f"nor an existing Mitsuba .xml file"
-            )
-        if frames_dir is None:
-            raise UserError(f"scene {scene!r}: an XML scene needs --frames-dir with its "
-                            f"per-frame meshes")
-        if triangles is not None:
-            raise UserError("--triangles sizes procedural scenes; an XML scene has its own")
-        kinds = parse_topology(topology)
-        animation = scenes.SequenceScene(path, frames_dir, topology=kinds)
-        source = {"scene": str(path.resolve()), "frames_dir": str(Path(frames_dir).resolve()),
-                  "scene_sha256": animation.source_digest()}
-        if topology is not None:
-            source["topology"] = kinds
-        stop = animation.frame_count if stop is None else stop
-    if stop > animation.frame_count:
-        raise UserError(f"--frames {frames}: {scene!r} has frames 0:{animation.frame_count}")
-    if start >= stop:
-        raise UserError(f"--frames {frames}: the range is empty (expected A < B)")
-    return animation, source, range(start, stop)
-
-
-#: Suffixes of the USD stages :func:`open_animation` opens as :class:`hlbvh.scenes.usd.UsdScene`.
-USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
-
-#: The options a USD stage takes after its path (``shot.usda:instancing=false``), with
-#: their defaults: :class:`hlbvh.scenes.usd.UsdScene`'s arguments
-#: (``--no-default-light`` is ``default_light=false``).
-USD_OPTIONS = {"instancing": True, "default_light": True}
-
-
-def usd_stage(scene) -> tuple[Path, dict] | None:
-    """``(path, options)`` of a USD stage named by SCENE (``shot.usda`` or
-    ``shot.usda:instancing=false``), None for any other scene.
-
-    Raises:
-        UserError: an option the stage does not take, given twice, or a value that is
-            not ``true``/``false``.
-    """
-    suffixes = "|".join(re.escape(suffix) for suffix in USD_SUFFIXES)
-    match = re.fullmatch(rf"(.*?(?:{suffixes}))(?::(.*))?", str(scene), re.IGNORECASE)
-    if not match:
-        return None
-    options = {}
-    for item in filter(None, (part.strip() for part in (match.group(2) or "").split(","))):
-        key, equals, value = (part.strip() for part in item.partition("="))
-        if not equals or key not in USD_OPTIONS:
-            raise UserError(f"scene {str(scene)!r}: {item!r} is not an option of a USD "
-                            f"stage; expected key=value with key one of {sorted(USD_OPTIONS)}")
-        if value.lower() not in ("true", "false"):
-            raise UserError(f"scene {str(scene)!r}: {key}={value!r}: expected true or false")
-        if key in options:
-            raise UserError(f"scene {str(scene)!r}: {key} is given twice; give it once")
-        options[key] = value.lower() == "true"
-    if not getattr(scene, "default_light", True):
-        options["default_light"] = False
-    return Path(match.group(1)), options
-
-
-def usd_scene_string(path, options: dict) -> str:
-    """SCENE of a stage at ``path`` with ``options`` (the inverse of :func:`usd_stage`)."""
-    extra = ",".join(f"{k}={str(v).lower()}" for k, v in sorted(options.items()))
-    return f"{path}:{extra}" if extra else str(path)
-
-
-def _open_usd(stage: tuple, scene: str, frames_dir, triangles, topology, camera,
-              warn) -> tuple:
-    """``(animation, source)`` of a USD stage (``stage``: :func:`usd_stage`'s path and
-    options): a :class:`hlbvh.scenes.usd.UsdScene` (imported here, ``pxr`` being an
-    optional extra) and what identifies it (with its options, and the camera when
-    ``--camera`` names one, so a resume through others is refused)."""
-    path, options = stage
-    for flag, value in (("--frames-dir", frames_dir), ("--triangles", triangles),
-                        ("--topology", topology)):
-        if value is not None:
-            raise UserError(f"{flag} is not for USD stages; {scene!r} brings its own "
-                            f"animation")
-    try:
-        from hlbvh.scenes.usd import UsdScene
-    except ImportError as error:
-        raise UserError(f"scene {scene!r}: {error}") from None
-    try:
-        animation = UsdScene(str(path), camera=camera, warn=warn, **options)
-    except ValueError as error:
-        raise UserError(str(error)) from None
-    source = {"scene": usd_scene_string(path.resolve(), options),
-              "scene_sha256": animation.source_digest()}
-    if camera is not None:
-        source["camera"] = camera
-    return animation, source
-
-
-def parse_frames(text) -> tuple[int, int | None]:
-    """``"A:B"``, ``"A:"``, ``":B"`` or ``"N"`` (``0:N``) -> ``(A, B or None)``; ``None``
-    -> ``(0, None)``."""
-    if text is None:
-        return 0, None
-    match = re.fullmatch(r"\s*(\d*)\s*:\s*(\d*)\s*|\s*(\d+)\s*", text)
-    if not match:
-        raise UserError(f"--frames {text!r}: expected A:B (frames A .. B-1) or a count N")
-    if match.group(3) is not None:
-        count = int(match.group(3))
-        if count < 1:
-            raise UserError(f"--frames {text!r}: expected a count >= 1")
-        return 0, count
-    return int(match.group(1) or 0), int(match.group(2)) if match.group(2) else None
-
-
-def parse_topology(text: str | None):
-    """``--topology``: ``None`` or ``"fixed"`` -> ``"fixed"``, ``"changing"``, or
-    ``"ID=changing,ID=fixed"`` -> ``{"ID": "changing", ...}`` (what
-    :class:`hlbvh.scenes.SequenceScene` takes)."""
-    if text is None:
-        return "fixed"
-    word = text.strip()
-    if word in TOPOLOGIES:
-        return word
-    kinds = {}
-    for part in word.split(","):
-        shape, _, kind = part.partition("=")
-        if not shape.strip() or kind.strip() not in TOPOLOGIES:
-            raise UserError(f"--topology {text!r}: expected fixed, changing, or "
-                            f"ID=changing,ID=fixed per shape")
-        kinds[shape.strip()] = kind.strip()
-    return kinds
-
-
 def parse_resolution(text: str) -> tuple[int, int]:
     """``"W"`` -> ``(W, W)``; ``"WxH"`` -> ``(W, H)``."""
     match = re.fullmatch(r"\s*(\d+)\s*(?:[xX×]\s*(\d+)\s*)?", text)
@@ -435,18 +245,6 @@ def parse_resolution(text: str) -> tuple[int, int]:
         raise UserError(f"--resolution {text!r}: expected W or WxH, positive integers")
     width = int(match.group(1))
     return width, int(match.group(2)) if match.group(2) else width
-
-
-def int_flag(flag: str, text: str, least: int, most: int | None = None) -> int:
-    """``text`` as an integer in ``least .. most`` (``most`` ``None``: no upper bound)."""
-    expected = f"an integer >= {least}" if most is None else f"an integer in {least}..{most}"
-    try:
-        value = int(text)
-    except ValueError:
-        raise UserError(f"{flag} {text!r}: expected {expected}") from None
-    if value < least or (most is not None and value > most):
-        raise UserError(f"{flag} {text!r}: expected {expected}")
-    return value
 
 
 def choice(flag: str, text: str, choices) -> str:

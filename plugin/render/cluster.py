@@ -51,11 +51,11 @@ from distributed.comm.addressing import parse_address, parse_host_port
 
 from hlbvh.errors import UserError
 from hlbvh.render.frame import FrameRenderer, available_memory
-from hlbvh.cli.options import open_animation, usd_scene_string, usd_stage
 from hlbvh.render.output import (Statistics, frame_images_complete, output_directory, output_lock,
                           read_row, recorded_settings, remove_stale_files, row_files, row_path,
                           write_frame, write_row)
 from hlbvh.render.settings import RenderSettings, check_seed
+from hlbvh.render.source import SceneSpec, open_animation
 
 #: Most frames in a chunk unless ``--chunk-size`` says otherwise.
 MAX_CHUNK = 16
@@ -84,35 +84,6 @@ CANCEL_TIMEOUT = 300
 
 # One chunk at a time per worker process: Dr.Jit's thread pool is the process's.
 _ONE_CHUNK = threading.Lock()
-
-
-@dataclass(frozen=True)
-class SceneSpec:
-    """What a worker needs to open the animation as the client did: the command line's
-    strings (paths absolute) for :func:`hlbvh.cli.options.open_animation`."""
-
-    scene: str
-    frames_dir: str | None
-    triangles: str | None
-    frames: str
-    topology: str | None = None
-    camera: str | None = None
-
-    @classmethod
-    def of(cls, scene, frames_dir, triangles, frames: range, topology=None) -> SceneSpec:
-        """The spec of the command line's ``SCENE --frames-dir --triangles --topology``
-        (and ``--camera``, which a :class:`hlbvh.cli.options.SceneArgument` carries) and the
-        frame range, files made absolute (a worker's working directory is its own)."""
-        camera = getattr(scene, "camera", None)
-        stage = usd_stage(scene)
-        if stage is not None:
-            scene = usd_scene_string(stage[0].resolve(), stage[1])
-        elif Path(scene).suffix.lower() == ".xml":
-            scene = str(Path(scene).resolve())
-        if frames_dir is not None:
-            frames_dir = str(Path(frames_dir).resolve())
-        return cls(str(scene), frames_dir, triangles, f"{frames.start}:{frames.stop}",
-                   topology, camera)
 
 
 @dataclass(frozen=True)
@@ -170,8 +141,7 @@ def render_chunk(job: ChunkJob, frames: list[int]) -> list[dict]:
 def _animation(spec: SceneSpec, worker: str):
     """The spec's animation, opened once per worker process."""
     try:
-        return open_animation(spec.scene, spec.frames_dir, spec.triangles, spec.frames,
-                              spec.topology, spec.camera)[0]
+        return open_animation(spec)[0]
     except (UserError, ValueError) as error:
         raise UserError(f"worker {worker}: {error} (every worker needs the scene's files at "
                         f"the same path)") from None
@@ -191,7 +161,8 @@ def render_on_cluster(animation, spec: SceneSpec, frames: range, out_dir,
 
     Args:
         animation: the animation as the client opened it (from ``spec``).
-        spec: the scene, as :class:`SceneSpec`.
+        spec: the scene, as :class:`hlbvh.render.source.SceneSpec`, its files absolute
+            (:meth:`~hlbvh.render.source.SceneSpec.absolute`).
         frames: the frame range.
         out_dir: the output folder, seen by every worker at the same path.
         settings: the :class:`hlbvh.render.settings.RenderSettings`.
