@@ -214,3 +214,79 @@ def test06_our_integrator_with_our_accelerator_skips_mitsubas_rebuild():
     fresh = mi.load_dict(_cloth_scene({"type": "hlbvh_path"}))
     _lift(mi.traverse(fresh))
     np.testing.assert_array_equal(image, np.array(mi.render(fresh, seed=3)))
+
+
+def _l_plate_stage(path):
+    """A Y-up stage in metres, time codes 0..4: a ground, and an L-shaped plate of
+    2166 triangles (an instance: a rigid mesh of 2048+ triangles) turned 0, 90, 180,
+    270 degrees about the vertical, then mirrored, its world box the same throughout;
+    a camera above it, a sky."""
+    from pxr import Gf, Usd, UsdGeom, UsdLux
+
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(4)
+    ground = UsdGeom.Mesh.Define(stage, "/Ground")
+    ground.CreatePointsAttr([(-3, -0.2, -3), (3, -0.2, -3), (3, -0.2, 3), (-3, -0.2, 3)])
+    ground.CreateFaceVertexCountsAttr([4])
+    ground.CreateFaceVertexIndicesAttr([0, 3, 2, 1])
+    n = 19  # cells a side of each of the L's three unit squares
+    points, counts, indices = [], [], []
+    for qx, qz in ((-1, -1), (0, -1), (-1, 0)):
+        base = len(points)
+        points += [(qx + x / n, 0.0, qz + z / n) for z in range(n + 1) for x in range(n + 1)]
+        for z in range(n):
+            for x in range(n):
+                a = base + z * (n + 1) + x
+                counts.append(4)
+                indices += [a, a + n + 1, a + n + 2, a + 1]
+    mover = UsdGeom.Xform.Define(stage, "/Mover")
+    turn = mover.AddRotateYOp()
+    scale = mover.AddScaleOp()
+    for t, (angle, sx) in enumerate(((0, 1), (90, 1), (180, 1), (270, 1), (0, -1))):
+        turn.Set(float(angle), t)
+        scale.Set(Gf.Vec3f(sx, 1, 1), t)
+    plate = UsdGeom.Mesh.Define(stage, "/Mover/Plate")
+    plate.CreatePointsAttr(points)
+    plate.CreateFaceVertexCountsAttr(counts)
+    plate.CreateFaceVertexIndicesAttr(indices)
+    plate.CreateDoubleSidedAttr(True)
+    camera = UsdGeom.Camera.Define(stage, "/Cam")
+    camera.AddTranslateOp().Set(Gf.Vec3d(0.3, 4, 0.2))
+    camera.AddRotateXOp().Set(-90.0)
+    UsdLux.DomeLight.Define(stage, "/Sky").CreateIntensityAttr(1.0)
+    stage.GetRootLayer().Save()
+    return path
+
+
+@pytest.mark.parametrize("moving_accel", ["hlbvh", "auto"])
+def test07_a_usd_instance_turned_in_place_renders_as_native_frame_by_frame(tmp_path,
+                                                                           moving_accel):
+    """The case a hostile user found: a USD plate turned by 90 degrees at a time (and
+    mirrored), its box unchanged, rendered through the animation loop (scalar
+    transforms written each frame): each frame equals native's, and differs from the
+    frame before."""
+    pytest.importorskip("pxr")
+    from hlbvh.render.frame import FrameRenderer
+    from hlbvh.render.settings import RenderSettings
+    from hlbvh.scenes.usd import UsdScene
+    from test_render import assert_close_to_native
+
+    path = _l_plate_stage(tmp_path / "plate.usda")
+    settings = dict(resolution=(32, 32), spp=2, max_depth=2)
+    ours = FrameRenderer(UsdScene(path, warn=lambda line: None),
+                         RenderSettings(accel="hlbvh", moving_accel=moving_accel, **settings))
+    native = FrameRenderer(UsdScene(path, warn=lambda line: None),
+                           RenderSettings(accel="native", **settings))
+    assert ours.animation.instance_groups()  # the plate is an instance
+    previous = None
+    for i in range(5):
+        image, row = ours.render(i)
+        image = np.array(image)
+        assert_close_to_native(image, np.array(native.render(i)[0]))
+        if previous is not None:
+            assert not np.array_equal(image, previous)
+            assert row["decision"] != "kept"
+        previous = image
