@@ -57,6 +57,8 @@ class InstanceGroup:
     """
 
     name = "instances"
+    native = False  # our two levels trace it (hlbvh.accel.groups.Group)
+    bvh = None  # its trees are the two levels' (tree), not a BVH of the joined ones
 
     def __init__(self, groups: list, config: BuildConfig, group_of=None):
         self.groups, self.config = groups, config

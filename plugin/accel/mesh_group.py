@@ -37,6 +37,8 @@ class MeshGroup:
             ``built_sah``; None when the update did not refit).
     """
 
+    native = False  # our BVH traces it (hlbvh.accel.groups.Group)
+
     def __init__(self, name: str):
         self.name = name
         self.indices: tuple = ()

@@ -51,6 +51,9 @@ class NativeGroup:
             this update rebuild it).
     """
 
+    native = True  # a Mitsuba sub-scene traces it (hlbvh.accel.groups.Group)
+    bvh = None
+
     def __init__(self, groups: list, name: str = "static"):
         self.name = name
         self.groups = groups

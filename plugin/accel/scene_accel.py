@@ -205,7 +205,7 @@ class SceneAccel(SceneQueries):
         elif self.instances is not None:
             self.instances.keep()
         self._states, self._current = states, True
-        traced = [g for g in (self.static, self.dynamic) if isinstance(g, MeshGroup) and g.bvh
+        traced = [g for g in (self.static, self.dynamic) if g.bvh is not None
                   and (g is not self.dynamic or structure == "hlbvh")]
         if traced != self._traced or any(g.last["decision"] != "kept" for g in traced):
             self._join(traced)
@@ -259,7 +259,7 @@ class SceneAccel(SceneQueries):
         and through it with each structure of the moving meshes (ours and the native
         sub-scene, each brought up to date first), and record them and the probe's hit
         fractions in :attr:`costs`."""
-        if not self._current or not isinstance(self.static, NativeGroup):
+        if not self._current or not self.static.native:
             return
         moving, ray = self.moving_meshes, probe.rays
         costs, current = moving.costs, moving.structure
@@ -348,7 +348,7 @@ class SceneAccel(SceneQueries):
     def _update_static(self, moving: tuple, started: list, first: bool):
         """The static group over every shape (``"native"``) or mesh (``"hlbvh"``) not in
         ``moving``; ``started``: the shapes that just started moving."""
-        if isinstance(self.static, NativeGroup):
+        if self.static.native:
             moving = set(moving)
             still = tuple(i for i in range(len(self.shapes)) if i not in moving)
             self.static.update(self.shapes, still, [self.shapes[i].id() for i in started])
@@ -407,7 +407,7 @@ class SceneAccel(SceneQueries):
     def _routine_shapes(self):
         """``(index, shape)`` of the analytic shapes traced by their own routine: all of
         them with ``static="hlbvh"``, the moving ones with ``"native"``."""
-        if isinstance(self.static, NativeGroup):
+        if self.static.native:
             return [(i, s) for i, s in self.analytic if i in self.moving]
         return self.analytic
 
@@ -419,7 +419,7 @@ class SceneAccel(SceneQueries):
         n = dr.width(ray)
         active = mi.Bool(active) & dr.full(mi.Bool, True, n)
         hit = NearestHit.none(n)
-        native = isinstance(self.static, NativeGroup) and self.static.scene is not None
+        native = self.static.native and self.static.scene is not None
         if native:
             hit.take_native(self.static.preliminary(ray, coherent, active, reorder))
         # Each later structure looks no further than the nearest hit so far.
@@ -460,7 +460,7 @@ class SceneAccel(SceneQueries):
         self._check_current()
         active = mi.Bool(active) & dr.full(mi.Bool, True, dr.width(ray))
         hit = dr.zeros(mi.Bool, dr.width(ray))
-        if isinstance(self.static, NativeGroup) and self.static.scene is not None:
+        if self.static.native and self.static.scene is not None:
             hit |= self.static.test(ray, coherent, active)
         if self._tree is not None:
             hit |= mi.Bool(any_hit(self._tree, ray.o, ray.d, ray.maxt, active & ~hit))
