@@ -290,3 +290,27 @@ def test07_a_usd_instance_turned_in_place_renders_as_native_frame_by_frame(tmp_p
             assert not np.array_equal(image, previous)
             assert row["decision"] != "kept"
         previous = image
+
+
+@pytest.mark.parametrize("wrapper, skips", [("moment", True), ("aov", False)])
+def test08_a_wrapper_around_ours_skips_the_rebuild_only_when_it_traces_nothing_itself(
+        wrapper, skips):
+    """``moment`` only averages its nested integrator's samples: around ours, Mitsuba's
+    rebuild is skipped; Mitsuba's ``aov`` queries the scene for its own channels, so the
+    scene is kept current (with the warning). Either way the render follows the cloth."""
+    import warnings
+
+    nested = {"type": "hlbvh_path", "max_depth": 3}
+    integrator = ({"type": "moment", "nested": nested} if wrapper == "moment" else
+                  {"type": "aov", "aovs": "dd.y:depth", "nested": nested})
+    scene = mi.load_dict(_cloth_scene(integrator))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        params = hlbvh.traverse(scene)
+    assert params.skips_rebuild == skips
+    assert bool([w for w in caught if "Mitsuba's own accelerator" in str(w.message)]) != skips
+    _lift(params)
+    fresh = mi.load_dict(_cloth_scene(integrator))
+    _lift(mi.traverse(fresh))
+    np.testing.assert_allclose(np.array(mi.render(scene, seed=3)),
+                               np.array(mi.render(fresh, seed=3)), atol=1e-4)

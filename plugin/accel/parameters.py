@@ -15,8 +15,8 @@ or refitting only what moved.
 Mitsuba's own accelerator is then out of date, so the rebuild is skipped only where
 nothing queries it: when the scene's integrator is one of ours with ``accel="hlbvh"``.
 A scene whose integrator traces through Mitsuba's accelerator (Mitsuba's C++ ``path``,
-``volpath``, ``ptracer``, a wrapper such as ``moment``, or ours with
-``accel="native"``) is updated as ``mi.traverse`` updates it, rebuild included, with
+``volpath``, ``ptracer``, ``aov``, a wrapper such as ``moment`` around one of those, or
+ours with ``accel="native"``) is updated as ``mi.traverse`` updates it, rebuild included, with
 one warning saying so: its images are never rendered from old geometry. A scene
 without an integrator is taken to be traced through our accelerator (a
 :class:`hlbvh.SceneAccel` of the caller's); a render that passes another integrator
@@ -82,7 +82,7 @@ def traverse(scene: mi.Scene) -> ShapeParameters:
     params = mi.traverse(scene)
     shape_params = ShapeParameters(params.properties, params.hierarchy)
     integrator = scene.integrator()
-    if integrator is not None and getattr(integrator, "accel_name", None) != "hlbvh":
+    if integrator is not None and not _traces_through_ours(integrator, params.hierarchy):
         shape_params.skips_rebuild = False
         name = getattr(integrator, "accel_name", None)
         what = (f"{integrator.class_name()} with accel={name!r}" if name
@@ -93,3 +93,21 @@ def traverse(scene: mi.Scene) -> ShapeParameters:
             "an hlbvh integrator with accel='hlbvh' skips that rebuild",
             stacklevel=2)
     return shape_params
+
+
+#: Mitsuba's integrators that trace nothing themselves: each sample is their nested
+#: integrators' (``aov`` is not among them: its own channels query the scene).
+WRAPPERS = ("MomentIntegrator", "StokesIntegrator")
+
+
+def _traces_through_ours(integrator, hierarchy) -> bool:
+    """Whether every ray ``integrator`` traces goes through our accelerator: it is one of
+    ours with ``accel="hlbvh"``, or a wrapper (:data:`WRAPPERS`) whose nested
+    integrators all are (found among the scene's objects, ``hierarchy``)."""
+    if getattr(integrator, "accel_name", None) == "hlbvh":
+        return True
+    if integrator.class_name() not in WRAPPERS:
+        return False
+    nested = [node for node in hierarchy
+              if isinstance(node, mi.Integrator) and node is not integrator]
+    return bool(nested) and all(getattr(n, "accel_name", None) == "hlbvh" for n in nested)
