@@ -261,7 +261,7 @@ def _l_plate_stage(path):
     return path
 
 
-@pytest.mark.parametrize("moving_accel", ["hlbvh", "auto"])
+@pytest.mark.parametrize("moving_accel", ["hlbvh", "auto", "scene"])
 def test07_a_usd_instance_turned_in_place_renders_as_native_frame_by_frame(tmp_path,
                                                                            moving_accel):
     """The case a hostile user found: a USD plate turned by 90 degrees at a time (and

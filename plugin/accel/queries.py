@@ -139,12 +139,17 @@ class NativeAccel(SceneQueries):
     Args:
         scene: the ``mi.Scene``. Mitsuba rebuilds its accelerator itself in
             ``params.update()``, so :meth:`update` has nothing to do.
+        shading: an :class:`hlbvh.accel.instance_shading.InstanceShading` that expands
+            the hits (inside instances: field for field as Mitsuba does, without the call
+            through a shape pointer that Mitsuba compiles for every instance), or None
+            for Mitsuba's own expansion.
     """
 
     name = "native"
 
-    def __init__(self, scene):
+    def __init__(self, scene, shading=None):
         self.scene = scene
+        self.shading = shading
 
     def update(self):
         """Nothing to do: ``params.update()`` already rebuilt Mitsuba's accelerator.
@@ -158,7 +163,15 @@ class NativeAccel(SceneQueries):
         return self.scene.ray_intersect_preliminary(ray, coherent, *reorder, active)
 
     def _intersect(self, ray, ray_flags, coherent, active, reorder):
+        if self.shading is not None:
+            return super()._intersect(ray, ray_flags, coherent, active, reorder)
         return self.scene.ray_intersect(ray, ray_flags, coherent, *reorder, active)
 
     def _test(self, ray, coherent, active):
         return self.scene.ray_test(ray, coherent, active)
+
+    def surface_interaction(self, pi, ray, ray_flags=mi.RayFlags.All, active=True):
+        """The hits ``pi`` of ``ray`` expanded by ``shading`` where given, else by Mitsuba."""
+        if self.shading is None:
+            return super().surface_interaction(pi, ray, ray_flags, active)
+        return self.shading.surface_interaction(pi, ray, ray_flags, active)

@@ -113,8 +113,8 @@ class AccelIntegrator(mi.SamplingIntegrator):
         outside a render). The scene's own queries where the whole scene traces the
         moving meshes (``"scene"``)."""
         if self.accel_name == "hlbvh" and self._accel is not None and self._accel.is_for(scene):
-            if self._accel.moving_structure == "scene":
-                return NativeAccel(scene)
+            if self._accel.moving_structure == "scene":  # instances expanded as ours are
+                return NativeAccel(scene, shading=self._accel.shading)
             return self._accel
         return self.update_accel(scene)
 
