@@ -34,6 +34,8 @@ class MovingMeshes:
         estimates: each structure's estimated frame at the last :meth:`plan` (None
             before one).
         probed: whether the probe timed the structures' queries.
+        instances: whether the scene has moving instances (set by the accelerator):
+            the choice is then between our top level and the whole scene too.
     """
 
     def __init__(self, moving_accel: str, choosable: bool):
@@ -48,6 +50,7 @@ class MovingMeshes:
         self.costs = CostModel()
         self.estimates = None
         self.probed = False
+        self.instances = False
         self._forced = moving_accel
         self._choosable = choosable
         # Structures whose view of the moving meshes is out of date: the scene's own
@@ -60,12 +63,15 @@ class MovingMeshes:
         return self.ours.indices
 
     def allowed(self) -> tuple:
-        """The structures :meth:`plan` chooses among."""
+        """The structures :meth:`plan` chooses among (moving instances alone: ours or the
+        whole scene)."""
         if self._forced != "auto":
             return (self._forced,)
         if not self._choosable:
             return ("hlbvh",)
-        return STRUCTURES if native_moving_possible() else ("hlbvh", "scene")
+        if not native_moving_possible() or not self.indices:
+            return ("hlbvh", "scene")
+        return STRUCTURES
 
     def fell_behind(self, meshes_moved: bool, anything_moved: bool):
         """Record what a frame's motion leaves behind: the structures not updated this
@@ -120,7 +126,7 @@ class MovingMeshes:
         allowed = self.allowed()
         if len(allowed) == 1:
             self.structure = allowed[0]
-        elif self.indices:
+        elif self.indices or self.instances:
             triangles = {"native": sum(shapes[i].face_count() for i in self.indices),
                          "scene": sum(s.face_count() for s in shapes if s.is_mesh())}
             self.structure, self.estimates = self.costs.choose(
@@ -131,7 +137,8 @@ class MovingMeshes:
     def needs_probe(self) -> bool:
         """Whether :meth:`plan` still wants a probe (a choice among several structures,
         moving meshes to trace, no probe yet)."""
-        return not self.probed and len(self.allowed()) > 1 and bool(self.indices)
+        return (not self.probed and len(self.allowed()) > 1
+                and bool(self.indices or self.instances))
 
     def behind(self, structure: str) -> bool:
         """Whether ``structure`` misses motion since it last traced the moving meshes."""

@@ -195,6 +195,7 @@ class SceneAccel(SceneQueries):
         if self.shading is not None:
             self.shading.refresh([i for i in changed if is_instance(self.shapes[i])])
         moving_instances = tuple(i for i in moving if is_instance(self.shapes[i]))
+        self.moving_meshes.instances = bool(moving_instances)
         self._instances_behind |= not set(moving_instances).isdisjoint(changed)
         if self.instances is not None and structure != "scene":
             table = self.shading if self.shading is not None and self.shading.usable else None
