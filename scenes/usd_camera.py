@@ -1,5 +1,14 @@
 """The camera of a USD stage (``UsdGeom.Camera``, or a framing default) as a Mitsuba
-sensor; a mixin of :class:`hlbvh.scenes.usd.UsdScene`."""
+sensor; a mixin of :class:`hlbvh.scenes.usd.UsdScene`.
+
+The one named by ``camera=``, else the one the stage's render settings
+(``UsdRender.Settings``) name, else the first in traversal order, else a camera
+framing the first frame's meshes (said once). Focal length and apertures give the
+field of view, fitted so the whole aperture shows (``fov_axis`` ``x`` or ``y``),
+the clipping range gives ``near_clip``/``far_clip``. hlbvh's render loop moves
+meshes, not sensors: a time-sampled camera renders every frame from its pose at the
+first frame (said once).
+"""
 
 from __future__ import annotations
 

@@ -1,5 +1,16 @@
 """The lights of a USD stage (``UsdLux``) as Mitsuba emitters; a mixin of
-:class:`hlbvh.scenes.usd.UsdScene`."""
+:class:`hlbvh.scenes.usd.UsdScene`.
+
+``intensity * 2**exposure * color`` (divided by the light's area with
+``normalize``), UsdLux's radiance: DistantLight -> ``directional`` of the
+irradiance of that radiance over its disc (``angle``), DomeLight ->
+``constant``, or ``envmap`` with its latlong ``texture:file`` (OpenEXR's layout,
+as Mitsuba's; the pole +Y, or DomeLight_1's ``poleAxis``; the colour then ignored,
+said), SphereLight -> a ``sphere`` area light (``point`` with ``treatAsPoint``),
+RectLight -> a ``rectangle``, DiskLight -> a ``disk`` area light, each emitting
+along the light's -Z as UsdLux does; time-sampled lights keep their first frame.
+Colour temperature and shaping (cones, IES) are not applied (said).
+"""
 
 from __future__ import annotations
 

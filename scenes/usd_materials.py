@@ -1,7 +1,21 @@
 """The materials of a USD stage's meshes as Mitsuba BSDFs: ``UsdPreviewSurface``
 (diffuse colour, a diffuse texture, roughness, metallic, opacity, emission),
 ``displayColor`` as the fallback, grey otherwise; a mixin of
-:class:`hlbvh.scenes.usd.UsdScene`."""
+:class:`hlbvh.scenes.usd.UsdScene`.
+
+``UsdPreviewSurface`` bound with ``UsdShade.MaterialBindingAPI``: diffuseColor,
+roughness, metallic to ``principled``; opacity below 1 through a ``mask``
+(``opacityThreshold`` makes it a cutout); emissiveColor to an ``area`` emitter on
+the mesh. A diffuseColor or emissiveColor read from a ``UsdUVTexture`` becomes a
+``bitmap`` over the mesh's texture coordinates (the ``UsdPrimvarReader_float2``'s
+primvar, ``st`` by default; per point, or faceVarying with the points split where
+their uv differ); a diffuseColor from a ``UsdPrimvarReader_float3`` reads its
+primvar as ``displayColor`` is read; other connected inputs keep their authored
+value (said once per material, naming them). Without a material the
+``displayColor`` primvar gives a diffuse colour: per point or per face as a Mitsuba
+mesh attribute (``vertex_color``, ``face_color``), its mean for other interpolations
+(said), else grey.
+"""
 
 from __future__ import annotations
 

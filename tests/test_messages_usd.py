@@ -15,6 +15,7 @@ from hlbvh.render import images  # noqa: E402
 from hlbvh.render.frame import FrameRenderer  # noqa: E402
 from hlbvh.scenes import usd  # noqa: E402
 from hlbvh.scenes.usd import UsdScene  # noqa: E402
+from hlbvh.scenes.usd_instances import Placements  # noqa: E402
 from hlbvh.render.settings import RenderSettings  # noqa: E402
 
 TINY = ["--resolution", "24", "--spp", "2", "--quiet"]
@@ -128,10 +129,10 @@ def test_a_long_time_range_costs_what_its_samples_and_the_frames_asked_for_cost(
     frame of the range (a million XformCaches and point instancer evaluations, 3 GB)."""
     path = _long_stage(tmp_path / "long.usda", end=1e6)
     made, evaluated = [], []
-    real_cache, real_points = UsdGeom.XformCache, UsdScene._point_transforms
+    real_cache, real_points = UsdGeom.XformCache, Placements.points
     monkeypatch.setattr(UsdGeom, "XformCache",
                         lambda *a: made.append(a) or real_cache(*a))
-    monkeypatch.setattr(UsdScene, "_point_transforms",
+    monkeypatch.setattr(Placements, "points",
                         lambda self, p, t: evaluated.append(t.GetValue()) or real_points(self, p, t))
     animation = UsdScene(path, warn=lambda line: None)
     assert animation.frame_count == 1_000_001
