@@ -15,6 +15,7 @@ Colour temperature and shaping (cones, IES) are not applied (said).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import mitsuba as mi
 import numpy as np
@@ -103,7 +104,6 @@ class _Lights:
             raise ValueError(f"{where}: inputs:intensity {intensity:g} * 2^inputs:exposure "
                              f"{exposure:g} * inputs:color is past single precision "
                              f"({_LARGEST:.3g})")
-        radiance = power * color
         normalize = bool(light.GetNormalizeAttr().Get(time))
         if light.GetEnableColorTemperatureAttr().Get(time):
             self._warn(f"{self._where}: {path}: its colour temperature is not applied "
@@ -113,98 +113,143 @@ class _Lights:
                        f"applied; it emits unshaped")
         transform = self._root @ _matrix(cache.GetLocalToWorldTransform(prim))
         scale = np.linalg.norm(transform[:3, :3], axis=0)
-        rotation = transform[:3, :3] / np.where(scale > 0, scale, 1)
-        key = self._new_id(path)
-        black = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0, 0, 0]}}
-
-        def rgb(value):
-            return {"type": "rgb", "value": [float(v) for v in value]}
-
-        if kind == "DistantLight":
-            # Mitsuba's directional light is parallel: the disc's irradiance, without
-            # its soft shadows.
-            angle = _checked(f"{where}: inputs:angle",
-                             float(UsdLux.DistantLight(prim).GetAngleAttr().Get(time)), least=0)
-            irradiance = radiance if normalize else radiance * distant_size_factor(angle)
-            direction = rotation @ np.array([0.0, 0.0, -1.0])
-            self._lights[key] = {"type": "directional", "direction": direction.tolist(),
-                                 "irradiance": rgb(irradiance)}
-        elif kind in ("DomeLight", "DomeLight_1"):
-            dome = UsdLux.DomeLight(prim) if kind == "DomeLight" else UsdLux.DomeLight_1(prim)
-            texture = dome.GetTextureFileAttr().Get(time)
-            layout = dome.GetTextureFormatAttr().Get(time)
-            latlong = layout in (None, UsdLux.Tokens.automatic, UsdLux.Tokens.latlong)
-            resolved = texture.resolvedPath if texture is not None else ""
-            filename = _local_asset(resolved) if resolved and latlong else None
-            problem = None
-            if resolved and latlong:
-                problem = ("cannot be read from its package" if filename is None
-                           else _unreadable_image(filename))
-            if resolved and latlong and problem is None:
-                if not np.allclose(color, 1.0):
-                    self._warn(f"{self._where}: {path}: a textured dome's colour is "
-                               f"ignored (Mitsuba's envmap takes a scale only)")
-                # Mitsuba's envmap and UsdLux's dome both follow OpenEXR's latlong
-                # layout (longitude 0 along +Z, +pi/2 along +X, the top pole +Y): only the
-                # pole differs, for DomeLight_1 whose poleAxis is the stage's Z up axis.
-                to_world = np.eye(4)
-                to_world[:3, :3] = rotation @ _dome_pole(dome, kind, self.stage)
-                self._lights[key] = {"type": "envmap", "filename": filename,
-                                     "scale": power,
-                                     "to_world": mi.ScalarTransform4f(to_world.tolist())}
-            else:
-                if texture is not None and texture.path:
-                    why = (problem or f"is in the {layout} layout, not latlong"
-                           if resolved else "does not resolve")
-                    self._warn(f"{self._where}: {path}: texture {texture.path!r} {why}; "
-                               f"the dome is a constant colour")
-                self._lights[key] = {"type": "constant", "radiance": rgb(radiance)}
-        elif kind == "SphereLight":
-            sphere = UsdLux.SphereLight(prim)
-            radius = _checked(f"{where}: inputs:radius",
-                              float(sphere.GetRadiusAttr().Get(time) or 0.0), least=0) \
-                * float(scale.mean())
-            centre = transform[:3, 3].tolist()
-            if bool(sphere.GetTreatAsPointAttr().Get(time)) or radius <= 0:
-                # A point of the sphere's power: a sphere of radiance L seen from afar is a
-                # disc of area pi r^2, an intensity of L pi r^2 in every direction (L / 4
-                # with normalize, whatever the radius).
-                factor = 0.25 if normalize else math.pi * radius ** 2
-                if factor == 0:
-                    self._warn(f"{where}: a SphereLight of radius 0 without inputs:normalize "
-                               f"emits nothing (UsdLux: radiance times its area)")
-                self._lights[key] = {"type": "point", "position": centre,
-                                     "intensity": rgb(radiance * factor)}
-            else:
-                if normalize:
-                    radiance = radiance / (4 * math.pi * radius ** 2)
-                self._lights[key] = {"type": "sphere", "center": centre, "radius": radius,
-                                     "bsdf": black,
-                                     "emitter": {"type": "area", "radiance": rgb(radiance)}}
-        elif kind in ("RectLight", "DiskLight"):
-            if kind == "RectLight":
-                rect = UsdLux.RectLight(prim)
-                half = np.array([_checked(f"{where}: inputs:width",
-                                          float(rect.GetWidthAttr().Get(time)), 0, True) / 2,
-                                 _checked(f"{where}: inputs:height",
-                                          float(rect.GetHeightAttr().Get(time)), 0, True) / 2,
-                                 1.0])
-                area = 4 * half[0] * half[1] * scale[0] * scale[1]
-                if rect.GetTextureFileAttr().Get(time):
-                    self._warn(f"{self._where}: {path}: a rect light's texture is not read")
-            else:
-                r = _checked(f"{where}: inputs:radius",
-                             float(UsdLux.DiskLight(prim).GetRadiusAttr().Get(time)), 0, True)
-                half = np.array([r, r, 1.0])
-                area = math.pi * r * r * scale[0] * scale[1]
-            if normalize and area > 0:
-                radiance = radiance / area
-            to_world = transform @ np.diag([*half, 1.0]) @ _FLIP_Z
-            self._lights[key] = {
-                "type": "rectangle" if kind == "RectLight" else "disk",
-                "to_world": mi.ScalarTransform4f(to_world.tolist()), "bsdf": black,
-                "emitter": {"type": "area", "radiance": rgb(radiance)}}
-        else:
-            self._ids.discard(key)
+        reader = _READERS.get(kind)
+        if reader is None:
             self._warn(f"{self._where}: {path}: a {kind} is not supported; it does not "
                        f"light the scene")
+            return
+        key = self._new_id(path)
+        self._lights[key] = reader(_LightPrim(
+            prim, kind, where, time, self.stage, power, color, power * color, normalize,
+            transform, scale, transform[:3, :3] / np.where(scale > 0, scale, 1)), self._warn)
+
+
+@dataclass
+class _LightPrim:
+    """A UsdLux light at the first frame, as a light type's reader takes it: its
+    radiance ``power * color`` (``intensity * 2^exposure``) before ``normalize``, and
+    its transform in Mitsuba's Y-up metres with that transform's scale and rotation."""
+
+    prim: object
+    kind: str
+    where: str  # the stage and the light's path, as messages name it
+    time: object
+    stage: object
+    power: float
+    color: np.ndarray
+    radiance: np.ndarray
+    normalize: bool
+    transform: np.ndarray
+    scale: np.ndarray
+    rotation: np.ndarray
+
+
+def _rgb(value) -> dict:
+    return {"type": "rgb", "value": [float(v) for v in value]}
+
+
+def _black() -> dict:
+    """The BSDF of an emitting shape: black, as UsdLux's lights reflect nothing."""
+    return {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0, 0, 0]}}
+
+
+def _distant(light: _LightPrim, warn) -> dict:
+    """A DistantLight as a ``directional`` emitter: Mitsuba's directional light is
+    parallel, so the disc's irradiance, without its soft shadows."""
+    angle = _checked(f"{light.where}: inputs:angle", float(
+        UsdLux.DistantLight(light.prim).GetAngleAttr().Get(light.time)), least=0)
+    irradiance = (light.radiance if light.normalize
+                  else light.radiance * distant_size_factor(angle))
+    direction = light.rotation @ np.array([0.0, 0.0, -1.0])
+    return {"type": "directional", "direction": direction.tolist(),
+            "irradiance": _rgb(irradiance)}
+
+
+def _dome(light: _LightPrim, warn) -> dict:
+    """A DomeLight (or DomeLight_1) as an ``envmap`` of its latlong texture, else a
+    ``constant`` of its radiance (a texture that cannot be read said)."""
+    dome = (UsdLux.DomeLight(light.prim) if light.kind == "DomeLight"
+            else UsdLux.DomeLight_1(light.prim))
+    texture = dome.GetTextureFileAttr().Get(light.time)
+    layout = dome.GetTextureFormatAttr().Get(light.time)
+    latlong = layout in (None, UsdLux.Tokens.automatic, UsdLux.Tokens.latlong)
+    resolved = texture.resolvedPath if texture is not None else ""
+    filename = _local_asset(resolved) if resolved and latlong else None
+    problem = None
+    if resolved and latlong:
+        problem = ("cannot be read from its package" if filename is None
+                   else _unreadable_image(filename))
+    if resolved and latlong and problem is None:
+        if not np.allclose(light.color, 1.0):
+            warn(f"{light.where}: a textured dome's colour is "
+                 f"ignored (Mitsuba's envmap takes a scale only)")
+        # Mitsuba's envmap and UsdLux's dome both follow OpenEXR's latlong
+        # layout (longitude 0 along +Z, +pi/2 along +X, the top pole +Y): only the
+        # pole differs, for DomeLight_1 whose poleAxis is the stage's Z up axis.
+        to_world = np.eye(4)
+        to_world[:3, :3] = light.rotation @ _dome_pole(dome, light.kind, light.stage)
+        return {"type": "envmap", "filename": filename, "scale": light.power,
+                "to_world": mi.ScalarTransform4f(to_world.tolist())}
+    if texture is not None and texture.path:
+        why = (problem or f"is in the {layout} layout, not latlong"
+               if resolved else "does not resolve")
+        warn(f"{light.where}: texture {texture.path!r} {why}; "
+             f"the dome is a constant colour")
+    return {"type": "constant", "radiance": _rgb(light.radiance)}
+
+
+def _sphere(light: _LightPrim, warn) -> dict:
+    """A SphereLight as a ``sphere`` area light, or a ``point`` of the sphere's power
+    (``treatAsPoint``, or a radius of 0)."""
+    sphere = UsdLux.SphereLight(light.prim)
+    radius = _checked(f"{light.where}: inputs:radius",
+                      float(sphere.GetRadiusAttr().Get(light.time) or 0.0), least=0) \
+        * float(light.scale.mean())
+    centre = light.transform[:3, 3].tolist()
+    radiance = light.radiance
+    if bool(sphere.GetTreatAsPointAttr().Get(light.time)) or radius <= 0:
+        # A point of the sphere's power: a sphere of radiance L seen from afar is a
+        # disc of area pi r^2, an intensity of L pi r^2 in every direction (L / 4
+        # with normalize, whatever the radius).
+        factor = 0.25 if light.normalize else math.pi * radius ** 2
+        if factor == 0:
+            warn(f"{light.where}: a SphereLight of radius 0 without inputs:normalize "
+                 f"emits nothing (UsdLux: radiance times its area)")
+        return {"type": "point", "position": centre, "intensity": _rgb(radiance * factor)}
+    if light.normalize:
+        radiance = radiance / (4 * math.pi * radius ** 2)
+    return {"type": "sphere", "center": centre, "radius": radius, "bsdf": _black(),
+            "emitter": {"type": "area", "radiance": _rgb(radiance)}}
+
+
+def _rect_or_disk(light: _LightPrim, warn) -> dict:
+    """A RectLight as a ``rectangle``, a DiskLight as a ``disk`` area light, each
+    emitting along the light's -Z as UsdLux does."""
+    where, time, scale = light.where, light.time, light.scale
+    if light.kind == "RectLight":
+        rect = UsdLux.RectLight(light.prim)
+        half = np.array([_checked(f"{where}: inputs:width",
+                                  float(rect.GetWidthAttr().Get(time)), 0, True) / 2,
+                         _checked(f"{where}: inputs:height",
+                                  float(rect.GetHeightAttr().Get(time)), 0, True) / 2,
+                         1.0])
+        area = 4 * half[0] * half[1] * scale[0] * scale[1]
+        if rect.GetTextureFileAttr().Get(time):
+            warn(f"{where}: a rect light's texture is not read")
+    else:
+        r = _checked(f"{where}: inputs:radius",
+                     float(UsdLux.DiskLight(light.prim).GetRadiusAttr().Get(time)), 0, True)
+        half = np.array([r, r, 1.0])
+        area = math.pi * r * r * scale[0] * scale[1]
+    radiance = light.radiance
+    if light.normalize and area > 0:
+        radiance = radiance / area
+    to_world = light.transform @ np.diag([*half, 1.0]) @ _FLIP_Z
+    return {"type": "rectangle" if light.kind == "RectLight" else "disk",
+            "to_world": mi.ScalarTransform4f(to_world.tolist()), "bsdf": _black(),
+            "emitter": {"type": "area", "radiance": _rgb(radiance)}}
+
+
+#: Each UsdLux light type's reader: the Mitsuba emitter (or emitting shape) it becomes.
+_READERS = {"DistantLight": _distant, "DomeLight": _dome, "DomeLight_1": _dome,
+            "SphereLight": _sphere, "RectLight": _rect_or_disk, "DiskLight": _rect_or_disk}
