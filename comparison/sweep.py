@@ -8,26 +8,10 @@ Usage::
     hlbvh sweep fracture --triangles 1000000 --frames 0:6 --spp 16 --spp-curve 1,4,16,64
     hlbvh sweep cloth --settings hlbvh,lbvh,refit,builder=lbvh+leaf_size=8
 
-Settings (``--settings``, comma separated; default: every name of :data:`SETTINGS`)
------------------------------------------------------------------------------------
-A *setting* is a set of builder options (:class:`hlbvh.BuildConfig`) plus our
-accelerator's per-frame ``update`` policy, each varying one knob from the defaults:
-``hlbvh`` (the defaults), ``lbvh``, ``sah`` (the builder); ``morton60`` (60-bit keys),
-``axis``, ``rank`` (quantisation per axis, or by rank, instead of in a cube);
-``coarse6``, ``coarse18`` (``coarse_bits``); ``p1``, ``p5`` (bit planes per emission
-pass); ``leaf1``, ``leaf8`` (``leaf_size``); ``rebuild`` (a build every frame, seeded
-with last frame's order where that pays), ``fresh`` (the same, unseeded), ``refit``
-(refit every frame), ``auto`` (refit while the SAH cost stays near the last build's:
-the accelerator's default); ``static_hlbvh`` (``static="hlbvh"``: the still shapes
-too in our BVHs and watertight traversal, the accuracy end of the trade; every other
-setting leaves them to Mitsuba's accelerator, ``static="native"``); ``moving_native``,
-``moving_scene`` and ``moving_auto`` (``moving_accel``: the moving meshes in a Mitsuba
-sub-scene rebuilt each frame, the whole scene rebuilt, or the choice by measured cost;
-every other setting traces them with our BVH, the one it measures). A setting without
-an ``update`` rebuilds every frame, so that the builder settings measure their
-builder. A setting may also be spelled out: ``builder=lbvh+leaf_size=8+update=refit``
-or ``static=hlbvh+update=auto`` (its label is that text). ``native`` (Mitsuba's own
-accelerator) is always measured, as the reference.
+Settings (``--settings``)
+-------------------------
+The grid of builder options and update policies, and ``native`` (Mitsuba's own
+accelerator) always measured as the reference: :mod:`hlbvh.comparison.sweep_settings`.
 
 What is measured
 ----------------
@@ -72,7 +56,6 @@ from __future__ import annotations
 import os
 import statistics
 import sys
-from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import drjit as dr
@@ -81,48 +64,19 @@ import mitsuba as mi
 from hlbvh.comparison import plots, report
 from hlbvh.comparison.machine import cpu_model
 from hlbvh.comparison.bench_trace import primary_rays, secondary_rays
-from hlbvh.accel.policy import BUILD_OPTIONS, UPDATES
 from hlbvh.comparison.compare import TOLERANCE
 from hlbvh.comparison.crossover import crossover_spp
 from hlbvh.comparison.metrics import image_metrics
+from hlbvh.comparison.sweep_settings import NATIVE, SETTINGS, Setting, parse_settings
 from hlbvh.errors import UserError
 from hlbvh.render.frame import FrameRenderer, check_frame_fits
 from hlbvh.render.images import as_image
-from hlbvh.cli.options import (add_scene_options, option_value, out_flag,
-                               render_settings)
+from hlbvh.cli.options import add_scene_options, out_flag, render_settings
 from hlbvh.errors import int_flag
 from hlbvh.render.source import SceneSpec, open_animation
 from hlbvh.render.output import output_directory
 from hlbvh.render.settings import RenderSettings, check_seed
 from hlbvh.timing import timed
-
-#: The default grid: each setting varies one knob of the defaults (builder options, and
-#: ``update``: our accelerator's per-frame policy).
-SETTINGS = {
-    "hlbvh": {},
-    "lbvh": {"builder": "lbvh"},
-    "sah": {"builder": "sah"},
-    "morton60": {"morton_bits": 60},
-    "axis": {"quantization": "axis"},
-    "rank": {"quantization": "rank"},
-    "coarse6": {"coarse_bits": 6},
-    "coarse18": {"coarse_bits": 18},
-    "p1": {"p": 1},
-    "p5": {"p": 5},
-    "leaf1": {"leaf_size": 1},
-    "leaf8": {"leaf_size": 8},
-    "rebuild": {"update": "rebuild"},
-    "fresh": {"update": "fresh"},
-    "refit": {"update": "refit"},
-    "auto": {"update": "auto"},
-    "static_hlbvh": {"static": "hlbvh", "update": "auto"},
-    "moving_native": {"moving_accel": "native"},
-    "moving_scene": {"moving_accel": "scene"},
-    "moving_auto": {"moving_accel": "auto", "update": "auto"},
-}
-
-#: The label of Mitsuba's own accelerator among the rows.
-NATIVE = "native"
 
 #: Samples per pixel of the frame-time curve unless ``--spp-curve`` says otherwise.
 SPP_CURVE = (1, 4, 16)
@@ -132,104 +86,6 @@ DEFAULT_FRAMES = "0:4"
 DEFAULT_SPP = 4
 
 _TRACE_REPEATS = 3
-
-
-@dataclass(frozen=True)
-class Setting:
-    """One point of the sweep.
-
-    Attributes:
-        label: its name in tables and plots.
-        build_options: options of :func:`hlbvh.build`.
-        update: our accelerator's per-frame policy, or ``None`` for a rebuild every frame.
-        accel: ``"hlbvh"``, or ``"native"`` for Mitsuba's accelerator.
-        static: what traces the still shapes (``"native"`` or ``"hlbvh"``).
-        moving_accel: what traces the moving meshes: ``"hlbvh"`` unless the setting
-            names another (a builder setting measures our BVH, so the choice by cost
-            is not left to pick Mitsuba's for it).
-    """
-
-    label: str
-    build_options: dict = field(default_factory=dict)
-    update: str | None = None
-    accel: str = "hlbvh"
-    static: str = "native"
-    moving_accel: str = "hlbvh"
-
-    def render_settings(self, base: RenderSettings) -> RenderSettings:
-        """``base`` with this setting's accelerator, builder options and policy (a
-        rebuild every frame when it names none)."""
-        update = None if self.accel == NATIVE else (self.update or "rebuild")
-        return replace(base, accel=self.accel, build_options=dict(self.build_options),
-                       update=update, static=self.static,
-                       moving_accel=None if self.accel == NATIVE else self.moving_accel)
-
-    def description(self) -> str:
-        """The options as ``key=value`` joined by ``+`` (``defaults`` when none)."""
-        options = {**self.build_options, **({"update": self.update} if self.update else {}),
-                   **({"static": self.static} if self.static != "native" else {}),
-                   **({"moving_accel": self.moving_accel}
-                      if self.moving_accel != "hlbvh" else {})}
-        return "+".join(f"{k}={v}" for k, v in options.items()) or (
-            "Mitsuba's accelerator" if self.accel == NATIVE else "defaults")
-
-
-def parse_settings(text: str | None) -> list[Setting]:
-    """``--settings``: names of :data:`SETTINGS` and spelled-out settings
-    (``key=value+key=value``), comma separated; ``None`` for every name of the grid.
-
-    Raises:
-        UserError: an unknown name, a malformed or invalid option (naming it), or a
-            label given twice.
-    """
-    if text is None:
-        words = list(SETTINGS)
-    else:
-        words = [word.strip() for word in text.split(",")]
-        if not all(words):
-            raise UserError(f"--settings {text!r}: expected names or key=value+... separated "
-                            "by single commas")
-    settings = []
-    for word in words:
-        if word in SETTINGS:
-            options = dict(SETTINGS[word])
-        elif "=" in word:
-            options = _spelled_out(word)
-        else:
-            raise UserError(f"--settings: unknown setting {word!r}; expected one of "
-                            f"{', '.join(SETTINGS)} or key=value+key=value")
-        update = options.pop("update", None)
-        static = options.pop("static", "native")
-        moving_accel = options.pop("moving_accel", "hlbvh")
-        if update is not None and update not in UPDATES:
-            raise UserError(f"--settings {word!r}: update={update!r}: expected one of "
-                            f"{', '.join(UPDATES)}")
-        try:
-            RenderSettings(build_options=options, static=static, moving_accel=moving_accel)
-        except ValueError as error:
-            raise UserError(f"--settings {word!r}: {error}") from None
-        settings.append(Setting(word, options, update, static=static, moving_accel=moving_accel))
-    labels = [s.label for s in settings]
-    twice = sorted({label for label in labels if labels.count(label) > 1})
-    if twice:
-        raise UserError(f"--settings: {', '.join(twice)} given more than once")
-    return settings
-
-
-#: The accelerator's own options a spelled-out setting may name.
-_POLICY_KEYS = ("update", "static", "moving_accel")
-
-
-def _spelled_out(word: str) -> dict:
-    options = {}
-    for part in word.split("+"):
-        key, _, value = part.partition("=")
-        key = key.strip().replace("-", "_")
-        if key not in (*BUILD_OPTIONS, *_POLICY_KEYS) or not value.strip():
-            raise UserError(f"--settings {word!r}: {part!r} is not key=value with a key among "
-                            f"{', '.join((*BUILD_OPTIONS, *_POLICY_KEYS))}")
-        options[key] = option_value(value)
-    return options
 
 
 # ---------------------------------------------------------------------------------------
