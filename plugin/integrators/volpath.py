@@ -20,6 +20,85 @@ def _channel_value(spectrum, channel):
     return value
 
 
+def _sampled_channel(sampler, active):
+    """The colour channel whose extinction samples this path's distances: drawn
+    uniformly in RGB variants, 0 otherwise."""
+    channel = mi.UInt32(0)
+    if mi.is_rgb:
+        n_channels = dr.size_v(mi.Spectrum)
+        channel = mi.UInt32(dr.minimum(sampler.next_1d(active) * n_channels, n_channels - 1))
+    return channel
+
+
+def _roulette(sampler, throughput, eta, depth, rr_depth: int, max_depth: int, active):
+    """``(throughput, active)`` after Russian roulette past ``rr_depth`` (a surviving
+    path's throughput divided by its survival probability) and the depth limit; a path
+    of zero throughput ends."""
+    throughput = mi.Spectrum(throughput)
+    active = active & dr.any(mi.unpolarized_spectrum(throughput) != 0.0)
+    q = dr.minimum(dr.max(mi.unpolarized_spectrum(throughput)) * dr.square(eta), 0.95)
+    perform_rr = depth > rr_depth
+    active &= (sampler.next_1d(active) < q) | ~perform_rr
+    throughput[perform_rr] = throughput * dr.rcp(dr.detach(q))
+    active &= depth < max_depth
+    return throughput, active
+
+
+def _free_flight(accel, sampler, ray, medium, channel, si, needs_intersection, throughput,
+                 active_medium, is_spectral):
+    """A distance sampled in ``medium`` along ``ray`` (bounded by the surface hit, found
+    through ``accel`` where ``needs_intersection``), the throughput of spectral media
+    weighted by their transmittance over its pdf. Returns ``(mei, ray, si,
+    needs_intersection, throughput, escaped_medium, active_medium)``: the lanes that
+    left the medium (no interaction before the surface) and those still in it."""
+    ray, si, throughput = mi.Ray3f(ray), mi.SurfaceInteraction3f(si), mi.Spectrum(throughput)
+    mei = medium.sample_interaction(ray, sampler.next_1d(active_medium), channel,
+                                    active_medium)
+    ray.maxt[active_medium & medium.is_homogeneous() & mei.is_valid()] = mei.t
+    intersect = needs_intersection & active_medium
+    si[intersect] = accel.ray_intersect(ray, intersect)
+    needs_intersection = needs_intersection & ~active_medium
+
+    mei.t[active_medium & (si.t < mei.t)] = dr.inf
+    tr, free_flight_pdf = medium.transmittance_eval_pdf(mei, si, is_spectral)
+    tr_pdf = _channel_value(free_flight_pdf, channel)
+    throughput[is_spectral] = throughput * dr.select(tr_pdf > 0.0, tr / tr_pdf, 0.0)
+    escaped_medium = active_medium & ~mei.is_valid()
+    return (mei, ray, si, needs_intersection, throughput, escaped_medium,
+            active_medium & mei.is_valid())
+
+
+def _sample_phase(phase, phase_ctx, mei, sampler, active):
+    """``(wo, weight, pdf)``: a direction sampled from the medium's phase function
+    (Mitsuba's build draws the 2D sample first)."""
+    phase = mi.PhaseFunctionPtr(phase)
+    phase[~active] = dr.zeros(mi.PhaseFunctionPtr)
+    sample_2 = sampler.next_2d(active)
+    sample_1 = sampler.next_1d(active)
+    return phase.sample(phase_ctx, mei, sample_1, sample_2, active)
+
+
+def _past_hidden_emitters(accel, si, ray, depth, intersect):
+    """``si`` where the camera ray continues past every area emitter it meets
+    (``hide_emitters``), through ``accel``."""
+    si = mi.SurfaceInteraction3f(si)
+    skip = (si.is_valid() & (si.shape.emitter() != None)  # noqa: E711
+            & (depth == 0) & intersect)
+    ray_skip = si.spawn_ray(ray.d)
+    pi = skip_area_emitters(accel, ray_skip, True, skip)
+    si[skip] = accel.surface_interaction(pi, ray_skip, mi.RayFlags.All, skip)
+    return si
+
+
+def _sample_bsdf(bsdf, ctx, si, sampler, active):
+    """``(BSDFSample3f, weight in world space)``: the BSDF sampled at ``si`` (the 2D
+    sample first, as for the phase function)."""
+    sample_2 = sampler.next_2d(active)
+    sample_1 = sampler.next_1d(active)
+    bs, bsdf_weight = bsdf.sample(ctx, si, sample_1, sample_2, active)
+    return bs, si.to_world_mueller(bsdf_weight, -bs.wo, si.wi)
+
+
 class VolpathIntegrator(AccelIntegrator):
     r"""
     .. _integrator-hlbvh_volpath:
@@ -83,11 +162,7 @@ class VolpathIntegrator(AccelIntegrator):
         medium = dr.zeros(mi.MediumPtr) if medium is None else mi.MediumPtr(medium)
         specular_chain = active & (not self.hide_emitters)
         depth = mi.UInt32(0)
-
-        channel = mi.UInt32(0)
-        if dr.hint(mi.is_rgb, mode="scalar"):
-            n_channels = dr.size_v(mi.Spectrum)
-            channel = mi.UInt32(dr.minimum(sampler.next_1d(active) * n_channels, n_channels - 1))
+        channel = _sampled_channel(sampler, active)
 
         si = dr.zeros(mi.SurfaceInteraction3f)
         needs_intersection = mi.Bool(True)
@@ -95,34 +170,18 @@ class VolpathIntegrator(AccelIntegrator):
         last_scatter_direction_pdf = mi.Float(1.0)
 
         while dr.hint(active, label="hlbvh_volpath"):
-            # ------------------- Russian roulette, depth ---------------------
-            active &= dr.any(mi.unpolarized_spectrum(throughput) != 0.0)
-            q = dr.minimum(dr.max(mi.unpolarized_spectrum(throughput)) * dr.square(eta), 0.95)
-            perform_rr = depth > self.rr_depth
-            active &= (sampler.next_1d(active) < q) | ~perform_rr
-            throughput[perform_rr] = throughput * dr.rcp(dr.detach(q))
-            active &= depth < self.max_depth
+            throughput, active = _roulette(sampler, throughput, eta, depth, self.rr_depth,
+                                           self.max_depth, active)
 
             # --------------------- Sampling the medium -----------------------
             active_medium = active & (medium != None)  # noqa: E711 (JIT compare)
             active_surface = active & ~active_medium
             is_spectral = active_medium & medium.has_spectral_extinction()
             not_spectral = ~is_spectral & active_medium
-
-            mei = medium.sample_interaction(ray, sampler.next_1d(active_medium), channel,
-                                            active_medium)
-            ray.maxt[active_medium & medium.is_homogeneous() & mei.is_valid()] = mei.t
-            intersect = needs_intersection & active_medium
-            si[intersect] = accel.ray_intersect(ray, intersect)
-            needs_intersection &= ~active_medium
-
-            mei.t[active_medium & (si.t < mei.t)] = dr.inf
-            tr, free_flight_pdf = medium.transmittance_eval_pdf(mei, si, is_spectral)
-            tr_pdf = _channel_value(free_flight_pdf, channel)
-            throughput[is_spectral] = throughput * dr.select(tr_pdf > 0.0, tr / tr_pdf, 0.0)
-
-            escaped_medium = active_medium & ~mei.is_valid()
-            active_medium &= mei.is_valid()
+            (mei, ray, si, needs_intersection, throughput, escaped_medium,
+             active_medium) = _free_flight(accel, sampler, ray, medium, channel, si,
+                                           needs_intersection, throughput, active_medium,
+                                           is_spectral)
 
             # Null and real scattering
             null_scatter_prob = dr.mean(mei.sigma_n / mei.combined_extinction)
@@ -153,18 +212,13 @@ class VolpathIntegrator(AccelIntegrator):
             specular_chain &= ~act_medium_scatter
             specular_chain |= act_medium_scatter & ~sample_emitters
             active_e = act_medium_scatter & sample_emitters
-            emitted, ds = self._sample_emitter(accel, mei, False, scene, sampler, medium,
-                                               channel, active_e)
-            phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, active_e)
-            result[active_e] = result + throughput * phase_val * emitted * mis_weight(
-                ds.pdf, dr.select(ds.delta, 0.0, phase_pdf))
+            result[active_e] = result + self._phase_emission(
+                accel, scene, sampler, mei, phase, phase_ctx, medium, channel, throughput,
+                active_e)
 
-            # Phase function sampling (Mitsuba's build draws the 2D sample first)
-            phase[~act_medium_scatter] = dr.zeros(mi.PhaseFunctionPtr)
-            sample_2 = sampler.next_2d(act_medium_scatter)
-            sample_1 = sampler.next_1d(act_medium_scatter)
-            wo, phase_weight, phase_pdf = phase.sample(phase_ctx, mei, sample_1, sample_2,
-                                                       act_medium_scatter)
+            # Phase function sampling
+            wo, phase_weight, phase_pdf = _sample_phase(phase, phase_ctx, mei, sampler,
+                                                        act_medium_scatter)
             act_medium_scatter &= phase_pdf > 0.0
             ray[act_medium_scatter] = mei.spawn_ray(wo)
             needs_intersection |= act_medium_scatter
@@ -175,26 +229,13 @@ class VolpathIntegrator(AccelIntegrator):
             active_surface |= escaped_medium
             intersect = active_surface & needs_intersection
             si[intersect] = accel.ray_intersect(ray, intersect)
-
             if dr.hint(self.hide_emitters, mode="scalar"):
-                # The camera ray continues past every area emitter it meets
-                skip = (si.is_valid() & (si.shape.emitter() != None)  # noqa: E711
-                        & (depth == 0) & intersect)
-                ray_skip = si.spawn_ray(ray.d)
-                pi = skip_area_emitters(accel, ray_skip, True, skip)
-                si[skip] = accel.surface_interaction(pi, ray_skip, mi.RayFlags.All, skip)
+                si = _past_hidden_emitters(accel, si, ray, depth, intersect)
 
             # Emitters hit
-            count_direct = (active_surface & (depth == 0)) | specular_chain
-            emitter = si.emitter(scene)
-            active_e = (active_surface & (emitter != None)  # noqa: E711
-                        & ~((depth == 0) & self.hide_emitters))
-            ds = mi.DirectionSample3f(scene, si, last_scatter_event)
-            emitter_pdf = scene.pdf_emitter_direction(last_scatter_event, ds, active_e)
-            emitted = emitter.eval(si, active_e)
-            contrib = dr.select(count_direct, throughput * emitted,
-                                throughput * mis_weight(last_scatter_direction_pdf, emitter_pdf)
-                                * emitted)
+            active_e, contrib = self._emission_hit(
+                scene, si, active_surface, depth, specular_chain, throughput,
+                last_scatter_event, last_scatter_direction_pdf)
             result[active_e] = result + contrib
 
             active_surface &= si.is_valid()
@@ -204,19 +245,11 @@ class VolpathIntegrator(AccelIntegrator):
             # Emitter sampling from the surface
             active_e = (active_surface & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
                         & (depth + 1 < self.max_depth))
-            emitted, ds = self._sample_emitter(accel, si, True, scene, sampler, medium,
-                                               channel, active_e)
-            wo = si.to_local(ds.d)
-            bsdf_val = si.to_world_mueller(bsdf.eval(ctx, si, wo, active_e), -wo, si.wi)
-            bsdf_pdf = bsdf.pdf(ctx, si, wo, active_e)
-            result[active_e] = result + throughput * bsdf_val * mis_weight(
-                ds.pdf, dr.select(ds.delta, 0.0, bsdf_pdf)) * emitted
+            result[active_e] = result + self._bsdf_emission(
+                accel, scene, sampler, si, bsdf, ctx, medium, channel, throughput, active_e)
 
-            # BSDF sampling (the 2D sample first, as for the phase function)
-            sample_2 = sampler.next_2d(active_surface)
-            sample_1 = sampler.next_1d(active_surface)
-            bs, bsdf_weight = bsdf.sample(ctx, si, sample_1, sample_2, active_surface)
-            bsdf_weight = si.to_world_mueller(bsdf_weight, -bs.wo, si.wi)
+            # BSDF sampling
+            bs, bsdf_weight = _sample_bsdf(bsdf, ctx, si, sampler, active_surface)
             throughput[active_surface] = throughput * bsdf_weight
             eta[active_surface] = eta * bs.eta
             ray[active_surface] = si.spawn_ray(si.to_world(bs.wo))
@@ -235,6 +268,48 @@ class VolpathIntegrator(AccelIntegrator):
             active &= active_surface | active_medium
 
         return result, valid_ray, []
+
+    def _phase_emission(self, accel, scene, sampler, mei, phase, phase_ctx, medium, channel,
+                        throughput, active):
+        """The contribution of an emitter sample seen from the medium interaction
+        ``mei``: its attenuated value (:meth:`_sample_emitter`) through the phase
+        function, weighted by multiple importance against phase sampling."""
+        emitted, ds = self._sample_emitter(accel, mei, False, scene, sampler, medium,
+                                           channel, active)
+        phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, active)
+        return throughput * phase_val * emitted * mis_weight(
+            ds.pdf, dr.select(ds.delta, 0.0, phase_pdf))
+
+    def _emission_hit(self, scene, si, active_surface, depth, specular_chain, throughput,
+                      last_scatter_event, last_scatter_direction_pdf):
+        """``(active, contribution)`` of the emitter the path's last segment hit at
+        ``si``: counted in full on the camera ray and after a specular chain, else
+        weighted by multiple importance against emitter sampling from the last
+        scattering event; directly seen emitters left out with ``hide_emitters``."""
+        count_direct = (active_surface & (depth == 0)) | specular_chain
+        emitter = si.emitter(scene)
+        active_e = (active_surface & (emitter != None)  # noqa: E711
+                    & ~((depth == 0) & self.hide_emitters))
+        ds = mi.DirectionSample3f(scene, si, last_scatter_event)
+        emitter_pdf = scene.pdf_emitter_direction(last_scatter_event, ds, active_e)
+        emitted = emitter.eval(si, active_e)
+        contrib = dr.select(count_direct, throughput * emitted,
+                            throughput * mis_weight(last_scatter_direction_pdf, emitter_pdf)
+                            * emitted)
+        return active_e, contrib
+
+    def _bsdf_emission(self, accel, scene, sampler, si, bsdf, ctx, medium, channel,
+                       throughput, active):
+        """The contribution of an emitter sample seen from the surface ``si``: its
+        attenuated value (:meth:`_sample_emitter`) through the BSDF, weighted by
+        multiple importance against BSDF sampling."""
+        emitted, ds = self._sample_emitter(accel, si, True, scene, sampler, medium,
+                                           channel, active)
+        wo = si.to_local(ds.d)
+        bsdf_val = si.to_world_mueller(bsdf.eval(ctx, si, wo, active), -wo, si.wi)
+        bsdf_pdf = bsdf.pdf(ctx, si, wo, active)
+        return throughput * bsdf_val * mis_weight(
+            ds.pdf, dr.select(ds.delta, 0.0, bsdf_pdf)) * emitted
 
     @dr.syntax
     def _sample_emitter(self, accel, ref, on_surface, scene, sampler, medium, channel,
