@@ -316,6 +316,8 @@ def test13_accel_is_cached_per_scene_and_follows_updates():
     dict(type="hlbvh_path", max_depth=4),
     dict(type="hlbvh_path", max_depth=3, hide_emitters=True),
     dict(type="hlbvh_aov"),
+    dict(type="hlbvh_volpath", max_depth=4),
+    dict(type="hlbvh_prb", max_depth=4),
 ])
 def test13b_later_renders_of_a_scene_compile_nothing(integrator):
     """Three renders of one scene (same seed): the first builds the intersector and

@@ -68,6 +68,52 @@ def _vertex_radiance(si, si_next, ray_next, bsdf, bsdf_ctx, L, Le, Lr_dir, activ
     return Le + Lr_dir + L * dr.relative_grad(bsdf_val) * dr.relative_grad(jacobian)
 
 
+def _emitter_radiance(accel, scene, sampler, si, bsdf, bsdf_ctx, β, primal: bool,
+                      active):
+    """``Lr_dir``: the radiance an emitter sample brings to ``si`` through the BSDF,
+    weighted by multiple importance against BSDF sampling, its visibility tested
+    through the intersector (Mitsuba's ``test_visibility=True``); in the replay the
+    sample is attached again (:func:`_attached_emitter_sample`) and the value
+    carries derivatives."""
+    ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False, active)
+    active = active & (ds.pdf != 0.0)
+    occluded = accel.ray_test(dr.detach(si.spawn_ray_to(ds.p)), active)
+    em_weight[occluded] = 0.0
+    ds.pdf[occluded] = 0.0
+    active &= ~occluded
+
+    with dr.resume_grad(when=not primal):
+        if not primal:
+            ds, em_weight = _attached_emitter_sample(accel, scene, si, ds, em_weight, active)
+        wo = si.to_local(ds.d)
+        bsdf_value_em, bsdf_pdf_em = bsdf.eval_pdf(bsdf_ctx, si, wo, active)
+        mis_em = dr.select(ds.delta, 1, mis_weight(ds.pdf, bsdf_pdf_em))
+        return β * mis_em * bsdf_value_em * em_weight
+
+
+def _propagated(mode, δL, si, si_next, ray_next, bsdf, bsdf_ctx, L, Le, Lr_dir, active):
+    """``δL`` after the derivatives of the radiance leaving vertex ``si``
+    (:func:`_vertex_radiance`, recorded with gradients resumed) are propagated:
+    backward from ``δL * Lo`` (``δL`` unchanged), or forward, ``δL`` plus ``Lo``'s
+    derivative.
+
+    Raises:
+        ValueError: in a symbolic render, that radiance depends on no parameter
+            (no scene parameter prb differentiates has gradients enabled).
+    """
+    with dr.resume_grad():
+        Lo = _vertex_radiance(si, si_next, ray_next, bsdf, bsdf_ctx, L, Le, Lr_dir, active)
+        if dr.flag(dr.JitFlag.SymbolicCalls) and not dr.grad_enabled(Lo):
+            raise ValueError(
+                "hlbvh_prb: the render's derivative depends on no parameter: "
+                "enable gradients (dr.enable_grad) on a scene parameter that prb "
+                "differentiates")
+        if mode == dr.ADMode.Backward:
+            dr.backward_from(δL * Lo)
+            return δL
+        return δL + dr.forward_to(Lo)
+
+
 class PRBIntegrator(_ad.RBIntegrator):
     r"""
     .. _integrator-hlbvh_prb:
@@ -235,23 +281,8 @@ class PRBIntegrator(_ad.RBIntegrator):
 
             active_next &= (depth + 1 < self.max_depth) & si.is_valid()
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False,
-                                                           active_em)
-            active_em &= ds.pdf != 0.0
-            # Mitsuba's test_visibility=True, through the intersector
-            occluded = accel.ray_test(dr.detach(si.spawn_ray_to(ds.p)), active_em)
-            em_weight[occluded] = 0.0
-            ds.pdf[occluded] = 0.0
-            active_em &= ~occluded
-
-            with dr.resume_grad(when=not primal):
-                if dr.hint(not primal, mode="scalar"):
-                    ds, em_weight = _attached_emitter_sample(accel, scene, si, ds, em_weight,
-                                                             active_em)
-                wo = si.to_local(ds.d)
-                bsdf_value_em, bsdf_pdf_em = bsdf.eval_pdf(bsdf_ctx, si, wo, active_em)
-                mis_em = dr.select(ds.delta, 1, mis_weight(ds.pdf, bsdf_pdf_em))
-                Lr_dir = β * mis_em * bsdf_value_em * em_weight
+            Lr_dir = _emitter_radiance(accel, scene, sampler, si, bsdf, bsdf_ctx, β, primal,
+                                       active_em)
 
             # --------------------- BSDF sample (detached) ---------------------
 
@@ -282,19 +313,8 @@ class PRBIntegrator(_ad.RBIntegrator):
             if dr.hint(not primal, mode="scalar"):
                 si_next = accel.surface_interaction(pi_next, ray_next, mi.RayFlags.Minimal,
                                                     active_next)
-                with dr.resume_grad():
-                    Lo = _vertex_radiance(si, si_next, ray_next, bsdf, bsdf_ctx, L, Le, Lr_dir,
-                                          active_next)
-                    if dr.hint(dr.flag(dr.JitFlag.SymbolicCalls) and not dr.grad_enabled(Lo),
-                               mode="scalar"):
-                        raise ValueError(
-                            "hlbvh_prb: the render's derivative depends on no parameter: "
-                            "enable gradients (dr.enable_grad) on a scene parameter that prb "
-                            "differentiates")
-                    if dr.hint(mode == dr.ADMode.Backward, mode="scalar"):
-                        dr.backward_from(δL * Lo)
-                    else:
-                        δL += dr.forward_to(Lo)
+                δL = _propagated(mode, δL, si, si_next, ray_next, bsdf, bsdf_ctx, L, Le,
+                                 Lr_dir, active_next)
 
             # Group lanes by the shape they hit next (CUDA; a no-op on LLVM)
             hint = dr.reinterpret_array(mi.UInt32, pi_next.shape)
