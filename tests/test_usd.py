@@ -953,8 +953,9 @@ def test25_an_instanced_stage_renders_as_native_rebuilding_only_the_top_level(tm
     path = write_crowd(tmp_path / "crowd.usda")
     settings = dict(resolution=(32, 24), spp=4, max_depth=3)
     renderers = {
-        "hlbvh": FrameRenderer(UsdScene(path, warn=lambda line: None),
-                               RenderSettings(accel="hlbvh", **settings)),
+        "hlbvh": FrameRenderer(UsdScene(path, warn=lambda line: None),  # our top level
+                               RenderSettings(accel="hlbvh", moving_accel="hlbvh",
+                                              **settings)),
         "native": FrameRenderer(UsdScene(path, warn=lambda line: None),
                                 RenderSettings(accel="native", **settings)),
         "flat": FrameRenderer(UsdScene(path, warn=lambda line: None, instancing=False),
@@ -1128,8 +1129,10 @@ def test28_a_point_instancer_renders_its_points_as_instances(tmp_path):
                                        np.sort(want.reshape(-1, 3), axis=0), atol=1e-3,
                                        err_msg=f"point {k} {mesh} at frame {i}")
     settings = dict(resolution=(32, 24), spp=4, max_depth=3)
-    renderers = {accel: FrameRenderer(UsdScene(path, warn=lambda line: None),
-                                      RenderSettings(accel=accel, **settings))
+    renderers = {accel: FrameRenderer(UsdScene(path, warn=lambda line: None),  # our top level
+                                      RenderSettings(accel=accel, **settings,
+                                                     moving_accel="hlbvh" if accel == "hlbvh"
+                                                     else None))
                  for accel in ("hlbvh", "native")}
     for i in range(animation.frame_count):
         images_ = {a: np.array(r.render(i)[0]) for a, r in renderers.items()}
