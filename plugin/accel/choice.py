@@ -38,7 +38,8 @@ uses, all measured on this machine and this scene:
   render's (the render's rays come in other orders, shadow rays are any-hit queries;
   on a 2-core EPYC the probe put our penalty per sample at three times the renders'),
   and the line through one measured sample count says little about another, so at
-  each number of samples the structures that could still win (their estimate within
+  each number of samples the structures that could still win and whose own renders do
+  not draw a line yet (measured at fewer than two sample counts; their estimate within
   :data:`TRY_MARGIN` of the best frame measured there, their update alone below it)
   are tried once there (a structure's very first render compiles its kernel and is not
   counted), and from then on judged by their own renders.
@@ -238,6 +239,7 @@ class CostModel:
             # estimate near the best measured here, and its update alone below it
             measured = min(known[s] for s in here)
             untried = [s for s in known if s not in here
+                       and len(self.renders.get(s, ())) < 2  # no line of its own yet
                        and known[s] <= (1 + TRY_MARGIN) * measured
                        and self.update_estimate(s, triangles or {}) < measured]
             if untried:
