@@ -67,9 +67,11 @@ build time per frame, both accelerators).
 
 Exit status
 -----------
-0 when every pixel of ours is within the tolerance of native's on every frame (pixels
-where native differs from itself excepted), 1 when some are not (the verdict counts
-them), 2 for a user error; so a script can tell a pass from a failure.
+0 when ours is within the tolerance of native's on every frame, but for at most
+:data:`EDGE_TIE_PIXELS` pixel a frame (a camera or bounce ray through a shared edge may
+hit the neighbouring triangle in one accelerator: the plugin's tests allow as much;
+pixels where native differs from itself excepted), 1 when more are not (the verdict
+counts every one), 2 for a user error; so a script can tell a pass from a failure.
 """
 
 from __future__ import annotations
@@ -100,6 +102,8 @@ from hlbvh.render.settings import SCENE_INTEGRATORS, RenderSettings, check_seed
 #: the absolute part of tests/test_integrators.py::test11's tolerance, several times the
 #: worst pixel difference seen there (docs/decisions.md).
 TOLERANCE = 5e-4
+#: Pixels a frame may have outside the tolerance and still pass (an edge tie).
+EDGE_TIE_PIXELS = 1
 
 #: The bottom of the difference maps' logarithmic scale: about one float32 step at 1
 #: (2^-23 = 1.2e-7), so a difference in the last bits of a pixel shows, and a one-pixel
@@ -308,9 +312,10 @@ def verdict(rows: list[dict], tolerance: float) -> str:
 def configure(parser) -> None:
     """Options of ``hlbvh compare``."""
     parser.description = __doc__.split("\n\n")[0]
-    parser.epilog = ("exit status: 0 when every pixel of hlbvh's images is within the "
-                     "tolerance of native's (pixels where native's own two renders differ "
-                     "excepted), 1 when some are not, 2 for a user error")
+    parser.epilog = ("exit status: 0 when hlbvh's images are within the tolerance of "
+                     f"native's but for at most {EDGE_TIE_PIXELS} pixel a frame (an edge "
+                     "tie; pixels where native's own two renders differ excepted), 1 when "
+                     "more are not, 2 for a user error")
     add_scene_options(parser, "out/compare/<scene>")
     parser.add_argument("--tolerance", default=repr(TOLERANCE),
                         help=f"largest per-channel difference of a pixel counted as equal "
@@ -336,7 +341,8 @@ def run(args) -> int:
                                progress=not args.quiet)
     print(f"{result['files']['html']}: frames {frames.start}..{frames.stop - 1} of "
           f"{animation.name}, native vs hlbvh. {verdict(result['rows'], tolerance)}")
-    return 1 if any(row["image"]["outside_tolerance_pixels"] for row in result["rows"]) else 0
+    return 1 if any(row["image"]["outside_tolerance_pixels"] > EDGE_TIE_PIXELS
+                    for row in result["rows"]) else 0
 
 
 def _tolerance(text: str) -> float:
