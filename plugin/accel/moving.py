@@ -51,6 +51,9 @@ class MovingMeshes:
         self.estimates = None
         self.probed = False
         self.instances = False
+        # Whether a build of the native group since the scene's last rebuild cleared the
+        # moving meshes' marks of change, which the scene's rebuild reads
+        self.marks_cleared = False
         self._forced = moving_accel
         self._choosable = choosable
         # Structures whose view of the moving meshes is out of date: the scene's own
@@ -118,6 +121,7 @@ class MovingMeshes:
         self.native.update(shapes, self.indices, moved=moved or "native" in self._behind)
         if self.native.last["decision"] != "kept" and self.indices:
             self.costs.record_update("native", self.native.last["ms"])
+            self.marks_cleared = True
         self._behind.discard("native")
 
     def plan(self, budget: RayBudget, shapes) -> str:
@@ -154,6 +158,7 @@ class MovingMeshes:
         through it, when timed."""
         self.costs.record_update("scene", ms)
         self._behind.discard("scene")
+        self.marks_cleared = False
         if ns is not None:
             self.costs.record_queries("scene", ns)
 

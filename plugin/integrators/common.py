@@ -239,8 +239,10 @@ def probe(accel, sensor, n: int = PROBE_RAYS) -> Probe:
 
 def _rebuild_scene(scene, accel):
     """Rebuild the scene's own accelerator over its shapes as they are now (its moving
-    shapes told first that they changed: :meth:`SceneAccel.mark_moving_dirty`)."""
-    accel.mark_moving_dirty()
+    shapes told first that they changed, where a build of the native group cleared the
+    marks their writes left: :meth:`SceneAccel.mark_moving_dirty`)."""
+    if accel.moving_meshes.marks_cleared:
+        accel.mark_moving_dirty()
     scene.parameters_changed([])
 
 
