@@ -78,7 +78,6 @@ from __future__ import annotations
 
 import math
 import statistics
-import sys
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -93,10 +92,10 @@ from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.render.source import SceneSpec, open_animation
 from hlbvh.cli.options import (add_scene_options, out_flag, render_settings,
-                               scene_render_settings)
+                               with_scene_integrator)
 from hlbvh.render.output import frame_name, output_directory
 from hlbvh.render.animation import render_animation
-from hlbvh.render.settings import SCENE_INTEGRATORS, RenderSettings, check_seed
+from hlbvh.render.settings import RenderSettings, check_seed
 
 #: Largest absolute per-channel difference of a pixel still counted as equal to native:
 #: the absolute part of tests/test_integrators.py::test11's tolerance, several times the
@@ -329,12 +328,7 @@ def run(args) -> int:
     tolerance = _tolerance(args.tolerance)
     animation, source, frames = open_animation(SceneSpec.of(
         args.scene, args.frames_dir, args.triangles, args.frames, args.topology))
-    own = animation.integrator_description()
-    if own is not None and SCENE_INTEGRATORS.get(own["type"]) in ("direct", "volpath"):
-        # The scene's direct or volpath runs as ours (path scenes keep --max-depth's path)
-        settings, line = scene_render_settings(args, animation, args.scene)
-        if line is not None:
-            print(f"hlbvh compare: {line}", file=sys.stderr)
+    settings = with_scene_integrator(args, animation, settings, "compare")
     check_seed(settings.seed, frames)
     out = output_directory(out_flag(args.out, Path("out/compare") / Path(args.scene).stem))
     result = compare_animation(animation, frames, out, settings, source, tolerance,

@@ -71,7 +71,8 @@ from hlbvh.comparison.sweep_settings import NATIVE, SETTINGS, Setting, parse_set
 from hlbvh.errors import UserError
 from hlbvh.render.frame import FrameRenderer, check_frame_fits
 from hlbvh.render.images import as_image
-from hlbvh.cli.options import add_scene_options, out_flag, render_settings
+from hlbvh.cli.options import (add_scene_options, out_flag, render_settings,
+                               with_scene_integrator)
 from hlbvh.errors import int_flag
 from hlbvh.render.source import SceneSpec, open_animation
 from hlbvh.render.output import output_directory
@@ -361,6 +362,7 @@ def run(args) -> int:
         DEFAULT_FRAMES if args.frames is None else args.frames, args.topology))
     if len(frames) < 2:
         raise UserError(f"--frames {args.frames}: a sweep needs at least two frames")
+    base = with_scene_integrator(args, animation, base, "sweep")
     check_seed(base.seed, frames)
     out = output_directory(out_flag(args.out, Path("out/sweep") / Path(args.scene).stem))
     rows = sweep(animation, frames, settings, base, spp, curve, progress=not args.quiet)
@@ -376,6 +378,6 @@ def run(args) -> int:
 
 def _recorded(base: RenderSettings) -> dict:
     record = base.as_dict()
-    for key in ("accel", "build_options", "update", "integrator"):
+    for key in ("accel", "build_options", "update"):
         record.pop(key)
     return record

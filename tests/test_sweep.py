@@ -148,3 +148,16 @@ def test06_ctrl_c_inside_a_render_stops_the_command(tmp_path, capsys, monkeypatc
     status, _, err = hlbvh(capsys, command, "cloth", *args, *extra, "--out", tmp_path / "x")
     assert status == 130 and err == [f"hlbvh {command}: interrupted"], err
     assert not (tmp_path / "x" / "report.html").exists()
+
+
+def test09_a_volpath_scene_is_swept_with_ours_mirroring_it(tmp_path, capsys):
+    """The fog scene's own integrator is Mitsuba's volpath: the sweep renders it with
+    hlbvh_volpath (its properties kept), and says so in one line."""
+    status, _, errors = hlbvh(capsys, "sweep", "fog", "--triangles", "3000", "--resolution",
+                              "12", "--spp", "1", "--spp-curve", "1", "--frames", "0:2",
+                              "--settings", "hlbvh", "--quiet", "--out", tmp_path / "fog")
+    assert status == 0, errors
+    assert errors == ["hlbvh sweep: the scene's integrator 'volpath' runs as hlbvh_volpath "
+                      "(which mirrors it, every ray through the chosen accelerator)"]
+    settings = read_results(tmp_path / "fog" / "results.json")["settings"]
+    assert settings["integrator"] == "volpath"

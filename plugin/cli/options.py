@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -231,6 +232,22 @@ def scene_render_settings(args, animation, scene: str) -> tuple[RenderSettings, 
                      f"{', '.join(overrides)}")
     line = "; ".join(lines) or None
     return replace(flags, **fields), line
+
+
+def with_scene_integrator(args, animation, settings: RenderSettings,
+                          verb: str) -> RenderSettings:
+    """``settings``, or, for a scene whose own integrator is Mitsuba's ``direct`` or
+    ``volpath`` (which ours mirror), the settings of that integrator and its properties
+    (:func:`scene_render_settings`, the flags replacing what they name), with one line
+    on stderr saying what was mapped: what ``compare`` and ``sweep`` render such a
+    scene with (a ``path`` scene keeps the flags' path, as before)."""
+    own = animation.integrator_description()
+    if own is None or SCENE_INTEGRATORS.get(own["type"]) not in ("direct", "volpath"):
+        return settings
+    mapped, line = scene_render_settings(args, animation, args.scene)
+    if line is not None:
+        print(f"hlbvh {verb}: {line}", file=sys.stderr)
+    return replace(mapped, spp=settings.spp)
 
 
 def seed_flag(text: str) -> int:
