@@ -85,11 +85,9 @@ import drjit as dr
 import mitsuba as mi
 
 from hlbvh.render import images
-from hlbvh.accel.policy import UpdatePolicy
 from hlbvh.comparison import plots, report
 from hlbvh.comparison.metrics import hit_agreement, image_metrics, within_tolerance
 from hlbvh.errors import UserError
-from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.render.source import SceneSpec, open_animation
 from hlbvh.cli.options import (add_scene_options, out_flag, render_settings,
                                with_scene_integrator)
@@ -194,8 +192,8 @@ def compare_animation(animation, frames, out_dir, settings: RenderSettings,
     for key in ("accel", "integrator"):
         recorded.pop(key)
     # Every builder option and the policy as used, defaults included.
-    recorded["build_options"] = asdict(BuildConfig.from_options(**settings.build_options))
-    recorded["update"] = settings.update or UpdatePolicy().update
+    recorded["build_options"] = asdict(settings.config)
+    recorded["update"] = settings.policy.update
     caption = ("difference (largest over R, G, B; one scale for every frame): "
                + (f"log scale, black = {low:.0e} or less (or identical), pale yellow = "
                   f"{scale:.3g}" if low else f"black = identical, pale yellow = {scale:.3g}")

@@ -81,12 +81,8 @@ class AnimatedScene(abc.ABC):
     frame_count: int = 0
 
     @abc.abstractmethod
-    def scene_dict(
-        self,
-        resolution: tuple[int, int] | None = None,
-        spp: int | None = None,
-        integrator: dict | None = None,
-    ) -> dict:
+    def scene_dict(self, resolution: tuple[int, int] | None = None, spp: int | None = None,
+                   integrator: dict | None = None) -> dict:
         """A description for ``mi.load_dict``: sensor, integrator, emitters, shapes.
 
         The film uses a ``box`` reconstruction filter, so two renders with the same

@@ -148,12 +148,8 @@ class ProceduralScene(AnimatedScene):
         return {shape_id: FrameGeometry(to_world=m)
                 for shape_id, m in zip(self.animated_ids(), self.transforms(i / FPS))}
 
-    def scene_dict(
-        self,
-        resolution: tuple[int, int] | None = None,
-        spp: int | None = None,
-        integrator: dict | None = None,
-    ) -> dict:
+    def scene_dict(self, resolution: tuple[int, int] | None = None, spp: int | None = None,
+                   integrator: dict | None = None) -> dict:
         """See :meth:`AnimatedScene.scene_dict`. Defaults: ``DEFAULT_RESOLUTION``,
         ``DEFAULT_SPP``, ``DEFAULT_INTEGRATOR``. The animated parts hold frame 0."""
         width, height = checked_resolution(DEFAULT_RESOLUTION if resolution is None else resolution)

@@ -188,12 +188,8 @@ class SequenceScene(AnimatedScene):
         i = self._check_frame_index(i)
         return {sid: self._read_frame(sid, i) for sid in self._files}
 
-    def scene_dict(
-        self,
-        resolution: tuple[int, int] | None = None,
-        spp: int | None = None,
-        integrator: dict | None = None,
-    ) -> dict:
+    def scene_dict(self, resolution: tuple[int, int] | None = None, spp: int | None = None,
+                   integrator: dict | None = None) -> dict:
         """See :meth:`AnimatedScene.scene_dict`. The scene as the file or dict describes
         it (its own geometry, not frame 0), with its films resized to ``resolution``, its
         samplers set to ``spp``, a box filter unless ``box_filter=False``, and

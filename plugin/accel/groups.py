@@ -7,7 +7,79 @@ it is through these members, not by its class."""
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass, field
 from typing import Protocol
+
+
+@dataclass(frozen=True)
+class GroupUpdate:
+    """What one update did to a group (its :attr:`Group.last`).
+
+    Attributes:
+        decision: one of :data:`hlbvh.accel.policy.DECISIONS`.
+        ms: wall time of the update, device synchronised.
+        triangles: triangles of the meshes it traces after the update.
+        sah_cost: its tree's SAH cost after the update (None without one of ours).
+    """
+
+    decision: str
+    ms: float
+    triangles: int
+    sah_cost: float | None = None
+
+    def as_dict(self) -> dict:
+        """The record as a plain dict (``last_update["groups"][name]``)."""
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class MeshUpdate(GroupUpdate):
+    """A :class:`~hlbvh.accel.mesh_group.MeshGroup`'s update.
+
+    Attributes:
+        seeded: a build whose CSD sort started from the previous tree's order.
+        drift: a refit tree's SAH cost over its last build's (None without a refit).
+    """
+
+    seeded: bool = False
+    drift: float | None = None
+
+
+@dataclass(frozen=True)
+class NativeUpdate(GroupUpdate):
+    """A :class:`~hlbvh.accel.native_group.NativeGroup`'s update (``sah_cost`` None:
+    Mitsuba's tree does not say).
+
+    Attributes:
+        shapes: how many shapes it traces.
+        left: ids of the shapes whose motion made this update rebuild it.
+        groups_changed: ids of the shape groups whose shapes changed, which made this
+            update rebuild it.
+    """
+
+    shapes: int = 0
+    left: list = field(default_factory=list)
+    groups_changed: list = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class InstanceUpdate(GroupUpdate):
+    """An :class:`~hlbvh.accel.instance_group.InstanceGroup`'s update (``sah_cost``:
+    its top level's).
+
+    Attributes:
+        instances: how many moving instances it traces.
+        groups: how many shape groups they use.
+        drift: the top level's refit drift (None without a refit).
+        groups_rebuilt: ids of the shape groups whose own shapes changed, their BVHs
+            built again.
+    """
+
+    instances: int = 0
+    groups: int = 0
+    drift: float | None = None
+    groups_rebuilt: list = field(default_factory=list)
 
 
 class Group(Protocol):
@@ -21,15 +93,14 @@ class Group(Protocol):
             and instance pointers); otherwise our BVHs do.
         bvh: the BVH of ours it traces through (None for a native group, and while the
             group has no triangles).
-        last: what its last update did: ``decision`` (one of
-            :data:`hlbvh.accel.policy.DECISIONS`), ``ms``, and what its kind reports.
+        last: what its last update did (a :class:`GroupUpdate` of its kind).
     """
 
     name: str
     indices: tuple
     native: bool
     bvh: object
-    last: dict
+    last: GroupUpdate
 
     @property
     def triangles(self) -> int:

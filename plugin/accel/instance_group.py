@@ -27,6 +27,7 @@ from hlbvh.kernels.arrays import concat
 from hlbvh.kernels.build import build
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.kernels.instances import BadTransform, refit_top_level, two_level
+from hlbvh.accel.groups import InstanceUpdate
 from hlbvh.accel.instance_shading import group_members, to_world_rows
 from hlbvh.accel.motion import member_states, members_changed
 from hlbvh.accel.policy import RefitOrRebuild, UpdatePolicy
@@ -48,12 +49,9 @@ class InstanceGroup:
         indices: indices into ``scene.shapes()`` of the instances, ascending.
         tree: the :class:`hlbvh.kernels.two_level.TwoLevel` traced; None without
             instances.
-        last: what the last update did: ``decision`` (``"build"``, ``"rebuild"`` or
-            ``"refit"``: the top level only, or ``"kept"``), ``ms``, ``instances``,
-            ``groups``, ``triangles`` (instanced), ``sah_cost`` (the top level's),
-            ``drift`` (a refit top level's SAH cost over its last build's; None when
-            the update did not refit), ``groups_rebuilt`` (ids of the shape groups
-            whose own shapes changed, their BVHs built again).
+        last: what the last update did (:class:`~hlbvh.accel.groups.InstanceUpdate`:
+            ``"build"``, ``"rebuild"`` or ``"refit"`` of the top level only, or
+            ``"kept"``; ``triangles`` instanced).
     """
 
     name = "instances"
@@ -85,9 +83,9 @@ class InstanceGroup:
         return sum(b.prim_count for b in self._bvhs) if self.tree is not None else 0
 
     def keep(self):
-        self.last = dict(decision="kept", ms=0.0, instances=len(self.indices),
-                         groups=len(self._used), triangles=self.triangles,
-                         sah_cost=self._sah(), drift=None, groups_rebuilt=[])
+        self.last = InstanceUpdate(decision="kept", ms=0.0, triangles=self.triangles,
+                                   sah_cost=self._sah(), instances=len(self.indices),
+                                   groups=len(self._used))
 
     @property
     def stale(self) -> bool:
@@ -144,10 +142,11 @@ class InstanceGroup:
                 raise ShapeError(name, f"{name}: its to_world is {error.what}") from None
         self._scene_index = mi.UInt32(list(indices))
         decision = "build" if first else chosen
-        self.last = dict(decision=decision, ms=clock_ms() - start, instances=len(indices),
-                         groups=len(self._used), triangles=self.triangles,
-                         sah_cost=self._sah(), drift=drift,
-                         groups_rebuilt=[self._used[k].id() for k in deformed])
+        self.last = InstanceUpdate(decision=decision, ms=clock_ms() - start,
+                                   triangles=self.triangles, sah_cost=self._sah(),
+                                   instances=len(indices), groups=len(self._used),
+                                   drift=drift,
+                                   groups_rebuilt=[self._used[k].id() for k in deformed])
 
     def _deformed(self) -> list[int]:
         """Positions of the groups whose shapes changed (a mesh's buffers, another

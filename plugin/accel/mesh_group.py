@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import drjit as dr
 
+from hlbvh.accel.groups import MeshUpdate
 from hlbvh.accel.policy import RefitOrRebuild, UpdatePolicy
 from hlbvh.accel.scene_geometry import collect_geometry, named_build_error
 from hlbvh.kernels.arrays import concat
@@ -29,12 +30,9 @@ class MeshGroup:
         built_sah: SAH cost of the group's last build, against which ``"auto"``
             measures a refit tree's drift.
         builds, refits: how often the group was built and refit so far.
-        last: what the group's last update did: ``decision`` (one of
-            :data:`DECISIONS`), ``ms`` (wall time, device synchronised, including the
-            packing of the traversal records), ``triangles``, ``sah_cost`` (of the tree
-            now; None without triangles), ``seeded`` (a build whose CSD sort started
-            from the previous tree's order), ``drift`` (a refit tree's SAH cost over
-            ``built_sah``; None when the update did not refit).
+        last: what the group's last update did (:class:`~hlbvh.accel.groups.MeshUpdate`;
+            its ``ms`` includes the packing of the traversal records, its ``drift`` is
+            over ``built_sah``).
     """
 
     native = False  # our BVH traces it (hlbvh.accel.groups.Group)
@@ -80,20 +78,17 @@ class MeshGroup:
         chosen, seeded, drift = self._policy.update(
             policy, reshaped, lambda seed: self._build(shapes, config, seed=seed),
             lambda: self._refit(shapes))
-        self.last = dict(
+        self.last = MeshUpdate(
             decision=decision if chosen == "rebuild" else chosen, ms=clock_ms() - start,
-            triangles=self.triangles,
-            sah_cost=None if self.bvh is None else float(self.bvh.stats.sah_cost),
-            seeded=seeded, drift=drift,
-        )
+            triangles=self.triangles, sah_cost=self._sah(), seeded=seeded, drift=drift)
 
     def keep(self):
         """Record that the last update left the group as it was."""
-        self.last = dict(
-            decision="kept", ms=0.0, triangles=self.triangles,
-            sah_cost=None if self.bvh is None else float(self.bvh.stats.sah_cost),
-            seeded=False, drift=None,
-        )
+        self.last = MeshUpdate(decision="kept", ms=0.0, triangles=self.triangles,
+                               sah_cost=self._sah())
+
+    def _sah(self) -> float | None:
+        return None if self.bvh is None else float(self.bvh.stats.sah_cost)
 
     def root_box(self) -> tuple[list, list]:
         """Lower and upper corner of the BVH's root box, as Python floats."""

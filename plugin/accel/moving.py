@@ -110,7 +110,7 @@ class MovingMeshes:
             if group.indices and (not (first or behind) or "hlbvh" not in self.costs.update_ms):
                 # a frame's update as the policy makes it (a first or catch-up build only
                 # until one is measured)
-                self.costs.record_update("hlbvh", group.last["ms"])
+                self.costs.record_update("hlbvh", group.last.ms)
         else:
             group.keep()
         self._behind.discard("hlbvh")
@@ -119,8 +119,8 @@ class MovingMeshes:
         """The Mitsuba sub-scene of the moving meshes, built anew when they ``moved`` (or
         moved while another structure traced them)."""
         self.native.update(shapes, self.indices, moved=moved or "native" in self._behind)
-        if self.native.last["decision"] != "kept" and self.indices:
-            self.costs.record_update("native", self.native.last["ms"])
+        if self.native.last.decision != "kept" and self.indices:
+            self.costs.record_update("native", self.native.last.ms)
             self.marks_cleared = True
         self._behind.discard("native")
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from hlbvh.accel.groups import NativeUpdate
 from hlbvh.accel.instance_shading import group_members
 from hlbvh.accel.motion import member_states, members_changed
 from hlbvh.accel.scene_geometry import check_finite
@@ -43,12 +44,8 @@ class NativeGroup:
         scene: the sub-scene; None while it holds no shape.
         builds: how often it was built.
         build_ms: how long its last build took (0 before one).
-        last: what the last update did: ``decision`` (``"build"``, ``"rebuild"`` or
-            ``"kept"``), ``ms``, ``shapes`` (how many it traces), ``triangles`` (of its
-            meshes), ``left`` (ids of the shapes whose motion made this update rebuild
-            it, empty otherwise), ``sah_cost`` None (Mitsuba's tree does not say),
-            ``groups_changed`` (ids of the shape groups whose shapes changed, which made
-            this update rebuild it).
+        last: what the last update did (:class:`~hlbvh.accel.groups.NativeUpdate`:
+            ``"build"``, ``"rebuild"`` or ``"kept"``).
     """
 
     native = True  # a Mitsuba sub-scene traces it (hlbvh.accel.groups.Group)
@@ -98,14 +95,14 @@ class NativeGroup:
         self._built = True
         self.builds += 1
         self.build_ms = clock_ms() - start
-        self.last = dict(decision=decision, ms=self.build_ms, shapes=len(self.indices),
-                         triangles=self._triangles, left=list(left or ()), sah_cost=None,
-                         groups_changed=reshaped)
+        self.last = NativeUpdate(decision=decision, ms=self.build_ms,
+                                 triangles=self._triangles, shapes=len(self.indices),
+                                 left=list(left or ()), groups_changed=reshaped)
 
     def keep(self):
         """Record that the last update left the sub-scene as it was."""
-        self.last = dict(decision="kept", ms=0.0, shapes=len(self.indices),
-                         triangles=self.triangles, left=[], sah_cost=None, groups_changed=[])
+        self.last = NativeUpdate(decision="kept", ms=0.0, triangles=self.triangles,
+                                 shapes=len(self.indices))
 
     @property
     def stale(self) -> bool:

@@ -208,17 +208,17 @@ class SceneAccel(SceneQueries):
         self._states, self._current = states, True
         traced = [g for g in (self.static, self.dynamic) if g.bvh is not None
                   and (g is not self.dynamic or structure == "hlbvh")]
-        if traced != self._traced or any(g.last["decision"] != "kept" for g in traced):
+        if traced != self._traced or any(g.last.decision != "kept" for g in traced):
             self._join(traced)
         groups = (self.static, self.dynamic, self.native_moving) + (
             (self.instances,) if self.instances else ())
         self.last_update = dict(
-            decision=max((g.last["decision"] for g in groups), key=DECISIONS.index),
+            decision=max((g.last.decision for g in groups), key=DECISIONS.index),
             ms=clock_ms() - start,
             triangles=self.static.triangles + self.dynamic.triangles,
             sah_cost=joined_sah_cost(self._traced),
             moving=[self.shapes[i].id() for i in self.moving],
-            groups={g.name: dict(g.last) for g in groups},
+            groups={g.name: g.last.as_dict() for g in groups},
             moving_accel=self.moving_meshes.record(),
         )
         return self

@@ -12,7 +12,8 @@ from dataclasses import replace
 from pathlib import Path
 
 from hlbvh import scenes
-from hlbvh.accel.policy import ACCELS, BUILD_OPTIONS, MOVING_ACCELS, STATICS, UPDATES
+from hlbvh.accel.policy import (ACCELS, BUILD_OPTIONS, MOVING_ACCELS, STATICS, UPDATES,
+                                 UpdatePolicy)
 from hlbvh.errors import UserError, int_flag
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.render.settings import (DEFAULT_MAX_DEPTH, DEPTH_INTEGRATORS, INTEGRATORS,
@@ -158,7 +159,7 @@ def render_settings(args, *, spp: int | None = None, integrator: str = "path",
         build_options=build_options,
         update=None if update is None else choice("--update", update, UPDATES),
         seed=seed_flag(args.seed),
-        static="native" if static is None else choice("--static", static, STATICS),
+        static=UpdatePolicy.static if static is None else choice("--static", static, STATICS),
         moving_accel=(None if moving_accel is None
                       else choice("--moving-accel", moving_accel, MOVING_ACCELS)),
     )

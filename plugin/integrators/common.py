@@ -273,6 +273,30 @@ def spec_fma(a, b, c):
     return a * b + c if mi.is_polarized else dr.fma(a, b, c)
 
 
+def visible_emitter_sample(scene, accel, si, sample, active):
+    """An emitter sample from ``si`` with its visibility tested through ``accel``:
+    Mitsuba's ``sample_emitter_direction`` with ``test_visibility=True`` would trace
+    the shadow ray through the scene's own accelerator instead.
+
+    Args:
+        scene: the scene whose emitters are sampled.
+        accel: the intersector that tests the shadow ray.
+        si: the SurfaceInteraction3f sampled from.
+        sample: the Point2f sample.
+        active: Bool, the lanes that sample.
+    Returns:
+        ``(ds, weight, active)``: the DirectionSample3f and emitter weight, both zero
+        (``ds.pdf`` included) where the emitter is occluded, and the lanes whose sample
+        is valid and visible.
+    """
+    ds, weight = scene.sample_emitter_direction(si, sample, False, active)
+    active = active & (ds.pdf != 0.0)
+    occluded = accel.ray_test(si.spawn_ray_to(ds.p), active)
+    weight[occluded] = 0.0
+    ds.pdf[occluded] = 0.0
+    return ds, weight, active & ~occluded
+
+
 @dr.syntax
 def skip_area_emitters(accel, ray, coherent, active):
     """The first hit along ``ray`` that is not on an area emitter.

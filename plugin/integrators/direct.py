@@ -7,7 +7,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .common import AccelIntegrator, mis_weight, skip_area_emitters
+from .common import AccelIntegrator, mis_weight, skip_area_emitters, visible_emitter_sample
 
 
 def _sample_count(props, name: str, default: int) -> int:
@@ -112,15 +112,8 @@ class DirectIntegrator(AccelIntegrator):
         bsdf = si.bsdf(ray)
         sample_emitter = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
         for _ in range(self.emitter_samples):
-            active_e = mi.Bool(sample_emitter)
-            ds, emitter_val = scene.sample_emitter_direction(
-                si, sampler.next_2d(active_e), False, active_e)
-            active_e &= ds.pdf != 0.0
-            # Mitsuba's test_visibility=True, through the intersector
-            occluded = accel.ray_test(si.spawn_ray_to(ds.p), active_e)
-            emitter_val[occluded] = 0.0
-            ds.pdf[occluded] = 0.0
-            active_e &= ~occluded
+            ds, emitter_val, active_e = visible_emitter_sample(
+                scene, accel, si, sampler.next_2d(sample_emitter), sample_emitter)
 
             wo = si.to_local(ds.d)
             bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo, active_e)

@@ -7,7 +7,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .common import (AccelIntegrator, depth_properties, mis_weight, skip_area_emitters,
-                     spec_fma)
+                     spec_fma, visible_emitter_sample)
 
 
 class PathIntegrator(AccelIntegrator):
@@ -130,16 +130,8 @@ class PathIntegrator(AccelIntegrator):
             # ---------------------- Emitter sampling ----------------------
 
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False,
-                                                           active_em)
-            active_em &= ds.pdf != 0.0
-
-            # Shadow ray through the intersector (Mitsuba's test_visibility=True
-            # would trace it through the scene)
-            occluded = accel.ray_test(si.spawn_ray_to(ds.p), active_em)
-            em_weight[occluded] = 0.0
-            ds.pdf[occluded] = 0.0
-            active_em &= ~occluded
+            ds, em_weight, active_em = visible_emitter_sample(
+                scene, accel, si, sampler.next_2d(), active_em)
             wo = si.to_local(ds.d)
 
             # ------ Evaluate BSDF * cos(theta) and sample direction -------

@@ -127,15 +127,9 @@ class PRBIntegrator(_ad.RBIntegrator):
          sah_bins, static, moving, update, ...
        - |string| / |int|
        - The intersector and its options, as for ``hlbvh_path``.
-     * - max_depth
-       - |int|
-       - Longest path depth (-1: unbounded). (Default: 6, as ``prb``)
-     * - rr_depth
-       - |int|
-       - Path depth at which Russian roulette starts. (Default: 5)
-     * - hide_emitters
-       - |bool|
-       - Hide directly visible emitters. (Default: |false|)
+     * - max_depth, rr_depth, hide_emitters
+       - |int| / |bool|
+       - As for Mitsuba's ``prb`` (defaults 6, 5 and |false|).
 
     The algorithm of Mitsuba's ``prb``: a primal pass, then a replay of the same paths
     (same sampler, same seed) that propagates derivatives vertex by vertex, in forward

@@ -14,6 +14,7 @@ import mitsuba as mi
 from hlbvh import scenes
 from hlbvh.accel.instance_shading import is_instance
 from hlbvh.accel.parameters import traverse
+from hlbvh.accel.policy import UpdatePolicy
 from hlbvh.accel.scene_geometry import ShapeError, scene_shapes
 from hlbvh.errors import UserError
 from hlbvh.render.settings import RenderSettings
@@ -89,7 +90,7 @@ class FrameRenderer:
                             "take minutes and tens of GB); render it with --accel hlbvh")
         if settings.accel == "hlbvh":
             try:
-                scene_shapes(self.scene.shapes(), description.get("static", "native"))
+                scene_shapes(self.scene.shapes(), description.get("static", UpdatePolicy.static))
             except ShapeError as error:
                 raise UserError(f"{error.reason} Render this scene with --accel native "
                                 f"(Mitsuba's own accelerator).") from None

@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from hlbvh.accel.policy import ACCELS, BUILD_OPTIONS, STATICS, UPDATES, UpdatePolicy
+from hlbvh.accel.policy import ACCELS, BUILD_OPTIONS, UpdatePolicy
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BuildConfig
 
@@ -76,7 +76,7 @@ class RenderSettings:
     build_options: dict = field(default_factory=dict)
     update: str | None = None
     seed: int = 0
-    static: str = "native"
+    static: str = UpdatePolicy.static
     moving_accel: str | None = None
     properties: dict = field(default_factory=dict)
 
@@ -93,19 +93,27 @@ class RenderSettings:
             raise ValueError(f"max_depth={self.max_depth!r}: expected -1 (unbounded) or an int >= 0")
         if self.accel not in ACCELS:
             raise ValueError(f"accel={self.accel!r}: expected one of {ACCELS}")
-        BuildConfig.from_options(**self.build_options)
-        if self.update is not None and self.update not in UPDATES:
-            raise ValueError(f"update={self.update!r}: expected one of {UPDATES}")
-        if self.static not in STATICS:
-            raise ValueError(f"static={self.static!r}: expected one of {STATICS}")
-        if self.moving_accel is not None:
-            UpdatePolicy(static=self.static, moving_accel=self.moving_accel).validated()
+        self.config  # the builder's options, checked where hlbvh.build checks them
+        self.policy  # the accelerator's, checked where SceneAccel checks them
         if not (_is_int(self.seed) and 0 <= self.seed <= MAX_SEED):
             raise ValueError(f"seed={self.seed!r}: expected an int in 0..{MAX_SEED}")
         for name, value in self.properties.items():
             if not isinstance(value, (bool, int, float, str)):
                 raise ValueError(f"integrator property {name}={value!r}: expected a number, "
                                  f"a boolean or a string")
+
+    @property
+    def config(self) -> BuildConfig:
+        """The builder's config these settings give our accelerator (validated)."""
+        return BuildConfig.from_options(**self.build_options)
+
+    @property
+    def policy(self) -> UpdatePolicy:
+        """The update policy these settings give our accelerator (validated; its own
+        defaults where a setting is None)."""
+        given = {"update": self.update, "static": self.static,
+                 "moving_accel": self.moving_accel}
+        return UpdatePolicy(**{k: v for k, v in given.items() if v is not None}).validated()
 
     def integrator_dict(self) -> dict:
         """The Mitsuba description of the integrator these settings ask for."""
@@ -142,7 +150,7 @@ def scene_integrator_fields(description: dict) -> dict:
     fields["build_options"] = {name: properties.pop(name) for name in BUILD_OPTIONS
                                if name in properties}
     fields["update"] = properties.pop("update", None)
-    fields["static"] = properties.pop("static", "native")
+    fields["static"] = properties.pop("static", UpdatePolicy.static)
     fields["moving_accel"] = properties.pop("moving_accel", None)
     fields["properties"] = properties
     return fields
