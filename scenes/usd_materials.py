@@ -22,7 +22,8 @@ from __future__ import annotations
 import numpy as np
 
 from .usd_prims import (GREY, PREVIEW_DEFAULTS, UsdGeom, UsdShade, _array, _checked,
-                        _connected_shader, _two_sided, _uv_texture)
+                        _connected_shader, _input_value, _interface_value, _two_sided,
+                        _uv_texture)
 
 #: UsdPreviewSurface inputs whose ``UsdUVTexture`` becomes a Mitsuba ``bitmap``.
 TEXTURED_INPUTS = ("diffuseColor", "emissiveColor")
@@ -135,8 +136,8 @@ class _Materials:
         values, connected = {}, []
         for name, default in PREVIEW_DEFAULTS.items():
             shader_input = shader.GetInput(name)
-            value = shader_input.Get(time) if shader_input else None
-            if shader_input and shader_input.HasConnectedSource():
+            from_interface, value = _interface_value(shader_input, time)
+            if shader_input and shader_input.HasConnectedSource() and not from_interface:
                 connected.append(name)
             values[name] = _checked(
                 f"{self._where}: {shader.GetPath()}: inputs:{name}",
@@ -167,8 +168,7 @@ class _Materials:
                     emission = value if isinstance(value, dict) or any(
                         c > 0 for c in value) else None
             elif name == "diffuseColor" and kind.startswith("UsdPrimvarReader_float"):
-                varname = source.GetInput("varname")
-                varname = str(varname.Get(time) or "") if varname else ""
+                varname = str(_input_value(source.GetInput("varname"), time) or "")
                 color = self._display_color(prim, mesh, time, point_count, source_faces,
                                             varname) if varname else None
                 if color is None:

@@ -322,8 +322,7 @@ def _uv_texture(texture, time) -> tuple:
     ``st`` is read from (a ``UsdPrimvarReader_float2``'s, ``st`` by default); no bitmap
     when the file is not given, does not resolve, or is not an image Mitsuba reads
     (``why not`` says which)."""
-    file_input = texture.GetInput("file")
-    asset = file_input.Get(time) if file_input else None
+    asset = _input_value(texture.GetInput("file"), time)
     if asset is None or not asset.path:
         return None, None, "has no file"
     if not asset.resolvedPath:
@@ -333,10 +332,9 @@ def _uv_texture(texture, time) -> tuple:
         else _unreadable_image(filename)
     if problem is not None:
         return None, None, f"{asset.path!r} {problem}"
-    name = "st"
     reader = _connected_shader(texture.GetInput("st"))
-    if reader is not None and reader.GetInput("varname"):
-        name = str(reader.GetInput("varname").Get(time) or "st")
+    name = str((_input_value(reader.GetInput("varname"), time) if reader is not None
+                else None) or "st")
     wrap = texture.GetInput("wrapS")
     wrap = str(wrap.Get(time)) if wrap and wrap.Get(time) else "useMetadata"
     return {"type": "bitmap", "filename": filename,
@@ -399,13 +397,31 @@ def _filenames(description: dict) -> list[str]:
     return names
 
 def _connected_shader(shader_input):
-    """The shader an input is connected to, or ``None``."""
+    """The shader whose output feeds an input, followed as pxr does through the
+    interface inputs of materials and node graphs, or ``None``."""
     if not shader_input or not shader_input.HasConnectedSource():
         return None
-    sources, _ = shader_input.GetConnectedSources()
-    if not sources:
-        return None
-    return UsdShade.Shader(sources[0].source.GetPrim())
+    outputs = shader_input.GetValueProducingAttributes(shaderOutputsOnly=True)
+    return UsdShade.Shader(outputs[0].GetPrim()) if outputs else None
+
+
+def _interface_value(shader_input, time):
+    """``(True, value)`` when an input takes its value from an interface input of its
+    material or node graph (Blender, usdzconvert and pxr's own tutorial connect a
+    primvar reader's ``varname`` to the material's ``inputs:frame:stPrimvarName``);
+    else ``(False, the input's own authored value or None)``."""
+    if not shader_input:
+        return False, None
+    if shader_input.HasConnectedSource():
+        for attribute in shader_input.GetValueProducingAttributes():
+            if UsdShade.Input.IsInput(attribute):
+                return True, attribute.Get(time)
+    return False, shader_input.Get(time)
+
+
+def _input_value(shader_input, time):
+    """An input's value as :func:`_interface_value` finds it (``None``: none)."""
+    return _interface_value(shader_input, time)[1]
 
 def _two_sided(bsdf: dict) -> dict:
     return {"type": "twosided", "material": bsdf}
