@@ -11,6 +11,36 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Protocol
 
+from hlbvh.accel.policy import UpdatePolicy
+from hlbvh.kernels.bvh import BuildConfig
+
+
+@dataclass(frozen=True)
+class Change:
+    """What an update of the accelerator asks of one group (the one argument of
+    :meth:`Group.update`); a group that finds nothing to do keeps.
+
+    Attributes:
+        shapes: ``scene.shapes()``.
+        indices: indices into ``shapes`` of the shapes it traces from now on.
+        moved: they moved since its last update (a native group is built anew, a BVH
+            refit or rebuilt as ``policy`` says).
+        reshaped: their faces or vertex counts changed (a BVH must be built anew).
+        first: the accelerator's first update (a build is called ``"build"``).
+        policy: the accelerator's :class:`~hlbvh.accel.policy.UpdatePolicy`.
+        config: the builder config of its BVHs (a mesh group's; others keep theirs).
+        left: ids of the shapes that moved out of it (said in its record).
+    """
+
+    shapes: list
+    indices: tuple
+    moved: bool = False
+    reshaped: bool = False
+    first: bool = False
+    policy: UpdatePolicy = field(default_factory=UpdatePolicy)
+    config: BuildConfig | None = None
+    left: tuple = ()
+
 
 @dataclass(frozen=True)
 class GroupUpdate:
@@ -83,8 +113,8 @@ class InstanceUpdate(GroupUpdate):
 
 
 class Group(Protocol):
-    """What the accelerator reads of a group (each group's ``update`` takes what its
-    kind of structure needs, and is called by the code that owns it).
+    """What the accelerator reads of a group, and the one way it brings a group up to
+    date (:meth:`update`).
 
     Attributes:
         name: its name in ``last_update["groups"]``.
@@ -109,6 +139,11 @@ class Group(Protocol):
     @property
     def stale(self) -> bool:
         """Whether its shapes changed since it was built, and it has not followed yet."""
+
+    def update(self, change: Change) -> None:
+        """Trace ``change.indices`` as they are now: build, rebuild or refit what the
+        change asks for, keep (:meth:`keep`) when it asks for nothing; record it in
+        :attr:`last`."""
 
     def keep(self) -> None:
         """Record that an update left it as it was."""

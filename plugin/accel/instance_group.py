@@ -27,10 +27,10 @@ from hlbvh.kernels.arrays import concat
 from hlbvh.kernels.build import build
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.kernels.instances import BadTransform, refit_top_level, two_level
-from hlbvh.accel.groups import InstanceUpdate
+from hlbvh.accel.groups import Change, InstanceUpdate
 from hlbvh.accel.instance_shading import group_members, to_world_rows
 from hlbvh.accel.motion import member_states, members_changed
-from hlbvh.accel.policy import RefitOrRebuild, UpdatePolicy
+from hlbvh.accel.policy import RefitOrRebuild
 from hlbvh.accel.scene_geometry import ShapeError, collect_geometry, describe_shape
 from hlbvh.timing import clock_ms
 
@@ -49,6 +49,8 @@ class InstanceGroup:
         indices: indices into ``scene.shapes()`` of the instances, ascending.
         tree: the :class:`hlbvh.kernels.two_level.TwoLevel` traced; None without
             instances.
+        rows_of: ``rows_of(indices)``, the instances' transforms as one Float (12 an
+            instance), where the caller holds them; None to read them from the shapes.
         last: what the last update did (:class:`~hlbvh.accel.groups.InstanceUpdate`:
             ``"build"``, ``"rebuild"`` or ``"refit"`` of the top level only, or
             ``"kept"``; ``triangles`` instanced).
@@ -63,6 +65,7 @@ class InstanceGroup:
         self._told = group_of
         self.indices: tuple = ()
         self.tree = None
+        self.rows_of = None
         self.last = None
         self._group_of = {}  # instance index -> group position in self._used
         self._used = []  # the groups the instances use, in the order of their BVHs
@@ -95,19 +98,18 @@ class InstanceGroup:
     def _sah(self):
         return None if self._top is None else float(self._top.stats.sah_cost)
 
-    def update(self, shapes, indices: tuple, moved: bool, rows_of=None,
-               policy: UpdatePolicy | None = None):
-        """Trace the instances ``shapes[i]``, ``i`` in ``indices``: their groups' BVHs
-        built for instances seen for the first time, the top level built when the set
-        changed, and refit or rebuilt as ``policy`` says (default: ``"auto"``) when
-        ``moved``. ``rows_of(indices)``: their transforms as one Float (12 an
-        instance), where the caller holds them already; read here otherwise.
+    def update(self, change: Change):
+        """Trace the instances ``change.indices``: their groups' BVHs built for instances
+        seen for the first time, the top level built when the set changed, and refit or
+        rebuilt as ``change.policy`` says when they moved. Their transforms come from
+        :attr:`rows_of` where the caller holds them already; read here otherwise.
 
         Raises:
             ValueError: naming an instance whose group cannot be told, whose group holds
                 other shapes than meshes, or whose transform is singular or not finite.
         """
-        indices = tuple(indices)
+        shapes, indices, moved, rows_of = (change.shapes, tuple(change.indices),
+                                           change.moved, self.rows_of)
         deformed = self._deformed()
         if indices == self.indices and not moved and not deformed:
             self.keep()
@@ -133,7 +135,7 @@ class InstanceGroup:
             which = mi.UInt32([self._group_of[i] for i in indices])
             try:
                 chosen, _, drift = self._policy.update(
-                    policy or UpdatePolicy(),
+                    change.policy,
                     not same_set or len(self._used) != groups_before,
                     lambda seed: self._build_top(which, rows, seed),
                     lambda: self._refit_top(which, rows))

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import drjit as dr
 
-from hlbvh.accel.groups import MeshUpdate
-from hlbvh.accel.policy import RefitOrRebuild, UpdatePolicy
+from hlbvh.accel.groups import Change, MeshUpdate
+from hlbvh.accel.policy import RefitOrRebuild
 from hlbvh.accel.scene_geometry import collect_geometry, named_build_error
 from hlbvh.kernels.arrays import concat
 from hlbvh.kernels.build import build
@@ -60,24 +60,22 @@ class MeshGroup:
         changed, and the build that followed failed or has not run yet)."""
         return self.indices != self._built_indices
 
-    def update(self, shapes, config: BuildConfig, policy: UpdatePolicy, reshaped: bool,
-               decision: str = "rebuild"):
-        """Bring the BVH up to date with the meshes' current buffers.
-
-        Args:
-            shapes: ``scene.shapes()``.
-            config: the :class:`hlbvh.BuildConfig` of its builds.
-            policy: the :class:`UpdatePolicy`.
-            reshaped: the meshes' faces or vertex counts changed (forces a rebuild; so
-                does a change of :attr:`indices` since the last build).
-            decision: what to call a rebuild in :attr:`last` (``"build"`` for the
-                accelerator's first one).
-        """
+    def update(self, change: Change):
+        """Bring the BVH up to date with the meshes ``change.indices`` when they moved,
+        were reshaped (their faces or vertex counts changed) or are not those of the
+        last build: built anew (with ``change.config``) when reshaped or not the same
+        meshes, otherwise rebuilt or refit as ``change.policy`` says; kept otherwise."""
+        self.indices = tuple(change.indices)
+        if not (change.moved or change.reshaped or self.stale):
+            self.keep()
+            return
         start = clock_ms()
-        reshaped = reshaped or self.bvh is None or self.stale
+        shapes = change.shapes
+        reshaped = change.reshaped or self.bvh is None or self.stale
         chosen, seeded, drift = self._policy.update(
-            policy, reshaped, lambda seed: self._build(shapes, config, seed=seed),
+            change.policy, reshaped, lambda seed: self._build(shapes, change.config, seed=seed),
             lambda: self._refit(shapes))
+        decision = "build" if change.first else "rebuild"
         self.last = MeshUpdate(
             decision=decision if chosen == "rebuild" else chosen, ms=clock_ms() - start,
             triangles=self.triangles, sah_cost=self._sah(), seeded=seeded, drift=drift)

@@ -10,6 +10,7 @@ import drjit as dr
 import mitsuba as mi
 
 from hlbvh.accel.choice import STRUCTURES, CostModel, RayBudget
+from hlbvh.accel.groups import Change
 from hlbvh.accel.mesh_group import MeshGroup
 from hlbvh.accel.native_group import NativeGroup
 from hlbvh.timing import clock_ms
@@ -104,21 +105,22 @@ class MovingMeshes:
         first = before is None
         behind = "hlbvh" in self._behind
         group = self.ours
-        if (first and group.indices) or changed or group.stale or behind:
-            reshaped = first or behind or any(states[i].reshaped(before[i]) for i in changed)
-            group.update(shapes, config, policy, reshaped, decision="build" if first else "rebuild")
+        moved = bool((first and group.indices) or changed or behind)
+        reshaped = moved and (first or behind or any(states[i].reshaped(before[i])
+                                                     for i in changed))
+        group.update(Change(shapes, group.indices, moved=moved, reshaped=reshaped, first=first,
+                            policy=policy, config=config))
+        if group.last.decision != "kept":
             if group.indices and (not (first or behind) or "hlbvh" not in self.costs.update_ms):
                 # a frame's update as the policy makes it (a first or catch-up build only
                 # until one is measured)
                 self.costs.record_update("hlbvh", group.last.ms)
-        else:
-            group.keep()
         self._behind.discard("hlbvh")
 
     def update_native(self, shapes, moved: bool = False):
         """The Mitsuba sub-scene of the moving meshes, built anew when they ``moved`` (or
         moved while another structure traced them)."""
-        self.native.update(shapes, self.indices, moved=moved or "native" in self._behind)
+        self.native.update(Change(shapes, self.indices, moved=moved or "native" in self._behind))
         if self.native.last.decision != "kept" and self.indices:
             self.costs.record_update("native", self.native.last.ms)
             self.marks_cleared = True

@@ -21,7 +21,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from hlbvh.accel.groups import NativeUpdate
+from hlbvh.accel.groups import Change, NativeUpdate
 from hlbvh.accel.instance_shading import group_members
 from hlbvh.accel.motion import member_states, members_changed
 from hlbvh.accel.scene_geometry import check_finite
@@ -71,15 +71,16 @@ class NativeGroup:
     def triangles(self) -> int:
         return self._triangles
 
-    def update(self, shapes, indices: tuple, left: list | None = None, moved: bool = False):
-        """Trace the shapes ``shapes[i]``, ``i`` in ``indices``: a new sub-scene when they
-        are not those of the last build (``left``: ids of the shapes that moved out) or
-        when they ``moved``, nothing otherwise.
+    def update(self, change: Change):
+        """Trace the shapes ``change.indices``: a new sub-scene when they are not those of
+        the last build, when they moved, or when a shape group's shapes changed;
+        nothing otherwise.
 
         Raises:
             ValueError: naming a mesh with non-finite vertex positions (first build, and
                 every build of moving shapes).
         """
+        shapes, indices, moved = change.shapes, change.indices, change.moved
         reshaped = self._changed_groups() if self._built else []
         if self._built and tuple(indices) == self.indices and not reshaped and not moved:
             self.keep()
@@ -97,7 +98,7 @@ class NativeGroup:
         self.build_ms = clock_ms() - start
         self.last = NativeUpdate(decision=decision, ms=self.build_ms,
                                  triangles=self._triangles, shapes=len(self.indices),
-                                 left=list(left or ()), groups_changed=reshaped)
+                                 left=list(change.left), groups_changed=reshaped)
 
     def keep(self):
         """Record that the last update left the sub-scene as it was."""

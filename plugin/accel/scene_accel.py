@@ -38,6 +38,7 @@ from hlbvh.accel.instance_shading import InstanceShading, is_instance
 from hlbvh.accel.mesh_group import MeshGroup, joined_sah_cost
 from hlbvh.accel.motion import MeshState, shape_states
 from hlbvh.accel.moving import MovingMeshes, query_ns
+from hlbvh.accel.groups import Change
 from hlbvh.accel.native_group import NativeGroup, shape_groups
 from hlbvh.accel.policy import ACCELS, DECISIONS, UpdatePolicy, split_options
 from hlbvh.accel.queries import NativeAccel, SceneQueries, checked_scene
@@ -199,9 +200,9 @@ class SceneAccel(SceneQueries):
         self._instances_behind |= not set(moving_instances).isdisjoint(changed)
         if self.instances is not None and structure != "scene":
             table = self.shading if self.shading is not None and self.shading.usable else None
-            self.instances.update(self.shapes, moving_instances, moved=self._instances_behind,
-                                  rows_of=table.rows_of if table else None,
-                                  policy=self.policy)
+            self.instances.rows_of = table.rows_of if table else None
+            self.instances.update(Change(self.shapes, moving_instances,
+                                         moved=self._instances_behind, policy=self.policy))
             self._instances_behind = False
         elif self.instances is not None:
             self.instances.keep()
@@ -352,19 +353,17 @@ class SceneAccel(SceneQueries):
         if self.static.native:
             moving = set(moving)
             still = tuple(i for i in range(len(self.shapes)) if i not in moving)
-            self.static.update(self.shapes, still, [self.shapes[i].id() for i in started])
+            self.static.update(Change(self.shapes, still,
+                                      left=tuple(self.shapes[i].id() for i in started)))
             return
         moving = set(moving)
-        self.static.indices = tuple(i for i in self.meshes if i not in moving)
-        if first or self.static.stale:
-            # Built once for every frame to come: with the static builder, unless no
-            # shape was declared moving (the accelerator's first tree over everything).
-            config = (self.config if first and not self.moving
-                      else self.policy.static_config(self.config))
-            self.static.update(self.shapes, config, self.policy, reshaped=True,
-                               decision="build" if first else "rebuild")
-        else:
-            self.static.keep()
+        # Built once for every frame to come: with the static builder, unless no shape
+        # was declared moving (the accelerator's first tree over everything).
+        config = (self.config if first and not self.moving
+                  else self.policy.static_config(self.config))
+        self.static.update(Change(self.shapes, tuple(i for i in self.meshes if i not in moving),
+                                  reshaped=first, first=first, policy=self.policy,
+                                  config=config))
 
     def _stale_groups(self) -> bool:
         return any(g.stale for g in (self.static, self.dynamic)) \
