@@ -14,7 +14,7 @@ from typing import Any
 
 import drjit as dr
 
-from .arrays import high_half, low_half, pack_halves
+from .arrays import Array3f, Float, UInt32, high_half, low_half, pack_halves
 from .sah_planes import (MIDDLE, NO_PLANE, RECORD, SahTree, bin_index, box_centroid, cheaper,
                          extent_scale, grow, plane_cost, plane_key, side_cost,
                          tree_from_records, write_records)
@@ -86,19 +86,19 @@ class _Level:
     """
 
     size: int
-    node_id: Any = None
-    slot_first: Any = None
-    act_first: Any = None
-    count: Any = None
-    box_lo: Any = None
-    box_hi: Any = None
-    cmin: Any = None
-    cmax: Any = None
-    item: Any = None
-    node: Any = None
-    item_lo: Any = None
-    item_hi: Any = None
-    item_weight: Any = None
+    node_id: UInt32 = None
+    slot_first: UInt32 = None
+    act_first: UInt32 = None
+    count: UInt32 = None
+    box_lo: Array3f = None
+    box_hi: Array3f = None
+    cmin: Array3f = None
+    cmax: Array3f = None
+    item: UInt32 = None
+    node: UInt32 = None
+    item_lo: Array3f = None
+    item_hi: Array3f = None
+    item_weight: Float = None
 
 
 @dataclass
