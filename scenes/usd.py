@@ -385,9 +385,9 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         if uv is None:  # no texture coordinates: bitmaps give way to authored values
             parts = [(part, chosen, *self._material(
                         part, read.mesh, read.double_sided, time, point_count, None,
-                        textures=False)[:2], colors, st) if st is not None
-                     else (part, chosen, bsdf, emission, colors, st)
-                     for part, chosen, bsdf, emission, colors, st in parts]
+                        textures=False)[:2], attributes, st) if st is not None
+                     else (part, chosen, bsdf, emission, attributes, st)
+                     for part, chosen, bsdf, emission, attributes, st in parts]
         meshes = mesh_parts(read, parts, normals, uv, transform, instanced)
         if group_only:
             return self._group(prim, parts, meshes)
@@ -405,7 +405,8 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         of one prototype mesh with the same materials share one."""
         source = prim.GetPrimInPrototype() if prim.IsInstanceProxy() else prim
         key = (str(source.GetPath()),) + tuple(
-            (part.GetName(), repr(made.bsdf), digest(made.colors), digest(made.texcoords))
+            (part.GetName(), repr(made.bsdf), digest(made.texcoords),
+             *((name, digest(values)) for name, values in sorted(made.attributes.items())))
             for (part, *_), made in zip(parts, meshes))
         group = self._groups.get(key)
         if group is None:

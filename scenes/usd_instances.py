@@ -71,11 +71,9 @@ class InstancerPoints:
 
 
 def digest(array) -> str | None:
-    """A digest of a mesh's colours or texture coordinates (None stays None)."""
+    """A digest of a mesh attribute's values or texture coordinates (None stays None)."""
     if array is None:
         return None
-    if isinstance(array, tuple):
-        return array[0] + ":" + digest(array[1])
     return hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest()
 
 

@@ -9,12 +9,14 @@ roughness, metallic to ``principled``; opacity below 1 through a ``mask``
 the mesh. A diffuseColor or emissiveColor read from a ``UsdUVTexture`` becomes a
 ``bitmap`` over the mesh's texture coordinates (the ``UsdPrimvarReader_float2``'s
 primvar, ``st`` by default; per point, or faceVarying with the points split where
-their uv differ); a diffuseColor from a ``UsdPrimvarReader_float3`` reads its
-primvar as ``displayColor`` is read; other connected inputs keep their authored
-value (said once per material, naming them). Without a material the
-``displayColor`` primvar gives a diffuse colour: per point or per face as a Mitsuba
-mesh attribute (``vertex_color``, ``face_color``), its mean for other interpolations
-(said), else grey.
+their uv differ). An input read from a primvar reader (:data:`READERS`) takes that
+primvar as ``displayColor`` is read: one value, or per point or face a Mitsuba mesh
+attribute (``vertex_color``/``face_color`` for diffuseColor, ``vertex_roughness``,
+... for the others); emissiveColor, and opacity cut by ``opacityThreshold``, take
+its mean when it varies (said: Mitsuba's area emitter samples one radiance or a
+texture, not a mesh attribute, and a cutout is not an interpolated opacity). Other
+connected inputs keep their authored value (said once per material, naming them).
+Without a material the ``displayColor`` primvar gives a diffuse colour, else grey.
 """
 
 from __future__ import annotations
@@ -27,6 +29,12 @@ from .usd_prims import (GREY, PREVIEW_DEFAULTS, UsdGeom, UsdShade, _array, _chec
 
 #: UsdPreviewSurface inputs whose ``UsdUVTexture`` becomes a Mitsuba ``bitmap``.
 TEXTURED_INPUTS = ("diffuseColor", "emissiveColor")
+
+#: UsdPreviewSurface inputs read from a primvar reader, and the reader each takes.
+READERS = {"diffuseColor": "UsdPrimvarReader_float3",
+           "emissiveColor": "UsdPrimvarReader_float3",
+           "roughness": "UsdPrimvarReader_float", "metallic": "UsdPrimvarReader_float",
+           "opacity": "UsdPrimvarReader_float"}
 
 
 class _Materials:
@@ -102,17 +110,17 @@ class _Materials:
 
     def _material(self, prim, mesh, double_sided: bool, time, point_count: int,
                   source_faces, textures: bool = True) -> tuple:
-        """``(bsdf, emission, colors, st)``: the mesh's BSDF dict, its emission
+        """``(bsdf, emission, attributes, st)``: the mesh's BSDF dict, its emission
         (``None``: none; an RGB radiance, or a bitmap's dict for a textured
-        emissiveColor), the colour attribute its BSDF reads (``None``: none; see
-        :meth:`_display_color`) and the primvar of texture coordinates its bitmaps
-        read (``None``: none; ``textures=False``: no bitmaps, see
+        emissiveColor), the Mitsuba mesh attributes its BSDF reads (``{name: (N, width)
+        values}``, see :meth:`_primvar`) and the primvar of texture coordinates its
+        bitmaps read (``None``: none; ``textures=False``: no bitmaps, see
         :meth:`_unread_input`).
 
         Inputs connected to a shader: diffuseColor and emissiveColor to a
-        ``UsdUVTexture`` read its file; diffuseColor to a ``UsdPrimvarReader_float3``
-        reads that primvar per point or face; others keep their authored value (said,
-        naming each).
+        ``UsdUVTexture`` read its file; an input of :data:`READERS` to its primvar
+        reader reads that primvar (:meth:`_reader_value`); others keep their authored
+        value (said, naming each).
 
         Raises:
             ValueError: an input that is not finite, or a negative colour, naming the
@@ -129,10 +137,10 @@ class _Materials:
                            f"{prim.GetPath()} renders grey")
                 shader = None
         if shader is None:
-            color = self._display_color(prim, mesh, time, point_count, source_faces) or GREY
-            reflectance, colors = self._reflectance(color)
+            color = self._primvar(prim, mesh, time, point_count, source_faces) or GREY
+            reflectance, attributes = _texture_of(color)
             bsdf = {"type": "diffuse", "reflectance": reflectance}
-            return (_two_sided(bsdf) if double_sided else bsdf), None, colors, None
+            return (_two_sided(bsdf) if double_sided else bsdf), None, attributes, None
         values, connected = {}, []
         for name, default in PREVIEW_DEFAULTS.items():
             shader_input = shader.GetInput(name)
@@ -144,9 +152,7 @@ class _Materials:
                 default if value is None else tuple(float(v) for v in value)
                 if isinstance(default, tuple) else float(value),
                 least=0 if isinstance(default, tuple) else None)
-        base_color, colors, st = {"type": "rgb", "value": list(values["diffuseColor"])}, None, None
-        emission = values["emissiveColor"] if any(c > 0 for c in values["emissiveColor"]) \
-            else None
+        mapped, attributes, st = {}, {}, None
         dropped = []
         for name in connected:
             source = _connected_shader(shader.GetInput(name))
@@ -161,25 +167,20 @@ class _Materials:
                                                f"is read over {wanted!r}, not {st!r}", time)
                 else:
                     value, st = bitmap, wanted
-                if name == "diffuseColor":
-                    base_color = value if isinstance(value, dict) else \
-                        {"type": "rgb", "value": list(value)}
+                if isinstance(value, dict):
+                    mapped[name] = value
                 else:
-                    emission = value if isinstance(value, dict) or any(
-                        c > 0 for c in value) else None
-            elif name == "diffuseColor" and kind.startswith("UsdPrimvarReader_float"):
-                varname = str(_input_value(source.GetInput("varname"), time) or "")
-                color = self._display_color(prim, mesh, time, point_count, source_faces,
-                                            varname) if varname else None
-                if color is None:
-                    fallback = source.GetInput("fallback")
-                    color = (tuple(float(v) for v in fallback.Get(time))[:3]
-                             if fallback and fallback.Get(time) is not None
-                             else values[name])
-                    self._warn_once(f"{self._where}: {prim.GetPath()}: has no primvar "
-                                    f"{varname!r} that {source.GetPath()} reads; "
-                                    f"diffuseColor is {tuple(round(c, 4) for c in color)}")
-                base_color, colors = self._reflectance(color)
+                    values[name] = value
+            elif READERS.get(name) == kind:
+                cut = name == "opacity" and values["opacityThreshold"] > 0
+                value = self._reader_value(prim, mesh, name, source, values[name], time,
+                                           point_count, source_faces, cut)
+                texture, read = _texture_of(value)
+                if read:
+                    mapped[name] = texture
+                    attributes.update(read)
+                else:
+                    values[name] = value
             else:
                 dropped.append(f"{name} ({kind or 'a connection'})")
         if dropped:
@@ -187,17 +188,51 @@ class _Materials:
                             f"{', '.join(dropped)} are not read; their authored values "
                             f"are used")
         bsdf = {"type": "principled",
-                "base_color": base_color,
-                "roughness": min(max(values["roughness"], 0.0), 1.0),
-                "metallic": min(max(values["metallic"], 0.0), 1.0)}
+                "base_color": mapped.get("diffuseColor") or
+                {"type": "rgb", "value": list(values["diffuseColor"])},
+                "roughness": mapped.get("roughness") or
+                min(max(values["roughness"], 0.0), 1.0),
+                "metallic": mapped.get("metallic") or min(max(values["metallic"], 0.0), 1.0)}
         if double_sided:
             bsdf = _two_sided(bsdf)
         opacity = min(max(values["opacity"], 0.0), 1.0)
         if values["opacityThreshold"] > 0:
             opacity = 1.0 if opacity >= values["opacityThreshold"] else 0.0
-        if opacity < 1:
-            bsdf = {"type": "mask", "opacity": opacity, "bsdf": bsdf}
-        return bsdf, emission, colors, st
+        if "opacity" in mapped or opacity < 1:
+            bsdf = {"type": "mask", "opacity": mapped.get("opacity", opacity), "bsdf": bsdf}
+        emission = mapped.get("emissiveColor") or (
+            values["emissiveColor"] if any(c > 0 for c in values["emissiveColor"]) else None)
+        return bsdf, emission, attributes, st
+
+    def _reader_value(self, prim, mesh, name: str, reader, authored, time, point_count: int,
+                      source_faces, cut: bool):
+        """The value of input ``name`` (authored value ``authored``: a colour tuple or
+        a number) read through primvar reader ``reader``: the reader's primvar as
+        :meth:`_primvar` gives it (one value, or per point or face ``(attribute name,
+        values)``, scalars clamped to [0, 1]); its mean when it varies and the input
+        is emissiveColor, or opacity cut by opacityThreshold (``cut``). The reader's
+        ``fallback``, else ``authored``, when the mesh has no such primvar of the
+        input's width (said once)."""
+        width = 3 if isinstance(authored, tuple) else 1
+        varname = str(_input_value(reader.GetInput("varname"), time) or "")
+        single = ("Mitsuba's area emitter samples one radiance or a texture, not a "
+                  "mesh attribute" if name == "emissiveColor" else
+                  "a cutout (opacityThreshold) is not an interpolated opacity" if cut
+                  else None)
+        value = self._primvar(prim, mesh, time, point_count, source_faces, varname, width,
+                              "color" if name == "diffuseColor" else name, single) \
+            if varname else None
+        if value is None:
+            fallback = _input_value(reader.GetInput("fallback"), time)
+            value = authored if fallback is None else \
+                tuple(float(v) for v in np.ravel(fallback))[:3] if width == 3 \
+                else float(np.ravel(fallback)[0])
+            self._warn_once(f"{self._where}: {prim.GetPath()}: has no primvar {varname!r} "
+                            f"of {'colours' if width == 3 else 'numbers'} that "
+                            f"{reader.GetPath()} reads; {name} is {_shown(value)}")
+        elif width == 1 and isinstance(value, tuple):
+            value = (value[0], np.clip(value[1], 0.0, 1.0))
+        return value
 
     def _unread_input(self, material, name: str, authored: tuple, texture, why: str,
                       time) -> tuple:
@@ -219,37 +254,59 @@ class _Materials:
                             f"{tuple(round(c, 4) for c in value)}")
         return value
 
-    @staticmethod
-    def _reflectance(color) -> tuple:
-        """``(texture dict, colors)`` of :meth:`_display_color`'s colour: an ``rgb``,
-        or a ``mesh_attribute`` with the attribute the mesh then holds."""
-        if isinstance(color, tuple) and isinstance(color[0], str):
-            return {"type": "mesh_attribute", "name": color[0]}, color
-        return {"type": "rgb", "value": list(color)}, None
-
-    def _display_color(self, prim, mesh, time, point_count: int, source_faces,
-                       name: str = "displayColor"):
-        """The colour primvar ``name``: one colour ``(r, g, b)`` when it is constant
-        (``None`` without one, or when it does not hold colours); per point (``vertex``/``varying``) or per face
-        (``uniform``) as a Mitsuba mesh attribute ``("vertex_color", (V, 3))`` or
-        ``("face_color", (F, 3))`` (per triangle); other interpolations, or a mesh whose
-        topology is time-sampled (``source_faces`` ``None``), get the mean colour
-        (said)."""
+    def _primvar(self, prim, mesh, time, point_count: int, source_faces,
+                 name: str = "displayColor", width: int = 3, attribute: str = "color",
+                 single: str | None = None):
+        """Primvar ``name`` of colours (``width`` 3, none negative) or numbers
+        (``width`` 1): one value (a tuple of 3, or a float) when it is constant
+        (``None`` without one, or when its values are of another width); per point
+        (``vertex``/``varying``) or per face (``uniform``) as a Mitsuba mesh attribute
+        ``("vertex_<attribute>", (V, width))`` or ``("face_<attribute>", (F, width))``
+        (per triangle). Other interpolations, a mesh whose topology is time-sampled
+        (``source_faces`` ``None``), or a use that takes one value (``single`` says
+        why) get the mean (said)."""
         primvar = UsdGeom.PrimvarsAPI(mesh).GetPrimvar(name)
         value = primvar.ComputeFlattened(time) if primvar and primvar.HasValue() else None
-        if value is None or len(value) == 0 or np.ndim(value[0]) != 1 or len(value[0]) != 3:
-            return None  # none, or not of colours
-        colors = _checked(f"{self._where}: {prim.GetPath()}: primvars:{name}",
-                          _array(value, 3), least=0)
-        if len(colors) == 1 or np.all(colors == colors[0]):
-            return tuple(float(c) for c in colors[0])
+        if value is None or len(value) == 0 or \
+                (np.ndim(value[0]) != 1 or len(value[0]) != 3 if width == 3
+                 else np.ndim(value[0]) != 0):
+            return None  # none, or not of this width
+        values = _checked(f"{self._where}: {prim.GetPath()}: primvars:{name}",
+                          _array(value, width), least=0 if width == 3 else None)
+        one = (lambda v: tuple(float(c) for c in v)) if width == 3 else \
+            (lambda v: float(v[0]))
+        if len(values) == 1 or np.all(values == values[0]):
+            return one(values[0])
         interpolation = primvar.GetInterpolation()
-        if interpolation in (UsdGeom.Tokens.vertex, UsdGeom.Tokens.varying) \
-                and len(colors) == point_count:
-            return ("vertex_color", colors)
-        if interpolation == UsdGeom.Tokens.uniform and source_faces is not None \
-                and len(source_faces) and len(colors) > int(source_faces.max()):
-            return ("face_color", colors[source_faces])
+        if single is None and interpolation in (UsdGeom.Tokens.vertex,
+                                                UsdGeom.Tokens.varying) \
+                and len(values) == point_count:
+            return (f"vertex_{attribute}", values)
+        if single is None and interpolation == UsdGeom.Tokens.uniform \
+                and source_faces is not None and len(source_faces) \
+                and len(values) > int(source_faces.max()):
+            return (f"face_{attribute}", values[source_faces])
+        mean = one(values.mean(axis=0))
         self._warn(f"{self._where}: {prim.GetPath()}: {name} of interpolation "
-                   f"{interpolation!r} varies over the mesh; its mean colour is used")
-        return tuple(float(c) for c in colors.mean(axis=0))
+                   f"{interpolation!r} varies over the mesh"
+                   f"{'' if single is None else f' ({single})'}; its mean "
+                   f"{_shown(mean)} is used")
+        return mean
+
+
+def _texture_of(value) -> tuple:
+    """``(Mitsuba texture, mesh attributes)`` of a value :meth:`_Materials._primvar`
+    gives: an ``rgb`` or a number and none, or a ``mesh_attribute`` and the attribute
+    the mesh then holds."""
+    if isinstance(value, tuple) and isinstance(value[0], str):
+        return {"type": "mesh_attribute", "name": value[0]}, {value[0]: value[1]}
+    if isinstance(value, tuple):
+        return {"type": "rgb", "value": list(value)}, {}
+    return value, {}
+
+
+def _shown(value) -> str:
+    """A colour or a number as a line says it (4 decimals)."""
+    if isinstance(value, tuple):
+        return str(tuple(round(c, 4) for c in value))
+    return str(round(value, 4))

@@ -157,7 +157,7 @@ def shading_normals(read: MeshPrim, transform: np.ndarray, instanced: bool,
 def mesh_parts(read: MeshPrim, parts: list, normals, uv, transform: np.ndarray,
                instanced: bool) -> list[_Mesh]:
     """The Mitsuba meshes (ids not yet given) of a mesh prim's ``parts``, each
-    ``(prim, triangle selection, bsdf, emission, colors, texture primvar)``:
+    ``(prim, triangle selection, bsdf, emission, mesh attributes, texture primvar)``:
     ``normals`` from :func:`shading_normals`, ``uv`` the texture coordinates (see
     ``_texcoords``; faceVarying ones split the points where their uv differ), faces
     turned where ``transform`` mirrors a world-space mesh so they keep facing out."""
@@ -171,10 +171,10 @@ def mesh_parts(read: MeshPrim, parts: list, normals, uv, transform: np.ndarray,
     if mirrored:
         faces = faces[:, ::-1].copy()  # a mirroring transform: keep the faces outward
     meshes = []
-    for part, chosen, bsdf, emission, colors, st in parts:
-        if vertex_points is not None:
-            if colors is not None and colors[0] == "vertex_color":
-                colors = (colors[0], colors[1][vertex_points])
+    for part, chosen, bsdf, emission, attributes, st in parts:
+        if vertex_points is not None:  # per-point attributes follow the split points
+            attributes = {name: values[vertex_points] if name.startswith("vertex_")
+                          else values for name, values in attributes.items()}
         meshes.append(_Mesh(
             id="", path=read.path, motion="static" if instanced else read.motion,
             faces=faces[chosen], topology_varies=read.topology_varies,
@@ -182,7 +182,7 @@ def mesh_parts(read: MeshPrim, parts: list, normals, uv, transform: np.ndarray,
             bsdf=bsdf, emission=emission,
             normals=None if normals is None
             else normals if vertex_points is None else normals[vertex_points],
-            colors=colors, point_count=len(read.points), mirrored=mirrored,
+            attributes=attributes, point_count=len(read.points), mirrored=mirrored,
             local_points=read.points if read.motion == "rigid" or instanced else None,
             vertex_points=vertex_points,
             texcoords=None if uv is None else texcoords))

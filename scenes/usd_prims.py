@@ -71,7 +71,7 @@ class _Mesh:
     emission: tuple | dict | None    # an RGB radiance, or a bitmap texture's dict
     local_points: np.ndarray | None = None     # (V, 3) float64, rigid meshes
     normals: np.ndarray | None = None           # (V, 3) authored world-space normals
-    colors: tuple | None = None                 # ("vertex_color" | "face_color", (N, 3))
+    attributes: dict = field(default_factory=dict)  # Mitsuba mesh attributes: (N, width)
     point_count: int = 0                        # V of the first frame
     vertex_points: np.ndarray | None = None     # (V',) the point of each Mitsuba vertex
     texcoords: np.ndarray | None = None         # (V', 2) Mitsuba uv, with a texture
@@ -452,9 +452,8 @@ def _mitsuba_mesh(mesh: _Mesh, points: np.ndarray, faces: np.ndarray) -> mi.Mesh
     if mesh.texcoords is not None:
         params["vertex_texcoords"] = mi.Float(
             np.ascontiguousarray(mesh.texcoords, np.float32).reshape(-1))
-    if mesh.colors is not None:
-        name, values = mesh.colors
-        shape.add_attribute(name, 3, mi.Float(np.ascontiguousarray(values, np.float32)
-                                              .reshape(-1)))
+    for name, values in mesh.attributes.items():
+        shape.add_attribute(name, values.shape[1], mi.Float(
+            np.ascontiguousarray(values, np.float32).reshape(-1)))
     params.update()
     return shape

@@ -297,9 +297,9 @@ def test02_z_up_centimetres_are_y_up_metres_and_upright(tmp_path):
             np.testing.assert_allclose(triangles[shape_id],
                                        np.stack([x, z, -y], axis=-1) * 0.01, atol=1e-9)
     meshes = rendered_meshes(animation)
-    assert meshes["Painted"].colors[0] == "vertex_color"
-    np.testing.assert_allclose(meshes["Painted"].colors[1][2], [0, 0, 1])
-    name, per_triangle = meshes["Banner"].colors
+    assert list(meshes["Painted"].attributes) == ["vertex_color"]
+    np.testing.assert_allclose(meshes["Painted"].attributes["vertex_color"][2], [0, 0, 1])
+    (name, per_triangle), = meshes["Banner"].attributes.items()
     assert name == "face_color"
     np.testing.assert_allclose(per_triangle, [[0.9, 0.5, 0.1]] * 2 + [[0.1, 0.3, 0.9]],
                                rtol=1e-6)

@@ -160,6 +160,110 @@ def test_a_textured_emission_reads_its_texture_and_no_authored_white(tmp_path):
     assert centre[0] == pytest.approx(2.0, rel=1e-3) and centre[1] == centre[2] == 0
 
 
+def _read_through(stage, surface, name, kind, varname, values, interpolation, type_name):
+    """``surface``'s input ``name`` connected to a primvar reader of ``kind`` reading
+    primvar ``varname`` of ``values`` on /Quad."""
+    primvar = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/Quad")).CreatePrimvar(
+        varname, type_name, interpolation)
+    primvar.Set(values)
+    reader = UsdShade.Shader.Define(stage, f"/Looks/Look/{name}_reader")
+    reader.CreateIdAttr(kind)
+    reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set(varname)
+    value_type = Sdf.ValueTypeNames.Color3f if kind.endswith("float3") else \
+        Sdf.ValueTypeNames.Float
+    surface.CreateInput(name, value_type).ConnectToSource(reader.ConnectableAPI(), "result")
+
+
+@pytest.mark.parametrize("varying", [False, True])
+def test_an_emission_from_a_primvar_reader_reads_the_primvar(tmp_path, varying):
+    """A constant primvar is the emitter's radiance; one that varies gives its mean, said
+    (Mitsuba's area emitter cannot sample a mesh attribute)."""
+    path = tmp_path / "glow.usda"
+    stage = _stage(path)
+    glow = [(1, 0, 0), (1, 0, 0), (0, 0, 1), (0, 0, 1)] if varying else [(0.5, 2, 0)]
+    _read_through(stage, _surface(stage), "emissiveColor", "UsdPrimvarReader_float3", "glow",
+                  glow, UsdGeom.Tokens.vertex if varying else UsdGeom.Tokens.constant,
+                  Sdf.ValueTypeNames.Color3fArray)
+    stage.GetRootLayer().Save()
+    said = []
+    animation = UsdScene(path, warn=said.append, default_light=False)
+    expected = (0.5, 0.0, 0.5) if varying else (0.5, 2.0, 0.0)
+    assert [line for line in said if "varies" in line] == ([
+        f"stage {str(path)!r}: /Quad: glow of interpolation 'vertex' varies over the mesh "
+        f"(Mitsuba's area emitter samples one radiance or a texture, not a mesh "
+        f"attribute); its mean (0.5, 0.0, 0.5) is used"] if varying else [])
+    assert animation._meshes[0].emission == pytest.approx(expected)
+    assert _render(animation)[4, 4] == pytest.approx(expected, rel=1e-5)
+
+
+def test_roughness_metallic_and_opacity_from_primvar_readers_read_the_primvars(tmp_path):
+    """Per point: Mitsuba mesh attributes the BSDF reads (clamped to [0, 1]); constant:
+    the value. An opacity from 0 at the quad's left edge to 1 at its right shows the
+    sky through its left side."""
+    path = tmp_path / "readers.usda"
+    stage = _stage(path)
+    UsdLux.DomeLight.Define(stage, "/Sky")
+    surface = _surface(stage)
+    floats = Sdf.ValueTypeNames.FloatArray
+    _read_through(stage, surface, "roughness", "UsdPrimvarReader_float", "rough",
+                  [0.0, 0.5, 1.5, -1.0], UsdGeom.Tokens.vertex, floats)
+    _read_through(stage, surface, "metallic", "UsdPrimvarReader_float", "metal", [0.75],
+                  UsdGeom.Tokens.constant, floats)
+    _read_through(stage, surface, "opacity", "UsdPrimvarReader_float", "alpha",
+                  [0.0, 1.0, 1.0, 0.0], UsdGeom.Tokens.vertex, floats)
+    stage.GetRootLayer().Save()
+    said = []
+    animation = UsdScene(path, warn=said.append)
+    assert not any("not read" in line or "reads" in line for line in said), said
+    (mesh,) = animation._meshes
+    assert mesh.bsdf["opacity"] == {"type": "mesh_attribute", "name": "vertex_opacity"}
+    principled = mesh.bsdf["bsdf"]
+    assert principled["roughness"] == {"type": "mesh_attribute", "name": "vertex_roughness"}
+    assert principled["metallic"] == pytest.approx(0.75)
+    np.testing.assert_array_equal(mesh.attributes["vertex_roughness"][:, 0], [0, 0.5, 1, 0])
+    image = _render(animation, size=16, spp=64)
+    left, right = image[:, :3].mean(), image[:, 13:].mean()
+    assert left > 0.8 and right < 0.4, (left, right)
+
+
+def test_a_cutout_s_opacity_from_a_varying_primvar_takes_its_mean(tmp_path):
+    path = tmp_path / "cutout.usda"
+    stage = _stage(path)
+    UsdLux.DomeLight.Define(stage, "/Sky")
+    surface = _surface(stage)
+    surface.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).Set(0.6)
+    _read_through(stage, surface, "opacity", "UsdPrimvarReader_float", "alpha",
+                  [0.0, 1.0, 1.0, 0.2], UsdGeom.Tokens.vertex, Sdf.ValueTypeNames.FloatArray)
+    stage.GetRootLayer().Save()
+    said = []
+    animation = UsdScene(path, warn=said.append)
+    assert said == [
+        f"stage {str(path)!r}: /Quad: alpha of interpolation 'vertex' varies over the mesh "
+        f"(a cutout (opacityThreshold) is not an interpolated opacity); its mean 0.55 is used"]
+    bsdf = animation._meshes[0].bsdf
+    assert bsdf["type"] == "mask" and bsdf["opacity"] == 0.0  # 0.55 < 0.6: cut out
+
+
+def test_a_reader_of_the_wrong_kind_or_primvar_is_said_naming_what_is_dropped(tmp_path):
+    path = tmp_path / "wrong.usda"
+    stage = _stage(path)
+    UsdLux.DomeLight.Define(stage, "/Sky")
+    surface = _surface(stage)
+    _read_through(stage, surface, "roughness", "UsdPrimvarReader_float3", "rough",
+                  [(0.1, 0.1, 0.1)], UsdGeom.Tokens.constant, Sdf.ValueTypeNames.Color3fArray)
+    _read_through(stage, surface, "metallic", "UsdPrimvarReader_float", "metal",
+                  [(1, 1, 1)], UsdGeom.Tokens.constant, Sdf.ValueTypeNames.Color3fArray)
+    stage.GetRootLayer().Save()
+    said = []
+    animation = UsdScene(path, warn=said.append)
+    assert said == [
+        f"stage {str(path)!r}: /Quad: has no primvar 'metal' of numbers that "
+        f"/Looks/Look/metallic_reader reads; metallic is 0.0",
+        f"stage {str(path)!r}: /Looks/Look: connected inputs roughness "
+        f"(UsdPrimvarReader_float3) are not read; their authored values are used"]
+    assert animation._meshes[0].bsdf["roughness"] == 0.5
+
+
 # ---- Skinning -----------------------------------------------------------------------------
 
 
