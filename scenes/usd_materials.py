@@ -158,7 +158,7 @@ class _Materials:
             source = _connected_shader(shader.GetInput(name))
             kind = str(source.GetIdAttr().Get()) if source else ""
             if name in TEXTURED_INPUTS and kind == "UsdUVTexture":
-                bitmap, wanted, why = _uv_texture(source, time) if textures else \
+                bitmap, wanted, why = _uv_texture(source, time, self._where) if textures else \
                     (None, None, "is not mapped")
                 if bitmap is None:
                     value = self._unread_input(material, name, values[name], source, why, time)

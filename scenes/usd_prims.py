@@ -316,12 +316,18 @@ def _dome_pole(dome, kind: str, stage) -> np.ndarray:
 _WRAPS = {"repeat": "repeat", "mirror": "mirror", "clamp": "clamp", "black": "clamp",
           "useMetadata": "repeat"}
 
-def _uv_texture(texture, time) -> tuple:
+def _uv_texture(texture, time, where: str) -> tuple:
     """``(bitmap texture dict or None, st primvar name, why not)`` of a
     ``UsdUVTexture`` shader: its file as a Mitsuba ``bitmap`` over the primvar its
-    ``st`` is read from (a ``UsdPrimvarReader_float2``'s, ``st`` by default); no bitmap
+    ``st`` is read from (a ``UsdPrimvarReader_float2``'s, ``st`` by default), through
+    :func:`_scaled_image` when its ``scale`` or ``bias`` is not the identity; no bitmap
     when the file is not given, does not resolve, or is not an image Mitsuba reads
-    (``why not`` says which)."""
+    (``why not`` says which).
+
+    Raises:
+        ValueError: a scale or bias that is not finite, naming the stage (``where``),
+            the shader and the input.
+    """
     asset = _input_value(texture.GetInput("file"), time)
     if asset is None or not asset.path:
         return None, None, "has no file"
@@ -332,6 +338,14 @@ def _uv_texture(texture, time) -> tuple:
         else _unreadable_image(filename)
     if problem is not None:
         return None, None, f"{asset.path!r} {problem}"
+    factors = []
+    for key, identity in (("scale", 1.0), ("bias", 0.0)):
+        value = _input_value(texture.GetInput(key), time)
+        factors.append((identity,) * 3 if value is None else tuple(float(v) for v in _checked(
+            f"{where}: {texture.GetPath()}: inputs:{key}", np.ravel(value)[:3])))
+    scale, bias = factors
+    if scale != (1.0,) * 3 or bias != (0.0,) * 3:
+        filename = _scaled_image(filename, scale, bias)
     reader = _connected_shader(texture.GetInput("st"))
     name = str((_input_value(reader.GetInput("varname"), time) if reader is not None
                 else None) or "st")
@@ -379,12 +393,38 @@ def _local_asset(resolved: str) -> str | None:
         return None
     data = bytes(asset.GetBuffer())
     inner = Ar.SplitPackageRelativePathInner(resolved)[1]
-    folder = Path(tempfile.gettempdir()) / "hlbvh-usdz" / hashlib.sha256(data).hexdigest()
-    target = folder / Path(inner).name
+    return _written_once("hlbvh-usdz", hashlib.sha256(data).hexdigest(), Path(inner).name,
+                         lambda path: Path(path).write_bytes(data))
+
+
+def _scaled_image(filename: str, scale: tuple, bias: tuple) -> str:
+    """The image at ``filename`` as a ``UsdUVTexture`` with ``scale`` and ``bias``
+    outputs it: its linear RGB times ``scale`` plus ``bias``, channel by channel (values
+    below 0, which no colour holds, become 0), written once as an OpenEXR to
+    ``hlbvh-textures/<SHA-256 of the image's bytes, scale and bias>/`` in the temporary
+    folder (Mitsuba's bitmap has no scale or bias of its own)."""
+    key = hashlib.sha256(Path(filename).read_bytes() + repr((scale, bias)).encode())
+
+    def write(path: str) -> None:
+        linear = mi.Bitmap(filename).convert(mi.Bitmap.PixelFormat.RGB,
+                                             mi.Struct.Type.Float32, srgb_gamma=False)
+        pixels = np.maximum(np.array(linear) * np.array(scale) + np.array(bias), 0.0)
+        mi.Bitmap(pixels.astype(np.float32)).write(path)
+
+    return _written_once("hlbvh-textures", key.hexdigest(), f"{Path(filename).stem}.exr",
+                         write)
+
+
+def _written_once(kind: str, digest: str, name: str, write) -> str:
+    """``<temporary folder>/<kind>/<digest>/<name>``, written by ``write(path)`` unless
+    it is there: a path that depends on the content (``digest``) alone, so resume
+    digests and cluster workers agree; written to a partial file (same suffix) moved
+    into place, so a concurrent process never reads half of it."""
+    target = Path(tempfile.gettempdir()) / kind / digest / name
     if not target.is_file():
-        folder.mkdir(parents=True, exist_ok=True)
-        partial = folder / f".{target.name}.{os.getpid()}"
-        partial.write_bytes(data)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        partial = target.parent / f".{os.getpid()}.{name}"
+        write(str(partial))
         os.replace(partial, target)
     return str(target)
 

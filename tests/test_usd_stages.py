@@ -160,6 +160,70 @@ def test_a_textured_emission_reads_its_texture_and_no_authored_white(tmp_path):
     assert centre[0] == pytest.approx(2.0, rel=1e-3) and centre[1] == centre[2] == 0
 
 
+def _scaled_texture(path, texture, name, scale=None, bias=None, lit=False):
+    """A stage whose quad's input ``name`` reads ``texture`` through a UsdUVTexture with
+    ``scale`` and ``bias`` (float4, as UsdUVTexture declares them); ``lit``: a dome."""
+    stage = _stage(path)
+    if lit:
+        UsdLux.DomeLight.Define(stage, "/Sky")
+    UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/Quad")).CreatePrimvar(
+        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex).Set(
+        [(0, 0), (1, 0), (1, 1), (0, 1)])
+    surface = _surface(stage)
+    image = UsdShade.Shader.Define(stage, "/Looks/Look/Map")
+    image.CreateIdAttr("UsdUVTexture")
+    image.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(Sdf.AssetPath(str(texture)))
+    for key, value in (("scale", scale), ("bias", bias)):
+        if value is not None:
+            image.CreateInput(key, Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*value))
+    surface.CreateInput(name, Sdf.ValueTypeNames.Color3f).ConnectToSource(
+        image.ConnectableAPI(), "rgb")
+    stage.GetRootLayer().Save()
+    return path
+
+
+def _srgb_to_linear(c):
+    return c / 12.92 if c <= 0.04045 else ((c + 0.055) / 1.055) ** 2.4
+
+
+@pytest.mark.parametrize("suffix", ["exr", "png"])
+def test_a_textured_emission_honours_the_texture_s_scale_and_bias(tmp_path, suffix):
+    """UsdUVTexture outputs linear texel * scale + bias: an OpenEXR of (0.2, 0.4, 0.6)
+    or an 8-bit sRGB PNG of (128, 255, 0), scale (2, 0.5, 1), bias (0.1, 0.05, 0)."""
+    texture = tmp_path / f"glow.{suffix}"
+    if suffix == "exr":
+        mi.Bitmap(np.full((4, 4, 3), (0.2, 0.4, 0.6), dtype=np.float32)).write(str(texture))
+        texel = (0.2, 0.4, 0.6)
+    else:
+        mi.Bitmap(np.full((4, 4, 3), (128, 255, 0), dtype=np.uint8)).write(str(texture))
+        texel = (_srgb_to_linear(128 / 255), 1.0, 0.0)
+    path = _scaled_texture(tmp_path / "glow.usda", texture, "emissiveColor",
+                           scale=(2, 0.5, 1, 1), bias=(0.1, 0.05, 0, 0))
+    expected = [2 * texel[0] + 0.1, 0.5 * texel[1] + 0.05, texel[2]]
+    said = []
+    animation = UsdScene(path, warn=said.append, default_light=False)
+    assert not any("/Looks" in line for line in said), said
+    assert animation._meshes[0].emission["filename"].endswith("glow.exr")
+    assert _render(animation)[4, 4] == pytest.approx(expected, rel=1e-3)
+
+
+def test_a_diffuse_texture_honours_scale_and_bias_as_its_colour_would(tmp_path):
+    """A constant map (0.2, 0.4, 0.6) with scale (2, 0.5, 1) and bias (0.1, 0.05, 0)
+    renders as a map of the hand-computed (0.5, 0.25, 0.6) without them does (the same
+    uv, so the same paths); the map alone does not."""
+    renders = {}
+    for name, texel, scale, bias in (("scaled", (0.2, 0.4, 0.6), (2, 0.5, 1, 1), (0.1, 0.05, 0, 0)),
+                                     ("plain", (0.2, 0.4, 0.6), None, None),
+                                     ("computed", (0.5, 0.25, 0.6), None, None)):
+        texture = tmp_path / f"{name}.exr"
+        mi.Bitmap(np.full((4, 4, 3), texel, dtype=np.float32)).write(str(texture))
+        renders[name] = _render(UsdScene(_scaled_texture(
+            tmp_path / f"{name}.usda", texture, "diffuseColor", scale, bias, lit=True),
+            warn=lambda line: None))
+    np.testing.assert_allclose(renders["scaled"], renders["computed"], rtol=1e-4, atol=1e-6)
+    assert abs(renders["plain"][4, 4, 1] - renders["computed"][4, 4, 1]) > 0.05
+
+
 def _read_through(stage, surface, name, kind, varname, values, interpolation, type_name):
     """``surface``'s input ``name`` connected to a primvar reader of ``kind`` reading
     primvar ``varname`` of ``values`` on /Quad."""
