@@ -224,6 +224,17 @@ def test_a_diffuse_texture_honours_scale_and_bias_as_its_colour_would(tmp_path):
     assert abs(renders["plain"][4, 4, 1] - renders["computed"][4, 4, 1]) > 0.05
 
 
+def test_a_texture_scale_that_is_not_finite_is_named(tmp_path):
+    texture = tmp_path / "map.exr"
+    mi.Bitmap(np.ones((4, 4, 3), dtype=np.float32)).write(str(texture))
+    path = _scaled_texture(tmp_path / "nan.usda", texture, "diffuseColor",
+                           scale=(float("nan"), 1, 1, 1))
+    with pytest.raises(ValueError) as caught:
+        UsdScene(path, warn=lambda line: None)
+    assert str(caught.value) == (f"stage {str(path)!r}: /Looks/Look/Map: inputs:scale is "
+                                 f"(nan, 1, 1): expected finite values")
+
+
 def _read_through(stage, surface, name, kind, varname, values, interpolation, type_name):
     """``surface``'s input ``name`` connected to a primvar reader of ``kind`` reading
     primvar ``varname`` of ``values`` on /Quad."""
