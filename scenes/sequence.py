@@ -128,28 +128,45 @@ class SequenceScene(AnimatedScene):
 
     def integrator_description(self) -> dict | None:
         """The scene's own integrator as ``{"type": plugin, property: value, ...}``, or
-        ``None`` when it has none.
+        ``None`` when it has none. A wrapper (``moment``, ``stokes``, ``aov``) holding
+        one integrator has it, described the same way, under ``"nested"``.
 
         Raises:
-            ValueError: a property of it that is not a number, a boolean or a string
-                (a nested integrator, a texture), which could not be handed on.
+            ValueError: a property of it that is not a number, a boolean, a string or
+                one nested integrator (a texture, a second nested integrator), which
+                could not be handed on.
         """
         state = self._parse()
         for index in references(state.root):
             node = state.nodes[index]
-            if node.type != mi.ObjectType.Integrator:
-                continue
-            description = {"type": node.props.plugin_name()}
-            for name, value in node.props.items():
-                if not isinstance(value, (bool, int, float, str)):
-                    raise ValueError(
-                        f"scene {self._describe()}: its integrator "
-                        f"{node.props.plugin_name()!r} has property {name!r} of a kind "
-                        f"hlbvh cannot hand on ({type(value).__name__}); replace the "
-                        f"integrator (hlbvh render: --integrator path or aov)")
-                description[name] = value
-            return description
+            if node.type == mi.ObjectType.Integrator:
+                return self._integrator(state, node)
         return None
+
+    def _integrator(self, state, node) -> dict:
+        """An integrator node of the parse tree as :meth:`integrator_description` says."""
+        plugin = node.props.plugin_name()
+        description, nested = {"type": plugin}, []
+        for name, value in node.props.items():
+            child = (state.nodes[value.index()]
+                     if isinstance(value, mi.Properties.ResolvedReference) else None)
+            if child is not None and child.type == mi.ObjectType.Integrator:
+                nested.append(child)
+            elif isinstance(value, (bool, int, float, str)):
+                description[name] = value
+            else:
+                raise ValueError(
+                    f"scene {self._describe()}: its integrator {plugin!r} has property "
+                    f"{name!r} of a kind hlbvh cannot hand on ({type(value).__name__}); "
+                    f"replace the integrator (hlbvh render: --integrator path or aov)")
+        if len(nested) > 1:
+            raise ValueError(
+                f"scene {self._describe()}: its integrator {plugin!r} holds {len(nested)} "
+                f"integrators; hlbvh render runs a wrapper around one (or replace it: "
+                f"--integrator path)")
+        if nested:
+            description["nested"] = self._integrator(state, nested[0])
+        return description
 
     def source_digest(self) -> str | None:
         """SHA-256 (hex) of what the scene is made of: the XML file, the files it

@@ -86,3 +86,66 @@ def test03_stokes_around_ours_in_a_polarized_variant():
     done = subprocess.run([sys.executable, "-c", STOKES_SCRIPT.format(tests=tests)],
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-3000:]
+
+
+# ---- hlbvh render of a scene whose integrator is a wrapper ----------------------------
+
+PATH_INTEGRATOR = '<integrator type="path"><integer name="max_depth" value="8"/></integrator>'
+
+
+def _wrapped_twist_scene(root, wrapper: str) -> tuple:
+    """The command-line tests' twist scene with its ``path`` inside ``wrapper`` (XML)."""
+    from cli_helpers import write_twist_scene
+    scene, frames = write_twist_scene(root)
+    scene.write_text(scene.read_text().replace(PATH_INTEGRATOR, wrapper))
+    return scene, frames
+
+
+def _channels(path) -> dict:
+    import OpenImageIO as oiio
+    image = oiio.ImageInput.open(str(path))
+    names, pixels = image.spec().channelnames, image.read_image(format="float")
+    image.close()
+    return dict(zip(names, np.moveaxis(pixels, 2, 0)))
+
+
+def test04_hlbvh_render_keeps_a_moment_wrapper_around_the_path_it_runs_as_ours(
+        tmp_path, capsys):
+    from cli_helpers import read_stats, run_cli
+    scene, frames = _wrapped_twist_scene(
+        tmp_path, f'<integrator type="moment">{PATH_INTEGRATOR}</integrator>')
+    images = {}
+    for accel in ("hlbvh", "native"):
+        status, _, err = run_cli(capsys, "render", scene, "--frames-dir", frames,
+                                 "--accel", accel, "--out", tmp_path / accel)
+        assert status == 0, err
+        assert "the scene's 'moment' wraps it, its outputs kept" in err[0]
+        images[accel] = _channels(tmp_path / accel / "frame_0002.exr")
+        document, rows = read_stats(tmp_path / accel)
+        assert document["settings"]["wrapper"] == {"type": "moment"}
+    ours = images["hlbvh"]
+    assert sorted(ours) == sorted(["R", "G", "B"] + [f"{m}nested.{c}" for m in ("", "m2_")
+                                                     for c in "XYZ"])
+    assert ours["m2_nested.X"].max() > 0  # the second moment was written
+    for name, values in ours.items():  # a frame after motion, as native renders it
+        np.testing.assert_allclose(values, images["native"][name], atol=1e-4)
+
+
+def test05_hlbvh_render_refuses_a_wrapper_of_two_integrators_in_one_line(tmp_path, capsys):
+    from cli_helpers import run_cli
+    scene, frames = _wrapped_twist_scene(
+        tmp_path, f'<integrator type="moment">{PATH_INTEGRATOR}{PATH_INTEGRATOR}</integrator>')
+    status, _, err = run_cli(capsys, "render", scene, "--frames-dir", frames,
+                             "--out", tmp_path / "out")
+    assert status == 2 and len(err) == 1
+    assert "its integrator 'moment' holds 2 integrators" in err[0]
+
+
+def test06_mitsubas_aov_is_not_taken_as_a_wrapper_and_a_bad_wrapper_is_named():
+    from hlbvh.render.settings import RenderSettings
+    with pytest.raises(ValueError, match="wrapper=.*'aov'"):
+        RenderSettings(wrapper={"type": "aov"})
+    settings = RenderSettings(wrapper={"type": "moment"})
+    assert settings.integrator_dict()["type"] == "moment"
+    assert settings.integrator_dict()["nested"]["type"] == "hlbvh_path"
+    assert "wrapper" not in RenderSettings().as_dict()  # older folders still resume

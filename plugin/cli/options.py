@@ -17,7 +17,8 @@ from hlbvh.accel.policy import (ACCELS, BUILD_OPTIONS, MOVING_ACCELS, STATICS, U
 from hlbvh.errors import UserError, int_flag
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.render.settings import (DEFAULT_MAX_DEPTH, DEPTH_INTEGRATORS, INTEGRATORS,
-                                   MAX_SEED, SCENE_INTEGRATORS, RenderSettings,
+                                   MAX_SEED, SCENE_INTEGRATORS, WRAPPER_INTEGRATORS,
+                                   RenderSettings,
                                    scene_integrator_fields)
 
 
@@ -188,16 +189,23 @@ def scene_render_settings(args, animation, scene: str) -> tuple[RenderSettings, 
     own = animation.integrator_description()
     if own is None:
         return flags, None
+    wrapper = None
+    if own["type"] in WRAPPER_INTEGRATORS and "nested" in own:
+        wrapper = {k: v for k, v in own.items() if k != "nested"}
+        own = own["nested"]
     kind = own["type"]
+    named = kind if wrapper is None else f"{wrapper['type']} around {kind}"
     if kind not in SCENE_INTEGRATORS or (integrator and SCENE_INTEGRATORS[kind] != integrator):
         if integrator is None:
             raise UserError(
-                f"scene {scene!r}: its integrator {kind!r} is not one hlbvh render runs "
-                f"({', '.join(SCENE_INTEGRATORS)}); pass --integrator "
-                f"{'/'.join(INTEGRATORS)} to render with hlbvh's instead")
+                f"scene {scene!r}: its integrator {named!r} is not one hlbvh render runs "
+                f"({', '.join(SCENE_INTEGRATORS)}, or {'/'.join(WRAPPER_INTEGRATORS)} "
+                f"around one); pass --integrator {'/'.join(INTEGRATORS)} to render with "
+                f"hlbvh's instead")
         return flags, (f"--integrator {integrator} overrides the scene's integrator "
-                       f"{kind!r} (its properties are not used)")
+                       f"{named!r} (its properties are not used)")
     fields = scene_integrator_fields(own)
+    fields["wrapper"] = wrapper
     overrides = []
 
     def override(flag: str, name: str, value, scene_value):
@@ -228,6 +236,8 @@ def scene_render_settings(args, animation, scene: str) -> tuple[RenderSettings, 
     lines = [] if kind.startswith("hlbvh_") or kind == "path" else [
         f"the scene's integrator {kind!r} runs as {INTEGRATORS[fields['integrator']]} "
         f"(which mirrors it, every ray through the chosen accelerator)"]
+    if wrapper is not None:
+        lines.append(f"the scene's {wrapper['type']!r} wraps it, its outputs kept")
     if overrides:
         lines.append(f"the command line overrides the scene's integrator {kind!r}: "
                      f"{', '.join(overrides)}")

@@ -58,17 +58,18 @@ class FrameRenderer:
         scene: the loaded ``mi.Scene``; ``params``: its parameters (with
         ``accel="hlbvh"`` through :func:`hlbvh.traverse`, whose update skips Mitsuba's
         whole-scene rebuild, since nothing queries Mitsuba's own accelerator then);
-        integrator: its hlbvh integrator.
+        integrator: its hlbvh integrator (inside a wrapper: the wrapped one).
     """
 
     def __init__(self, animation, settings: RenderSettings):
         self.animation = animation
         self.settings = settings
         description = settings.integrator_dict()
-        if settings.accel == "hlbvh" and "moving" not in description:
+        ours = description.get("nested", description)  # inside a wrapper, if any
+        if settings.accel == "hlbvh" and "moving" not in ours:
             # The animation says what moves: its static structure is built once, never
             # rebuilt without the moving shapes at their first motion.
-            description["moving"] = ",".join(animation.animated_ids())
+            ours["moving"] = ",".join(animation.animated_ids())
         try:
             mi.load_dict(description)  # a bad property fails here, alone, before the scene
         except RuntimeError as error:
@@ -79,7 +80,7 @@ class FrameRenderer:
             resolution=settings.resolution, spp=settings.spp, integrator=description))
         self.params = (traverse(self.scene) if settings.accel == "hlbvh"
                        else mi.traverse(self.scene))
-        self.integrator = self.scene.integrator()
+        self.integrator = _ours(self.scene, self.params)
         sensor = self.scene.sensors()[0]
         width, height = sensor.film().crop_size()
         check_frame_fits(int(width), int(height), int(sensor.sampler().sample_count()))
@@ -90,7 +91,7 @@ class FrameRenderer:
                             "take minutes and tens of GB); render it with --accel hlbvh")
         if settings.accel == "hlbvh":
             try:
-                scene_shapes(self.scene.shapes(), description.get("static", UpdatePolicy.static))
+                scene_shapes(self.scene.shapes(), ours.get("static", UpdatePolicy.static))
             except ShapeError as error:
                 raise UserError(f"{error.reason} Render this scene with --accel native "
                                 f"(Mitsuba's own accelerator).") from None
@@ -160,9 +161,19 @@ class FrameRenderer:
 
     def channel_names(self, image) -> list[str]:
         """Names of the film's channels in ``image``: R, G, B (, A), then the AOVs."""
-        aovs = list(self.integrator.aov_names())
+        aovs = list(self.scene.integrator().aov_names())  # a wrapper's, if any
         colour = image.shape[2] - len(aovs)
         return ["R", "G", "B", "A"][:colour] + aovs
+
+
+def _ours(scene: mi.Scene, params) -> mi.Integrator:
+    """The scene's hlbvh integrator: its own, or the one its wrapper (``moment``,
+    ``stokes``) holds, found among the scene's objects in ``params``."""
+    top = scene.integrator()
+    if hasattr(top, "update_accel"):
+        return top
+    return next(node for node in params.hierarchy
+                if isinstance(node, mi.Integrator) and hasattr(node, "update_accel"))
 
 
 def check_frame_fits(width: int, height: int, spp: int, spp_flag: str = "--spp") -> None:

@@ -22,6 +22,13 @@ SCENE_INTEGRATORS = {"path": "path", "hlbvh_path": "path", "direct": "direct",
                      "hlbvh_direct": "direct", "volpath": "volpath",
                      "hlbvh_volpath": "volpath", "hlbvh_aov": "aov"}
 
+#: Mitsuba's integrators that wrap one other and trace nothing themselves (``moment``:
+#: its second moment too; ``stokes``: the Stokes vector, in polarized variants):
+#: ``hlbvh render`` keeps the wrapper of a scene around the nested integrator it runs
+#: as ours. (Mitsuba's ``aov`` traces its own channels through the scene's accelerator:
+#: ``--integrator aov`` is ours.)
+WRAPPER_INTEGRATORS = ("moment", "stokes")
+
 #: The ``--integrator`` choices that take ``max_depth``.
 DEPTH_INTEGRATORS = ("path", "volpath")
 
@@ -64,6 +71,8 @@ class RenderSettings:
         properties: the integrator's other properties (``rr_depth``,
             ``hide_emitters``, ...: what a scene's own integrator sets), handed on as
             they are; numbers, booleans and strings.
+        wrapper: a Mitsuba integrator around it (``{"type": one of
+            WRAPPER_INTEGRATORS, property: value}``, a scene's own), or None.
     Raises:
         ValueError: naming the setting, for any value outside the above.
     """
@@ -79,6 +88,7 @@ class RenderSettings:
     static: str = UpdatePolicy.static
     moving_accel: str | None = None
     properties: dict = field(default_factory=dict)
+    wrapper: dict | None = None
 
     def __post_init__(self):
         if self.resolution is not None and (
@@ -98,9 +108,13 @@ class RenderSettings:
         if not (_is_int(self.seed) and 0 <= self.seed <= MAX_SEED):
             raise ValueError(f"seed={self.seed!r}: expected an int in 0..{MAX_SEED}")
         for name, value in self.properties.items():
-            if not isinstance(value, (bool, int, float, str)):
-                raise ValueError(f"integrator property {name}={value!r}: expected a number, "
-                                 f"a boolean or a string")
+            _check_property(f"integrator property {name}", value)
+        if self.wrapper is not None:
+            if self.wrapper.get("type") not in WRAPPER_INTEGRATORS:
+                raise ValueError(f"wrapper={self.wrapper!r}: expected a type among "
+                                 f"{WRAPPER_INTEGRATORS}")
+            for name, value in self.wrapper.items():
+                _check_property(f"wrapper property {name}", value)
 
     @property
     def config(self) -> BuildConfig:
@@ -126,12 +140,17 @@ class RenderSettings:
         description["static"] = self.static
         if self.moving_accel is not None:
             description["moving_accel"] = self.moving_accel
+        if self.wrapper is not None:
+            return {**self.wrapper, "nested": description}
         return description
 
     def as_dict(self) -> dict:
-        """The settings as JSON values (what ``stats.json`` records)."""
+        """The settings as JSON values (what ``stats.json`` records; ``wrapper`` only
+        when there is one, so folders recorded without it still resume)."""
         record = asdict(self)
         record["resolution"] = None if self.resolution is None else list(self.resolution)
+        if self.wrapper is None:
+            del record["wrapper"]
         return record
 
 
@@ -154,6 +173,11 @@ def scene_integrator_fields(description: dict) -> dict:
     fields["moving_accel"] = properties.pop("moving_accel", None)
     fields["properties"] = properties
     return fields
+
+
+def _check_property(what: str, value) -> None:
+    if not isinstance(value, (bool, int, float, str)):
+        raise ValueError(f"{what}={value!r}: expected a number, a boolean or a string")
 
 
 def _is_int(value) -> bool:
