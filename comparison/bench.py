@@ -14,7 +14,7 @@ import json
 
 from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BUILDERS
-from hlbvh.cli.options import parse_resolution
+from hlbvh.cli.options import choice, parse_resolution
 from hlbvh.errors import int_flag
 
 _SUITES = {
@@ -28,6 +28,10 @@ _SUITES = {
 #: The most triangles a benchmark mesh may have: its faces are one Dr.Jit array of three
 #: indices per triangle, and a Dr.Jit array holds fewer than 2^32 entries.
 MAX_TRIANGLES = (2**32 - 1) // 3
+
+
+#: What ``bench frame --integrator`` takes: the integrators that render animations.
+BENCH_INTEGRATORS = ("path", "direct", "volpath")
 
 
 def configure(parser) -> None:
@@ -47,6 +51,9 @@ def configure(parser) -> None:
                         help="bench frame: procedural scenes, comma separated, each with its "
                              "options as NAME:KEY=VALUE+KEY=VALUE (e.g. "
                              "flock:birds=1000,rigid:instanced=true)")
+    parser.add_argument("--integrator", default=None,
+                        help="bench frame: path, direct or volpath for every scene (default: "
+                             "the one the scene's own integrator runs as, else path)")
     parser.add_argument("--no-native", action="store_true",
                         help="bench frame: hlbvh's frames alone (native's render of "
                              "scenes of many instances takes minutes)")
@@ -77,9 +84,11 @@ def run(args) -> int:
             raise UserError(f"--builder {args.builder!r}: bench {args.suite} takes one builder")
         kwargs["builder"] = builders[0]
     if args.suite != "frame" and (args.scenes is not None or args.no_native
-                                  or args.spp is not None):
-        raise UserError(f"--scenes, --spp and --no-native are for bench frame, not bench "
-                        f"{args.suite}")
+                                  or args.spp is not None or args.integrator is not None):
+        raise UserError(f"--scenes, --spp, --integrator and --no-native are for bench frame, "
+                        f"not bench {args.suite}")
+    if args.integrator is not None:
+        kwargs["integrator"] = choice("--integrator", args.integrator, BENCH_INTEGRATORS)
     if args.spp is not None:
         kwargs["spps"] = [int_flag("--spp", s.strip(), least=1, most=2**20)
                           for s in args.spp.split(",")]

@@ -82,7 +82,7 @@ from hlbvh.accel.scene_geometry import collect_geometry
 from hlbvh.scenes import get as get_scene, parse as parse_scene
 from hlbvh.render.frame import FrameRenderer
 from hlbvh.accel.policy import UpdatePolicy
-from hlbvh.render.settings import SCENE_INTEGRATORS, RenderSettings
+from hlbvh.render.settings import INTEGRATORS, SCENE_INTEGRATORS, RenderSettings
 from hlbvh.timing import timed
 
 #: The accelerator's default per-frame policy, which the hlbvh frames run under.
@@ -93,7 +93,8 @@ SPPS = (1, 4, 16)
 
 #: Keys of every row :func:`run` returns.
 ROW_KEYS = (
-    "scene", "triangles", "instances", "builder", "resolution", "spp", "drift_frames",
+    "scene", "triangles", "instances", "builder", "integrator", "resolution", "spp",
+    "drift_frames",
     "build_cold_ms", "build_min_ms", "build_median_ms",
     "seeded_min_ms", "seeded_median_ms", "refit_min_ms", "refit_median_ms",
     "sah_fresh", "sah_drift_last", "sah_drift_max",
@@ -108,7 +109,7 @@ ROW_KEYS = (
 
 def run(repeats: int = 3, sizes=(1_000_000,), resolution=512, builder: str = "hlbvh",
         scenes=SCENES, spps=SPPS, drift_frames: int = 100, max_depth: int = 8,
-        native: bool = True) -> list[dict]:
+        native: bool = True, integrator: str | None = None) -> list[dict]:
     """Measure build, refit, SAH drift and frame time per scene, size and spp.
 
     Args:
@@ -122,6 +123,9 @@ def run(repeats: int = 3, sizes=(1_000_000,), resolution=512, builder: str = "hl
         max_depth: longest path of the path tracer.
         native: measure native's frames too (False: hlbvh's alone, native shown as not
             run; for scenes whose native render takes minutes).
+        integrator: the ``--integrator`` choice both accelerators render with
+            (``"path"``, ``"direct"``, ``"volpath"``); None: the one the scene's own
+            integrator runs as, else ``"path"``.
     Returns:
         One dict per (scene, size, spp) with the keys :data:`ROW_KEYS` (build and drift
         values repeat over a scene's spp rows; times in ms).
@@ -140,7 +144,8 @@ def run(repeats: int = 3, sizes=(1_000_000,), resolution=512, builder: str = "hl
             render_frames = len(spps) * (repeats + 1)
             animation = get_scene(name, triangles=size,
                                    frames=max(drift_frames, render_frames), **options)
-            renderers = _renderers(animation, resolution, max_depth, builder, native)
+            kind = integrator or _integrator(animation)
+            renderers = _renderers(animation, resolution, max_depth, builder, native, kind)
             scene = renderers["hlbvh"].scene
             build = (_top_level_runs(animation, scene, builder, drift_frames)
                      if _transforms_only(animation) else
@@ -156,7 +161,8 @@ def run(repeats: int = 3, sizes=(1_000_000,), resolution=512, builder: str = "hl
                 rows.append({
                     "scene": spec, "triangles": renderers["hlbvh"].triangle_count(),
                     "instances": instances,
-                    "builder": builder, "resolution": resolution, "spp": spp,
+                    "builder": builder, "integrator": kind, "resolution": resolution,
+                    "spp": spp,
                     "drift_frames": drift_frames, **build,
                     "hlbvh_build_ms": ours["build_ms"], "hlbvh_render_ms": ours["render_ms"],
                     "mitsuba_update_ms": ours["mitsuba_update_ms"],
@@ -198,7 +204,7 @@ def _integrator(animation) -> str:
 
 
 def _renderers(animation, resolution: int, max_depth: int, builder: str,
-               native: bool = True) -> dict:
+               native: bool = True, integrator: str = "path") -> dict:
     """``{"hlbvh": FrameRenderer, "native": FrameRenderer}``, without native where it
     refuses the scene (more instances than Mitsuba's renderer takes) or not
     ``native``."""
@@ -206,7 +212,7 @@ def _renderers(animation, resolution: int, max_depth: int, builder: str,
     for accel in ("hlbvh", "native") if native else ("hlbvh",):
         try:
             renderers[accel] = FrameRenderer(animation, RenderSettings(
-                resolution=tuple(resolution), integrator=_integrator(animation),
+                resolution=tuple(resolution), integrator=integrator,
                 max_depth=max_depth, accel=accel, build_options={"builder": builder}))
         except UserError:
             if accel == "hlbvh":
@@ -393,10 +399,11 @@ def format_table(rows: list[dict]) -> str:
             f"{'frame min/med/cold':>20} | {'update':>7} {'render':>8} "
             f"{'frame min/med/cold':>20} | {'nat/ours':>8} {'crossover':>10} | "
             f"{'overhead ours/nat':>17} {'moving':>7}")
+    plugin = "/".join(dict.fromkeys(INTEGRATORS[r["integrator"]] for r in rows)) or "hlbvh_path"
     lines += ["", "frame time (ms) at {}x{}".format(*rows[0]["resolution"])
               if rows else "frame time (ms)",
-              f"{'':{w + 15}}| {'hlbvh (hlbvh_path, accel=hlbvh)':^37} | "
-              f"{'native (hlbvh_path, accel=native)':^37} |", head, "-" * len(head)]
+              f"{'':{w + 15}}| {f'hlbvh ({plugin}, accel=hlbvh)':^37} | "
+              f"{f'native ({plugin}, accel=native)':^37} |", head, "-" * len(head)]
     for r in rows:
         crossover = _crossover_text(rows, r)
         lines.append(

@@ -301,3 +301,30 @@ def test07b_bench_frame_takes_scenes_with_options_and_no_native(capsys, monkeypa
                         (["trace", "--no-native"], "bench frame")):
         status, _, errors = run_cli(capsys, "bench", *argv)
         assert status == 2 and len(errors) == 1 and named in errors[0]
+
+
+def test07c_bench_frame_renders_every_scene_with_the_integrator_asked(capsys, monkeypatch):
+    """``--integrator direct`` renders both accelerators' frames with ``hlbvh_direct``
+    (the table's heading and each row say so); a bad choice, or the flag on another
+    suite, is one line, exit status 2."""
+    seen = {}
+    real = bench_frame.run
+
+    def small(**kwargs):
+        seen.update(kwargs)
+        return real(scenes=("twist",), spps=(1,), drift_frames=2, **kwargs)
+
+    monkeypatch.setattr(bench_frame, "run", small)
+    status, table, errors = run_cli(capsys, "bench", "frame", "--integrator", "direct",
+                                    "--sizes", "600", "--repeats", "1", "--resolution", "8")
+    assert status == 0 and not errors
+    assert seen["integrator"] == "direct"
+    assert "hlbvh (hlbvh_direct, accel=hlbvh)" in table
+    assert "native (hlbvh_direct, accel=native)" in table
+    rows = real(scenes=("twist",), sizes=(600,), spps=(1,), repeats=1,
+                           drift_frames=2, resolution=8, integrator="direct")
+    assert [r["integrator"] for r in rows] == ["direct"]
+    for argv, named in ((["frame", "--integrator", "ptracer"], "'ptracer'"),
+                        (["build", "--integrator", "direct"], "bench frame")):
+        status, _, errors = run_cli(capsys, "bench", *argv)
+        assert status == 2 and len(errors) == 1 and named in errors[0]
