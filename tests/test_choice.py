@@ -145,6 +145,34 @@ def test06_the_choice_follows_the_film_and_samples_of_each_render():
     assert accel.last_update["groups"]["dynamic"]["decision"] == "rebuild"
 
 
+@pytest.mark.parametrize("update", ["auto", "refit", "rebuild"])
+def test06b_our_update_cost_is_a_frames_refit_not_the_first_build(update):
+    """The probe takes our HLBVH's update cost from a frame's refit of the tree just
+    built (what an ``"auto"`` or ``"refit"`` frame pays), not from the first build, which
+    compiles: the tree, the group's record and what the policy remembers are left as
+    they were; under ``"rebuild"`` no refit is made."""
+    animation = scenes.get("world", triangles=20_000, frames=8)
+    scene = mi.load_dict(animation.scene_dict(
+        resolution=(48, 27), spp=2,
+        integrator={"type": "hlbvh_path", "max_depth": 4, "moving": "flag", "update": update}))
+    accel = hlbvh.SceneAccel(scene, moving="flag", update=update)
+    group = accel.dynamic
+    built, build_ms = group.last, group.last.ms
+    arrays = {k: np.array(getattr(group.bvh, k)) for k in ("node_min", "node_max", "prim_ids")}
+    sensor = scene.sensors()[0]
+    from hlbvh.integrators.common import probe
+    accel.probe(probe(accel, sensor))
+    assert group.last is built and group.bvh is not None
+    for name, before in arrays.items():
+        assert np.array_equal(np.array(getattr(group.bvh, name)), before)
+    if update == "rebuild":
+        assert group.refits == 0 and accel.costs.update_ms["hlbvh"] == build_ms
+    else:
+        assert group.refits == 2 and accel.costs.update_ms["hlbvh"] != build_ms
+        apply_frame(scene, hlbvh.traverse(scene), animation.frame(1))
+        assert accel.update().last_update["groups"]["dynamic"]["decision"] == "refit"
+
+
 @pytest.mark.parametrize("forced", ["hlbvh", pytest.param("native", marks=needs_native_moving),
                                     "scene"])
 def test07_a_forced_choice_is_honoured_whatever_the_costs(forced):

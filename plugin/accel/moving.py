@@ -117,6 +117,26 @@ class MovingMeshes:
                 self.costs.record_update("hlbvh", group.last.ms)
         self._behind.discard("hlbvh")
 
+    def measure_ours(self, shapes, config, policy):
+        """Take as our HLBVH's update cost what a frame's refit of it costs, timed on the
+        tree just built (the second of two refits over the meshes as they are: the
+        first may compile its kernel). The build that made the tree, often the
+        accelerator's first, compiles too and is no frame's cost, yet it is all that is
+        known of a structure the choice has not used. Only under ``"auto"`` and
+        ``"refit"``, whose frames refit, and only right after a build, where a refit of
+        the same positions gives the same boxes and is accepted: the tree and what the
+        policy remembers stay as they were."""
+        group = self.ours
+        if (group.bvh is None or policy.update not in ("auto", "refit")
+                or group.last.decision not in ("build", "rebuild")):
+            return
+        built = group.last
+        for _ in range(2):
+            group.update(Change(shapes, group.indices, moved=True, policy=policy,
+                                config=config))
+        self.costs.update_ms["hlbvh"] = group.last.ms
+        group.last = built
+
     def update_native(self, shapes, moved: bool = False):
         """The Mitsuba sub-scene of the moving meshes, built anew when they ``moved`` (or
         moved while another structure traced them)."""

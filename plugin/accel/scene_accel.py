@@ -273,6 +273,7 @@ class SceneAccel(SceneQueries):
                 if self.dynamic.bvh is None or moving.behind("hlbvh"):
                     moving.update_ours(self.shapes, self._states, self._states, [],
                                        self.config, self.policy)
+                moving.measure_ours(self.shapes, self.config, self.policy)
             else:
                 moving.update_native(self.shapes)
             self._join([self.dynamic] if structure == "hlbvh" and self.dynamic.bvh else [])
