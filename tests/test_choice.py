@@ -168,9 +168,29 @@ def test06b_our_update_cost_is_a_frames_refit_not_the_first_build(update):
     if update == "rebuild":
         assert group.refits == 0 and accel.costs.update_ms["hlbvh"] == build_ms
     else:
-        assert group.refits == 2 and accel.costs.update_ms["hlbvh"] != build_ms
+        assert group.refits == moving.MEASURED_REFITS
+        assert accel.costs.update_ms["hlbvh"] != build_ms
         apply_frame(scene, hlbvh.traverse(scene), animation.frame(1))
         assert accel.update().last_update["groups"]["dynamic"]["decision"] == "refit"
+
+
+@needs_native_moving
+def test06c_moving_meshes_that_are_nearly_the_whole_scene_choose_ours_or_the_scene():
+    """When less than NATIVE_MIN_STILL_SHARE of the triangles stay still (the cloth),
+    the native moving group is no candidate (it would rebuild nearly what the whole
+    scene rebuilds and trace two structures): the probe does not build it; the world's
+    flag (nine tenths of it still) keeps all three."""
+    for name, expected in (("cloth", ("hlbvh", "scene")), ("world", moving.STRUCTURES)):
+        animation = scenes.get(name, triangles=20_000, frames=4)
+        scene = mi.load_dict(animation.scene_dict(
+            resolution=(32, 18), spp=1,
+            integrator={"type": "hlbvh_path", "max_depth": 3,
+                        "moving": ",".join(animation.animated_ids())}))
+        accel = scene.integrator().update_accel(scene, spp=1)
+        share = accel.moving_meshes.still_share
+        assert (share < moving.NATIVE_MIN_STILL_SHARE) == (name == "cloth"), share
+        assert accel.moving_meshes.allowed() == expected
+        assert (accel.native_moving.builds == 0) == (name == "cloth")
 
 
 @pytest.mark.parametrize("forced", ["hlbvh", pytest.param("native", marks=needs_native_moving),

@@ -16,6 +16,17 @@ from hlbvh.accel.native_group import NativeGroup
 from hlbvh.timing import clock_ms
 
 
+#: Refits :meth:`MovingMeshes.measure_ours` makes to time one as a frame makes it.
+MEASURED_REFITS = 3
+
+#: The least share of the scene's mesh triangles that must stay still for the native
+#: moving group to be a candidate: below it, its build is nearly the whole scene's while
+#: every ray queries two structures instead of one, so the whole scene is the better
+#: Mitsuba structure (measured on cloth, 0.1% still: tried at a new sample count, it cost
+#: two frames 25% slower each).
+NATIVE_MIN_STILL_SHARE = 0.1
+
+
 class MovingMeshes:
     """The moving meshes' structures and the choice among them.
 
@@ -37,6 +48,8 @@ class MovingMeshes:
         probed: whether the probe timed the structures' queries.
         instances: whether the scene has moving instances (set by the accelerator):
             the choice is then between our top level and the whole scene too.
+        still_share: the share of the scene's mesh triangles not in moving meshes (set
+            by the accelerator; see :data:`NATIVE_MIN_STILL_SHARE`).
     """
 
     def __init__(self, moving_accel: str, choosable: bool):
@@ -52,6 +65,7 @@ class MovingMeshes:
         self.estimates = None
         self.probed = False
         self.instances = False
+        self.still_share = 1.0
         # Whether a build of the native group since the scene's last rebuild cleared the
         # moving meshes' marks of change, which the scene's rebuild reads
         self.marks_cleared = False
@@ -67,13 +81,14 @@ class MovingMeshes:
         return self.ours.indices
 
     def allowed(self) -> tuple:
-        """The structures :meth:`plan` chooses among (moving instances alone: ours or the
-        whole scene)."""
+        """The structures :meth:`plan` chooses among (moving instances alone, or moving
+        meshes that are nearly the whole scene: ours or the whole scene)."""
         if self._forced != "auto":
             return (self._forced,)
         if not self._choosable:
             return ("hlbvh",)
-        if not native_moving_possible() or not self.indices:
+        if (not native_moving_possible() or not self.indices
+                or self.still_share < NATIVE_MIN_STILL_SHARE):
             return ("hlbvh", "scene")
         return STRUCTURES
 
@@ -119,8 +134,9 @@ class MovingMeshes:
 
     def measure_ours(self, shapes, config, policy):
         """Take as our HLBVH's update cost what a frame's refit of it costs, timed on the
-        tree just built (the second of two refits over the meshes as they are: the
-        first may compile its kernel). The build that made the tree, often the
+        tree just built (the last of :data:`MEASURED_REFITS` refits over the meshes as
+        they are: the first compile, the first two allocate; measured on 1M triangles:
+        136, 121, 27, then 20 ms a frame). The build that made the tree, often the
         accelerator's first, compiles too and is no frame's cost, yet it is all that is
         known of a structure the choice has not used. Only under ``"auto"`` and
         ``"refit"``, whose frames refit, and only right after a build, where a refit of
@@ -131,7 +147,7 @@ class MovingMeshes:
                 or group.last.decision not in ("build", "rebuild")):
             return
         built = group.last
-        for _ in range(2):
+        for _ in range(MEASURED_REFITS):
             group.update(Change(shapes, group.indices, moved=True, policy=policy,
                                 config=config))
         self.costs.update_ms["hlbvh"] = group.last.ms
@@ -219,3 +235,10 @@ def query_ns(query, ray) -> float:
     whole, part = fastest(ray), fastest(half)
     slope = (whole - part) * 1e6 / max(n - n // 2, 1)
     return slope if slope > 0 else whole * 1e6 / max(n, 1)
+
+
+def still_share(shapes, moving: tuple) -> float:
+    """The share of the mesh triangles of ``shapes`` outside the meshes ``moving`` (1.0
+    without meshes)."""
+    total = sum(s.face_count() for s in shapes if s.is_mesh())
+    return 1.0 - sum(shapes[i].face_count() for i in moving) / total if total else 1.0

@@ -37,7 +37,7 @@ from hlbvh.accel.instance_group import InstanceGroup, group_of
 from hlbvh.accel.instance_shading import InstanceShading, is_instance
 from hlbvh.accel.mesh_group import MeshGroup, joined_sah_cost
 from hlbvh.accel.motion import MeshState, shape_states
-from hlbvh.accel.moving import MovingMeshes, query_ns
+from hlbvh.accel.moving import MovingMeshes, query_ns, still_share
 from hlbvh.accel.groups import Change
 from hlbvh.accel.native_group import NativeGroup, shape_groups
 from hlbvh.accel.policy import ACCELS, DECISIONS, UpdatePolicy, split_options
@@ -187,6 +187,7 @@ class SceneAccel(SceneQueries):
         # ---- The moving meshes, in the structure that traces them now ----
         meshes = set(self.meshes)
         self.dynamic.indices = tuple(i for i in moving if i in meshes)
+        self.moving_meshes.still_share = still_share(self.shapes, self.dynamic.indices)
         dynamic_changed = [i for i in changed if i in self.dynamic.indices]
         structure = self.moving_structure
         self.moving_meshes.fell_behind(bool(dynamic_changed or started), bool(changed))
