@@ -158,3 +158,23 @@ def test05_compare_options_reach_both_renders_and_the_build(tmp_path, capsys, bu
     # the last bits.
     for row in results["rows"]:
         assert row["image.fraction_within_tolerance"] >= 1 - 1 / 256
+
+
+def test_a_flag_for_a_property_the_scene_leaves_unset_overrides_nothing(tmp_path, capsys):
+    """``--update`` or ``--moving-accel`` on a scene whose integrator does not set them
+    fills them in silently (and is recorded); one the scene sets is said as overridden."""
+    from cli_helpers import read_stats, run_cli, write_twist_scene
+    xml, frames = write_twist_scene(tmp_path)
+    argv = ["render", xml, "--frames-dir", frames, "--frames", "0:1", "--quiet"]
+    status, _, err = run_cli(capsys, *argv, "--update", "refit", "--moving-accel", "hlbvh",
+                             "--out", tmp_path / "unset")
+    assert status == 0 and err == [], err
+    settings = read_stats(tmp_path / "unset")[0]["settings"]
+    assert (settings["update"], settings["moving_accel"]) == ("refit", "hlbvh")
+    xml.write_text(xml.read_text().replace(
+        '<integrator type="path"><integer name="max_depth" value="8"/>',
+        '<integrator type="hlbvh_path"><integer name="max_depth" value="8"/>'
+        '<string name="update" value="rebuild"/>'))
+    status, _, err = run_cli(capsys, *argv, "--update", "refit", "--out", tmp_path / "set")
+    assert status == 0 and len(err) == 1
+    assert "--update refit (the scene's update: 'rebuild')" in err[0]

@@ -40,13 +40,14 @@ uses, all measured on this machine and this scene:
   and the line through one measured sample count says little about another, so at
   each number of samples the structures that could still win and whose own renders do
   not draw a line yet (measured at fewer than two sample counts; their estimate within
-  :data:`TRY_MARGIN` of the best frame measured there, their update alone below it)
+  :data:`TRY_MARGIN` of the best frame measured there, their update alone at least
+  :data:`MIN_SAVING_MS` below it)
   are tried once there (a structure's very first render compiles its kernel and is not
   counted), and from then on judged by their own renders.
 
 A structure replaces the current one only when its estimated frame is at least
-:data:`SWITCH_MARGIN` cheaper, so noise in the measurements does not flip the choice
-from frame to frame.
+:data:`SWITCH_MARGIN` and :data:`MIN_SAVING_MS` cheaper, so noise in the measurements
+does not flip the choice from frame to frame.
 """
 
 from __future__ import annotations
@@ -60,6 +61,11 @@ STRUCTURES = ("hlbvh", "native", "scene")
 DEPTH_CAP = 64
 #: How much cheaper (relative) another structure's frame must be for the choice to move.
 SWITCH_MARGIN = 0.05
+#: The least saving (ms a frame) for which the choice moves or tries a structure: below
+#: it differences are within the noise of a frame's timings (a tiny scene's structures
+#: all cost about a millisecond, and processes measuring the same scene would choose
+#: differently by chance), and a move costs a compile and a catch-up update.
+MIN_SAVING_MS = 2.0
 #: How close (relative) to the best frame measured at a render's number of samples
 #: another structure's estimate must come for it to be tried there.
 TRY_MARGIN = 0.3
@@ -227,7 +233,8 @@ class CostModel:
                triangles: dict | None = None) -> tuple[str, dict]:
         """The structure to trace the moving meshes with for a render of ``budget``, and
         each allowed structure's estimated frame time (ms; None when unknown). Keeps
-        ``current`` unless another is :data:`SWITCH_MARGIN` cheaper."""
+        ``current`` unless another is :data:`SWITCH_MARGIN` and :data:`MIN_SAVING_MS`
+        cheaper."""
         estimates = {s: self.frame_ms(s, budget, triangles or {}) for s in allowed}
         known = {s: ms for s, ms in estimates.items() if ms is not None}
         if not known:
@@ -241,9 +248,10 @@ class CostModel:
             untried = [s for s in known if s not in here
                        and len(self.renders.get(s, ())) < 2  # no line of its own yet
                        and known[s] <= (1 + TRY_MARGIN) * measured
-                       and self.update_estimate(s, triangles or {}) < measured]
+                       and self.update_estimate(s, triangles or {}) < measured - MIN_SAVING_MS]
             if untried:
                 return (current if current in untried else min(untried, key=known.get)), estimates
-        if current in known and known[best] >= (1 - SWITCH_MARGIN) * known[current]:
+        if current in known and (known[best] >= (1 - SWITCH_MARGIN) * known[current]
+                                 or known[current] - known[best] < MIN_SAVING_MS):
             return current, estimates
         return best, estimates

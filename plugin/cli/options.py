@@ -209,7 +209,8 @@ def scene_render_settings(args, animation, scene: str) -> tuple[RenderSettings, 
     overrides = []
 
     def override(flag: str, name: str, value, scene_value):
-        if value != scene_value:
+        # a flag for a property the scene leaves unset overrides nothing
+        if scene_value is not None and value != scene_value:
             overrides.append(f"{flag} {value} (the scene's {name}: {scene_value!r})")
 
     if args.max_depth is not None and fields["integrator"] in DEPTH_INTEGRATORS:
