@@ -22,8 +22,7 @@ MEASURED_REFITS = 3
 #: The least share of the scene's mesh triangles that must stay still for the native
 #: moving group to be a candidate: below it, its build is nearly the whole scene's while
 #: every ray queries two structures instead of one, so the whole scene is the better
-#: Mitsuba structure (measured on cloth, 0.1% still: tried at a new sample count, it cost
-#: two frames 25% slower each).
+#: Mitsuba structure.
 NATIVE_MIN_STILL_SHARE = 0.1
 
 
@@ -135,8 +134,7 @@ class MovingMeshes:
     def measure_ours(self, shapes, config, policy):
         """Take as our HLBVH's update cost what a frame's refit of it costs, timed on the
         tree just built (the last of :data:`MEASURED_REFITS` refits over the meshes as
-        they are: the first compile, the first two allocate; measured on 1M triangles:
-        136, 121, 27, then 20 ms a frame). The build that made the tree, often the
+        they are: the first compiles, the first two allocate their buffers). The build that made the tree, often the
         accelerator's first, compiles too and is no frame's cost, yet it is all that is
         known of a structure the choice has not used. Only under ``"auto"`` and
         ``"refit"``, whose frames refit, and only right after a build, where a refit of
