@@ -80,6 +80,13 @@ class MeshGroup:
             decision=decision if chosen == "rebuild" else chosen, ms=clock_ms() - start,
             triangles=self.triangles, sah_cost=self._sah(), seeded=seeded, drift=drift)
 
+    def release(self):
+        """Drop the tree and its geometry while the meshes are traced by another
+        structure and have moved since (the tree is out of date, and its next update
+        would build anew anyway): their memory is given back. The next update builds."""
+        self.geometry, self.bvh, self._built_indices, self.built_sah = None, None, (), None
+        self.keep()
+
     def keep(self):
         """Record that the last update left the group as it was."""
         self.last = MeshUpdate(decision="kept", ms=0.0, triangles=self.triangles,

@@ -106,6 +106,8 @@ class MovingMeshes:
         ``before`` None at the first update); the others keep."""
         if self.structure == "hlbvh":
             self.update_ours(shapes, states, before, changed, config, policy)
+        elif "hlbvh" in self._behind:
+            self.ours.release()  # out of date: a switch back builds anew anyway
         else:
             self.ours.keep()
         if self.structure == "native":
