@@ -21,7 +21,8 @@ uses, all measured on this machine and this scene:
   before a Mitsuba structure first runs, its triangles times Embree's (or OptiX's) rate
   measured on the still world's sub-scene build;
 * **query**: the time per query of the same sample of the render's own rays (camera
-  rays through random pixels, and a diffuse bounce from where they land) through each
+  rays through runs of neighbouring pixels, as a render's lanes trace them, and a
+  diffuse bounce from where they land) through each
   structure that is current, taken on the first render, as the slope between the whole
   sample and half of it (a launch's fixed cost, which a render's single kernel does not
   pay per query, cancels); ``"scene"`` is timed once it is current (after it was
@@ -35,8 +36,8 @@ uses, all measured on this machine and this scene:
   (at that number of samples, or along the line through its two nearest); one that did
   not, from a structure that did plus the difference of their queries (the shading of
   a sample costs the same whichever structure traces it). A probe's queries are not a
-  render's (the render's rays come in other orders, shadow rays are any-hit queries;
-  on a 2-core EPYC the probe put our penalty per sample at three times the renders'),
+  render's (a few thousand rays timed on a busy machine, shadow rays are any-hit
+  queries; its estimate of our penalty varies by a factor of two between runs),
   and the line through one measured sample count says little about another, so at
   each number of samples the structures that could still win and whose own renders do
   not draw a line yet (measured at fewer than two sample counts; their estimate within

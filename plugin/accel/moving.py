@@ -214,13 +214,16 @@ def native_moving_possible() -> bool:
     return dr.backend_v(mi.Float) != dr.JitBackend.CUDA
 
 
-def query_ns(query, ray) -> float:
+def query_ns(query, ray, run: int = 64) -> float:
     """Nanoseconds a closest-hit ``query(ray)`` costs per ray, without the launch's
-    fixed cost: the slope between the whole of ``ray`` and its even half, each the
-    fastest of two runs after one that may compile (the device synchronised); the mean
-    over the whole where noise makes the slope meaningless."""
+    fixed cost: the slope between the whole of ``ray`` and its half (every other block
+    of ``run`` consecutive rays, so rays traced side by side stay side by side), each
+    the fastest of two runs after one that may compile (the device synchronised); the
+    mean over the whole where noise makes the slope meaningless."""
     n = dr.width(ray)
-    half = dr.gather(type(ray), ray, dr.arange(mi.UInt32, n // 2) * 2)
+    run = max(min(run, n // 2), 1)
+    i = dr.arange(mi.UInt32, (n // (2 * run)) * run)
+    half = dr.gather(type(ray), ray, (i // run) * (2 * run) + i % run)
 
     def fastest(r) -> float:
         best = float("inf")
@@ -233,7 +236,7 @@ def query_ns(query, ray) -> float:
 
     fastest(half)  # compiles what the runs below launch
     whole, part = fastest(ray), fastest(half)
-    slope = (whole - part) * 1e6 / max(n - n // 2, 1)
+    slope = (whole - part) * 1e6 / max(n - dr.width(half), 1)
     return slope if slope > 0 else whole * 1e6 / max(n, 1)
 
 
