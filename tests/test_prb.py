@@ -242,3 +242,45 @@ def test07_hlbvh_bench_prb(capsys):
     lines = bench_prb.format_table([row]).splitlines()
     assert lines[0].startswith("hlbvh prb benchmark") and lines[3].split()[0] == "world"
     assert lines[3].split()[-2:] == [f"{row['ratio']:.2f}x", f"{100 * row['agree']:.4f}%"]
+
+
+@pytest.mark.parametrize("kept", [True, False])
+def test08_the_replay_reads_the_primal_pass_s_answers(monkeypatch, kept):
+    """A backward pass's replay traces the rays its primal pass traced: their answers
+    are kept and read back, so the replay asks the intersector only for a textured
+    emitter's point; the derivative is the one a traced replay gives. Without room
+    for them (the memory limit), the replay traces again."""
+    from hlbvh.accel import SceneAccel
+    from hlbvh.integrators import prb
+    reference = backward(hlbvh_options(), BOX)
+    if not kept:
+        monkeypatch.setattr(prb, "REPLAY_CACHE_BYTES", 0)
+    mode, asked = [None], []
+    real_sample, real_closest, real_test = (prb.PRBIntegrator.sample, prb._preliminary,
+                                            SceneAccel.ray_test)
+
+    def sample(self, *args, **kwargs):
+        mode[0] = kwargs["mode"] if "mode" in kwargs else args[0]
+        return real_sample(self, *args, **kwargs)
+
+    def closest(*args):
+        asked.append((mode[0], "closest"))
+        return real_closest(*args)
+
+    def test(self, *args, **kwargs):
+        asked.append((mode[0], "shadow"))
+        return real_test(self, *args, **kwargs)
+
+    monkeypatch.setattr(prb.PRBIntegrator, "sample", sample)
+    monkeypatch.setattr(prb, "_preliminary", closest)
+    monkeypatch.setattr(SceneAccel, "ray_test", test)
+    assert backward(hlbvh_options(), BOX) == pytest.approx(reference, rel=1e-6)
+    replay = [kind for m, kind in asked if m == dr.ADMode.Backward]
+    primal = [kind for m, kind in asked if m == dr.ADMode.Primal]
+    # Dr.Jit may record a loop's body more than once: count in recordings of the body
+    bodies = primal.count("shadow") // 2  # two primal passes: the render's, the backward's
+    assert bodies >= 1 and primal.count("closest") == 2 * (1 + bodies)
+    if kept:  # a textured emitter's point alone, once a recording of the body
+        assert replay == ["closest"] * bodies
+    else:  # the camera ray, and per body the next vertex and the emitter's point
+        assert sorted(replay) == ["closest"] * (1 + 2 * bodies) + ["shadow"] * bodies

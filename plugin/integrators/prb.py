@@ -19,6 +19,69 @@ def _preliminary(accel, ray, coherent, active):
     return accel.ray_intersect_preliminary(dr.detach(ray), coherent, active)
 
 
+#: The most memory the primal pass's answers kept for the replay may take; beyond it
+#: (or with an unbounded ``max_depth``) the replay traces its rays again.
+REPLAY_CACHE_BYTES = 1 << 30
+#: Bytes a path keeps per vertex: a preliminary intersection (eight 32-bit words) and a
+#: shadow ray's answer.
+_BYTES_PER_VERTEX = 36
+
+
+class _ReplayHits:
+    """The answers of a backward pass's primal queries, kept for its replay, which
+    traces the same rays (same sampler, same seed): slot ``d`` holds what a path's
+    vertex ``d`` was found by (slot 0: the camera ray, past hidden emitters), and the
+    answer of the shadow ray of its emitter sample. The replay then asks the
+    intersector nothing but the points of textured emitters, instead of tracing every
+    ray of the primal pass again."""
+
+    def __init__(self, n: int, max_depth: int):
+        self.n = n
+        # A path's loop runs at least once (max_depth 0 too): vertices 0..loops-1, and
+        # the hit of the ray leaving the last (inactive, but written)
+        loops = max(max_depth, 1)
+        self.hits = dr.zeros(mi.PreliminaryIntersection3f, n * (loops + 1))
+        self.occluded = dr.zeros(mi.Bool, n * loops)
+        self.lane = dr.arange(mi.UInt32, n)
+        self.loops = loops
+
+    @staticmethod
+    def fits(n: int, max_depth: int) -> bool:
+        """Whether a render of ``n`` paths of at most ``max_depth`` vertices may keep
+        its answers (:data:`REPLAY_CACHE_BYTES`)."""
+        return n * (max(max_depth, 1) + 1) * _BYTES_PER_VERTEX <= REPLAY_CACHE_BYTES
+
+    def _index(self, slot, last: int):
+        """Where path lanes keep slot ``slot`` (clamped to ``last``: a write past the
+        buffer would corrupt memory, whatever a path did)."""
+        return dr.minimum(mi.UInt32(slot), last) * self.n + self.lane
+
+    def closest(self, accel, slot, ray, coherent, active, replay: bool):
+        """The closest hit of vertex ``slot`` (a UInt32 per path): kept in the primal
+        pass, read back in the replay."""
+        if replay:
+            return dr.gather(mi.PreliminaryIntersection3f, self.hits, self._index(slot, self.loops))
+        pi = _preliminary(accel, ray, coherent, active)
+        dr.scatter(self.hits, pi, self._index(slot, self.loops))
+        return pi
+
+    def shadow(self, accel, slot, ray, active, replay: bool):
+        """Whether the shadow ray of vertex ``slot``'s emitter sample is blocked."""
+        if replay:
+            return dr.gather(mi.Bool, self.occluded, self._index(slot, self.loops - 1)) & active
+        occluded = accel.ray_test(ray, active)
+        dr.scatter(self.occluded, occluded, self._index(slot, self.loops - 1))
+        return occluded
+
+
+def _closest(accel, hits, slot, ray, coherent, active, replay: bool):
+    """The closest hit along ``ray`` (:func:`_preliminary`), through ``hits`` when the
+    pass keeps or replays its answers (``hits`` None: traced)."""
+    if hits is None:
+        return _preliminary(accel, ray, coherent, active)
+    return hits.closest(accel, slot, ray, coherent, active, replay)
+
+
 def _attached_emitter_sample(accel, scene, si, ds, em_weight, active):
     """The emitter sample ``ds`` and its weight, drawn without derivatives, attached
     again (as ``prb`` does in its replay): the direction follows the shading point
@@ -69,15 +132,18 @@ def _vertex_radiance(si, si_next, ray_next, bsdf, bsdf_ctx, L, Le, Lr_dir, activ
 
 
 def _emitter_radiance(accel, scene, sampler, si, bsdf, bsdf_ctx, β, primal: bool,
-                      active):
+                      active, hits=None, slot=None):
     """``Lr_dir``: the radiance an emitter sample brings to ``si`` through the BSDF,
     weighted by multiple importance against BSDF sampling, its visibility tested
     through the intersector (Mitsuba's ``test_visibility=True``); in the replay the
     sample is attached again (:func:`_attached_emitter_sample`) and the value
-    carries derivatives."""
+    carries derivatives. ``hits``: the answers kept for the replay (vertex ``slot``),
+    or None."""
     ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False, active)
     active = active & (ds.pdf != 0.0)
-    occluded = accel.ray_test(dr.detach(si.spawn_ray_to(ds.p)), active)
+    shadow_ray = dr.detach(si.spawn_ray_to(ds.p))
+    occluded = accel.ray_test(shadow_ray, active) if hits is None else \
+        hits.shadow(accel, slot, shadow_ray, active, replay=not primal)
     em_weight[occluded] = 0.0
     ds.pdf[occluded] = 0.0
     active &= ~occluded
@@ -138,6 +204,10 @@ class PRBIntegrator(_ad.RBIntegrator):
     limits: no projective sampling (visibility discontinuities are not
     differentiated) and detached BSDF sampling.
 
+    In backward mode the replay does not trace its rays again: the primal pass keeps
+    what each of its queries answered, and the replay reads it back (where it fits in
+    :data:`REPLAY_CACHE_BYTES` and ``max_depth`` is bounded).
+
     The rays go through the chosen intersector: camera and continuation rays, shadow
     rays of emitter samples (Mitsuba's ``test_visibility=True`` would trace them
     through the scene), the rays past hidden area emitters and the rays that locate a
@@ -167,6 +237,8 @@ class PRBIntegrator(_ad.RBIntegrator):
         # class takes one base, so this class cannot also derive from it.
         self._tracer = AccelIntegrator(props)
         self._tracer.max_depth = self.max_depth  # the depth its ray budget reads
+        # Inside render_backward: the primal pass keeps its answers for the replay
+        self._keep_hits, self._hits = False, None
 
     @property
     def accel_name(self) -> str:
@@ -206,8 +278,27 @@ class PRBIntegrator(_ad.RBIntegrator):
         return super().render_forward(scene, params, sensor, seed, spp)
 
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
+        """Mitsuba's backward pass (a primal pass, then its replay), the primal pass's
+        ray answers kept for the replay (:class:`_ReplayHits`) where they fit."""
         self._bring_up_to_date(scene)
-        return super().render_backward(scene, params, grad_in, sensor, seed, spp)
+        self._keep_hits, self._hits = True, None
+        try:
+            return super().render_backward(scene, params, grad_in, sensor, seed, spp)
+        finally:
+            self._keep_hits, self._hits = False, None
+
+    def _replay_hits(self, primal: bool, n: int):
+        """The answers the pass keeps (a backward pass's primal pass) or replays (its
+        replay), or None (a plain render, a forward pass, too many paths or an
+        unbounded depth)."""
+        if not self._keep_hits:
+            return None
+        if primal:
+            bounded = self.max_depth < 0xFFFFFFFF
+            self._hits = _ReplayHits(n, self.max_depth) if (
+                bounded and _ReplayHits.fits(n, self.max_depth)) else None
+            return self._hits
+        return self._hits if self._hits is not None and self._hits.n == n else None
 
     @dr.syntax
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
@@ -230,7 +321,14 @@ class PRBIntegrator(_ad.RBIntegrator):
         β = mi.Spectrum(1)                             # path throughput
         η = mi.Float(1)                                # product of relative IORs
         active = mi.Bool(active)
-        pi = _preliminary(accel, ray, True, active)    # camera rays are coherent
+        hits = self._replay_hits(primal, dr.width(ray))
+        replay = hits is not None and not primal
+        if dr.hint(replay, mode="scalar"):
+            # The primal pass's kernel, once, with what the replay reads of it
+            dr.eval(state_in, hits.hits, hits.occluded)
+            pi = hits.closest(accel, 0, ray, True, active, replay=True)
+        else:
+            pi = _preliminary(accel, ray, True, active)    # camera rays are coherent
 
         ray_prev = mi.Ray3f(ray)
         pi_prev = dr.zeros(mi.PreliminaryIntersection3f)
@@ -238,11 +336,13 @@ class PRBIntegrator(_ad.RBIntegrator):
         bsdf_pdf_prev = mi.Float(1.0)
         bsdf_delta_prev = mi.Bool(True)
 
-        if dr.hint(self.hide_emitters, mode="scalar"):
+        if dr.hint(self.hide_emitters and not replay, mode="scalar"):
             # Continue past every area emitter the camera ray meets first
             skip = pi.is_valid() & (pi.shape.emitter() != None) & active  # noqa: E711
             si_skip = accel.surface_interaction(pi, ray, mi.RayFlags.Minimal, skip)
             pi[skip] = skip_area_emitters(accel, si_skip.spawn_ray(ray.d), True, skip)
+        if dr.hint(hits is not None and primal, mode="scalar"):
+            dr.scatter(hits.hits, pi, hits.lane)  # slot 0: what the camera ray found
 
         while dr.hint(active, max_iterations=self.max_depth, label=f"hlbvh_prb ({mode.name})"):
             active_next = mi.Bool(active)
@@ -276,7 +376,7 @@ class PRBIntegrator(_ad.RBIntegrator):
             active_next &= (depth + 1 < self.max_depth) & si.is_valid()
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
             Lr_dir = _emitter_radiance(accel, scene, sampler, si, bsdf, bsdf_ctx, β, primal,
-                                       active_em)
+                                       active_em, hits, depth)
 
             # --------------------- BSDF sample (detached) ---------------------
 
@@ -300,7 +400,7 @@ class PRBIntegrator(_ad.RBIntegrator):
             rr_continue = sampler.next_1d() < rr_prob
             active_next &= ~rr_active | rr_continue
 
-            pi_next = _preliminary(accel, ray_next, False, active_next)
+            pi_next = _closest(accel, hits, depth + 1, ray_next, False, active_next, replay)
 
             # --------------------- Derivatives of this vertex ---------------------
 
