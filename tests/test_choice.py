@@ -145,6 +145,20 @@ def _world(moving_accel="auto", integrator="hlbvh_path"):
     return animation, scene
 
 
+def _world_and_native():
+    """``_world()`` through :func:`hlbvh.traverse` and the same scene rendered natively,
+    both at frame 1: (animation, scene, params, reference, reference's params)."""
+    animation, scene = _world()
+    params = hlbvh.traverse(scene)
+    reference = mi.load_dict(animation.scene_dict(
+        resolution=(48, 27), spp=2, integrator={"type": "hlbvh_path", "max_depth": 4,
+                                                 "accel": "native"}))
+    ref_params = mi.traverse(reference)
+    apply_frame(scene, params, animation.frame(1))
+    apply_frame(reference, ref_params, animation.frame(1))
+    return animation, scene, params, reference, ref_params
+
+
 def _inject(accel):
     """The test's costs in place of measured ones (no probe, updates not recorded)."""
     accel.moving_meshes.costs = _costs(UPDATE, QUERY)
@@ -176,14 +190,8 @@ def test06a_our_tree_is_given_back_while_another_structure_traces_moved_meshes()
     """Once the moving meshes moved while the native group or the whole scene traced
     them, our tree is out of date: it is dropped (its memory given back), and a switch
     back builds it anew; the images on both sides of the switch equal native's."""
-    animation, scene = _world()
-    params = hlbvh.traverse(scene)
+    animation, scene, params, reference, ref_params = _world_and_native()
     integrator = scene.integrator()
-    reference = mi.load_dict(animation.scene_dict(
-        resolution=(48, 27), spp=2, integrator={"type": "hlbvh_path", "max_depth": 4,
-                                                 "accel": "native"}))
-    ref_params = mi.traverse(reference)
-    apply_frame(scene, params, animation.frame(1))
     accel = integrator.update_accel(scene, spp=1)
     _inject(accel)
     held = []
@@ -432,14 +440,8 @@ def test13_the_whole_scene_after_the_native_group_sees_every_motion():
     """Frames traced by the native group (whose builds clear Mitsuba's marks of change
     on the moving meshes), then by the whole scene: the scene's rebuild still takes
     every motion, and the images stay native's."""
-    animation, scene = _world()
-    params = hlbvh.traverse(scene)
+    animation, scene, params, reference, ref_params = _world_and_native()
     integrator = scene.integrator()
-    reference = mi.load_dict(animation.scene_dict(
-        resolution=(48, 27), spp=2, integrator={"type": "hlbvh_path", "max_depth": 4,
-                                                 "accel": "native"}))
-    ref_params = mi.traverse(reference)
-    apply_frame(scene, params, animation.frame(1))
     accel = integrator.update_accel(scene, spp=1)
     _inject(accel)
     accel.costs.update_ms["scene"] = 300.0  # the whole scene wins at a large budget only
