@@ -27,7 +27,23 @@ REPLAY_CACHE_BYTES = 1 << 30
 _BYTES_PER_VERTEX = 36
 
 
-class _ReplayHits:
+class _Traced:
+    """A pass's ray queries, traced (a plain render, a forward pass, or a backward pass
+    whose answers do not fit): the interface :class:`_ReplayHits` keeps them through."""
+
+    def closest(self, accel, slot, ray, coherent, active, replay: bool):
+        """The closest hit of vertex ``slot`` along ``ray`` (:func:`_preliminary`)."""
+        return _preliminary(accel, ray, coherent, active)
+
+    def shadow(self, accel, slot, ray, active, replay: bool):
+        """Whether the shadow ray of vertex ``slot``'s emitter sample is blocked."""
+        return accel.ray_test(ray, active)
+
+    def keep_camera(self, pi):
+        """Keep what the camera ray found (slot 0), after hidden emitters were skipped."""
+
+
+class _ReplayHits(_Traced):
     """The answers of a backward pass's primal queries, kept for its replay, which
     traces the same rays (same sampler, same seed): slot ``d`` holds what a path's
     vertex ``d`` was found by (slot 0: the camera ray, past hidden emitters), and the
@@ -37,19 +53,24 @@ class _ReplayHits:
 
     def __init__(self, n: int, max_depth: int):
         self.n = n
-        # A path's loop runs at least once (max_depth 0 too): vertices 0..loops-1, and
-        # the hit of the ray leaving the last (inactive, but written)
-        loops = max(max_depth, 1)
+        loops = self._loops(max_depth)
         self.hits = dr.zeros(mi.PreliminaryIntersection3f, n * (loops + 1))
         self.occluded = dr.zeros(mi.Bool, n * loops)
         self.lane = dr.arange(mi.UInt32, n)
         self.loops = loops
 
     @staticmethod
-    def fits(n: int, max_depth: int) -> bool:
+    def _loops(max_depth: int) -> int:
+        """Iterations of a path's loop at most: it runs at least once (``max_depth`` 0
+        too); it keeps vertices 0..loops-1 and the hit of the ray leaving the last
+        (inactive, but written)."""
+        return max(max_depth, 1)
+
+    @classmethod
+    def fits(cls, n: int, max_depth: int) -> bool:
         """Whether a render of ``n`` paths of at most ``max_depth`` vertices may keep
         its answers (:data:`REPLAY_CACHE_BYTES`)."""
-        return n * (max(max_depth, 1) + 1) * _BYTES_PER_VERTEX <= REPLAY_CACHE_BYTES
+        return n * (cls._loops(max_depth) + 1) * _BYTES_PER_VERTEX <= REPLAY_CACHE_BYTES
 
     def _index(self, slot, last: int):
         """Where path lanes keep slot ``slot`` (clamped to ``last``: a write past the
@@ -73,13 +94,8 @@ class _ReplayHits:
         dr.scatter(self.occluded, occluded, self._index(slot, self.loops - 1))
         return occluded
 
-
-def _closest(accel, hits, slot, ray, coherent, active, replay: bool):
-    """The closest hit along ``ray`` (:func:`_preliminary`), through ``hits`` when the
-    pass keeps or replays its answers (``hits`` None: traced)."""
-    if hits is None:
-        return _preliminary(accel, ray, coherent, active)
-    return hits.closest(accel, slot, ray, coherent, active, replay)
+    def keep_camera(self, pi):
+        dr.scatter(self.hits, pi, self.lane)
 
 
 def _attached_emitter_sample(accel, scene, si, ds, em_weight, active):
@@ -132,18 +148,17 @@ def _vertex_radiance(si, si_next, ray_next, bsdf, bsdf_ctx, L, Le, Lr_dir, activ
 
 
 def _emitter_radiance(accel, scene, sampler, si, bsdf, bsdf_ctx, β, primal: bool,
-                      active, hits=None, slot=None):
+                      active, queries=_Traced(), slot=None):
     """``Lr_dir``: the radiance an emitter sample brings to ``si`` through the BSDF,
     weighted by multiple importance against BSDF sampling, its visibility tested
     through the intersector (Mitsuba's ``test_visibility=True``); in the replay the
     sample is attached again (:func:`_attached_emitter_sample`) and the value
-    carries derivatives. ``hits``: the answers kept for the replay (vertex ``slot``),
-    or None."""
+    carries derivatives. ``queries``: how the pass asks (:class:`_Traced`, or the
+    answers kept for the replay, vertex ``slot``)."""
     ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False, active)
     active = active & (ds.pdf != 0.0)
     shadow_ray = dr.detach(si.spawn_ray_to(ds.p))
-    occluded = accel.ray_test(shadow_ray, active) if hits is None else \
-        hits.shadow(accel, slot, shadow_ray, active, replay=not primal)
+    occluded = queries.shadow(accel, slot, shadow_ray, active, replay=not primal)
     em_weight[occluded] = 0.0
     ds.pdf[occluded] = 0.0
     active &= ~occluded
@@ -287,18 +302,18 @@ class PRBIntegrator(_ad.RBIntegrator):
         finally:
             self._keep_hits, self._hits = False, None
 
-    def _replay_hits(self, primal: bool, n: int):
-        """The answers the pass keeps (a backward pass's primal pass) or replays (its
-        replay), or None (a plain render, a forward pass, too many paths or an
-        unbounded depth)."""
+    def _queries(self, primal: bool, n: int):
+        """How a pass of ``n`` paths asks: the answers it keeps (a backward pass's
+        primal pass) or replays (its replay), else :class:`_Traced` (a plain render, a
+        forward pass, too many paths or an unbounded depth)."""
         if not self._keep_hits:
-            return None
+            return _Traced()
         if primal:
             bounded = self.max_depth < 0xFFFFFFFF
             self._hits = _ReplayHits(n, self.max_depth) if (
                 bounded and _ReplayHits.fits(n, self.max_depth)) else None
-            return self._hits
-        return self._hits if self._hits is not None and self._hits.n == n else None
+        hits = self._hits
+        return hits if hits is not None and hits.n == n else _Traced()
 
     @dr.syntax
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
@@ -321,13 +336,13 @@ class PRBIntegrator(_ad.RBIntegrator):
         β = mi.Spectrum(1)                             # path throughput
         η = mi.Float(1)                                # product of relative IORs
         active = mi.Bool(active)
-        hits = self._replay_hits(primal, dr.width(ray))
-        replay = hits is not None and not primal
+        queries = self._queries(primal, dr.width(ray))
+        replay = not primal and isinstance(queries, _ReplayHits)
         if dr.hint(replay, mode="scalar"):
             # The primal pass's kernel, once, with what the replay reads of it
-            dr.eval(state_in, hits.hits, hits.occluded)
-            pi = hits.closest(accel, 0, ray, True, active, replay=True)
-        else:
+            dr.eval(state_in, queries.hits, queries.occluded)
+            pi = queries.closest(accel, 0, ray, True, active, replay=True)
+        else:  # kept after hidden emitters are skipped (keep_camera)
             pi = _preliminary(accel, ray, True, active)    # camera rays are coherent
 
         ray_prev = mi.Ray3f(ray)
@@ -341,8 +356,8 @@ class PRBIntegrator(_ad.RBIntegrator):
             skip = pi.is_valid() & (pi.shape.emitter() != None) & active  # noqa: E711
             si_skip = accel.surface_interaction(pi, ray, mi.RayFlags.Minimal, skip)
             pi[skip] = skip_area_emitters(accel, si_skip.spawn_ray(ray.d), True, skip)
-        if dr.hint(hits is not None and primal, mode="scalar"):
-            dr.scatter(hits.hits, pi, hits.lane)  # slot 0: what the camera ray found
+        if dr.hint(not replay, mode="scalar"):
+            queries.keep_camera(pi)
 
         while dr.hint(active, max_iterations=self.max_depth, label=f"hlbvh_prb ({mode.name})"):
             active_next = mi.Bool(active)
@@ -376,7 +391,7 @@ class PRBIntegrator(_ad.RBIntegrator):
             active_next &= (depth + 1 < self.max_depth) & si.is_valid()
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
             Lr_dir = _emitter_radiance(accel, scene, sampler, si, bsdf, bsdf_ctx, β, primal,
-                                       active_em, hits, depth)
+                                       active_em, queries, depth)
 
             # --------------------- BSDF sample (detached) ---------------------
 
@@ -400,7 +415,7 @@ class PRBIntegrator(_ad.RBIntegrator):
             rr_continue = sampler.next_1d() < rr_prob
             active_next &= ~rr_active | rr_continue
 
-            pi_next = _closest(accel, hits, depth + 1, ray_next, False, active_next, replay)
+            pi_next = queries.closest(accel, depth + 1, ray_next, False, active_next, replay)
 
             # --------------------- Derivatives of this vertex ---------------------
 
