@@ -16,6 +16,7 @@ from hlbvh.errors import UserError
 from hlbvh.kernels.bvh import BUILDERS
 from hlbvh.cli.options import choice, parse_resolution
 from hlbvh.errors import int_flag
+from hlbvh.scenes.animated import MAX_TRIANGLES
 
 _SUITES = {
     "build": "hlbvh.comparison.bench_build",
@@ -23,11 +24,6 @@ _SUITES = {
     "frame": "hlbvh.comparison.bench_frame",
     "prb": "hlbvh.comparison.bench_prb",
 }
-
-
-#: The most triangles a benchmark mesh may have: its faces are one Dr.Jit array of three
-#: indices per triangle, and a Dr.Jit array holds fewer than 2^32 entries.
-MAX_TRIANGLES = (2**32 - 1) // 3
 
 
 #: What ``bench frame --integrator`` takes: the integrators that render animations.

@@ -25,6 +25,11 @@ import numpy as np
 
 from .normals import vertex_normals
 
+#: The most triangles a scene's mesh may have (``--triangles``, ``bench --sizes``): its
+#: faces are one Dr.Jit array of three indices per triangle, and a Dr.Jit array holds
+#: fewer than 2^32 entries.
+MAX_TRIANGLES = (2**32 - 1) // 3
+
 
 @dataclass(frozen=True)
 class FrameGeometry:

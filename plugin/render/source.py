@@ -12,6 +12,7 @@ from pathlib import Path
 
 from hlbvh import scenes
 from hlbvh.errors import UserError, int_flag
+from hlbvh.scenes.animated import MAX_TRIANGLES
 from hlbvh.scenes.sequence import TOPOLOGIES
 
 
@@ -39,7 +40,8 @@ class SceneSpec:
         ``--no-default-light`` ride on a :class:`hlbvh.cli.options.SceneArgument`),
         ``frames`` as the ``--frames`` text or a range."""
         if isinstance(frames, range):
-            frames = f"{frames.start}:{frames.stop}"
+            step = "" if frames.step == 1 else f":{frames.step}"
+            frames = f"{frames.start}:{frames.stop}{step}"
         return cls(str(scene), None if frames_dir is None else str(frames_dir),
                    None if triangles is None else str(triangles), frames, topology,
                    getattr(scene, "camera", None), getattr(scene, "default_light", True))
@@ -67,7 +69,7 @@ def open_animation(spec: SceneSpec) -> tuple:
     """
     scene, frames_dir, triangles, frames = spec.scene, spec.frames_dir, spec.triangles, spec.frames
     topology, camera = spec.topology, spec.camera
-    start, stop = parse_frames(frames)
+    start, stop, step = parse_frames(frames)
     stage = usd_stage(scene, spec.default_light)
     if camera is not None and stage is None:
         raise UserError(f"--camera picks a camera of a USD stage; {str(scene)!r} is not one")
@@ -85,7 +87,8 @@ def open_animation(spec: SceneSpec) -> tuple:
         except ValueError as error:
             raise UserError(str(error)) from None
         if triangles is not None:
-            options["triangles"] = int_flag("--triangles", triangles, least=1)
+            options["triangles"] = int_flag("--triangles", triangles, least=1,
+                                           most=MAX_TRIANGLES)
         try:
             default = scenes.get(name, **options).frame_count
         except ValueError as error:
@@ -132,7 +135,7 @@ def open_animation(spec: SceneSpec) -> tuple:
         raise UserError(f"--frames {frames}: {scene!r} has frames 0:{animation.frame_count}")
     if start >= stop:
         raise UserError(f"--frames {frames}: the range is empty (expected A < B)")
-    return animation, source, range(start, stop)
+    return animation, source, range(start, stop, step)
 
 
 #: Suffixes of the USD stages :func:`open_animation` opens as :class:`hlbvh.scenes.usd.UsdScene`.
@@ -206,20 +209,34 @@ def _open_usd(stage: tuple, scene: str, frames_dir, triangles, topology, camera,
     return animation, source
 
 
-def parse_frames(text) -> tuple[int, int | None]:
-    """``"A:B"``, ``"A:"``, ``":B"`` or ``"N"`` (``0:N``) -> ``(A, B or None)``; ``None``
-    -> ``(0, None)``."""
+def parse_frames(text) -> tuple[int, int | None, int]:
+    """``"A:B"``, ``"A:"``, ``":B"``, ``"A:B:STEP"`` (every STEP-th frame of A .. B-1,
+    ``"A::STEP"`` to the last) or ``"N"`` (``0:N``) -> ``(A, B or None, STEP)``;
+    ``None`` -> ``(0, None, 1)``. What the text alone can refuse (a step below 1, an
+    empty range ``A >= B``) is refused here, before any scene is opened.
+
+    Raises:
+        UserError: naming ``--frames``.
+    """
     if text is None:
-        return 0, None
-    match = re.fullmatch(r"\s*(\d*)\s*:\s*(\d*)\s*|\s*(\d+)\s*", text)
+        return 0, None, 1
+    match = re.fullmatch(r"\s*(\d*)\s*:\s*(\d*)\s*(?::\s*(\d+)\s*)?|\s*(\d+)\s*", text)
     if not match:
-        raise UserError(f"--frames {text!r}: expected A:B (frames A .. B-1) or a count N")
-    if match.group(3) is not None:
-        count = int(match.group(3))
+        raise UserError(f"--frames {text!r}: expected A:B (frames A .. B-1), A:B:STEP "
+                        f"(every STEP-th of them) or a count N")
+    if match.group(4) is not None:
+        count = int(match.group(4))
         if count < 1:
             raise UserError(f"--frames {text!r}: expected a count >= 1")
-        return 0, count
-    return int(match.group(1) or 0), int(match.group(2)) if match.group(2) else None
+        return 0, count, 1
+    start = int(match.group(1) or 0)
+    stop = int(match.group(2)) if match.group(2) else None
+    step = int(match.group(3)) if match.group(3) else 1
+    if step < 1:
+        raise UserError(f"--frames {text!r}: expected a STEP >= 1")
+    if stop is not None and start >= stop:
+        raise UserError(f"--frames {text!r}: the range is empty (expected A < B)")
+    return start, stop, step
 
 
 def parse_topology(text: str | None):
