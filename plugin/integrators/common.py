@@ -259,16 +259,33 @@ def _rebuild_scene(scene, accel):
     scene.parameters_changed([])
 
 
+#: The largest value of a Mitsuba integer property (``max_depth``, ``rr_depth``): Mitsuba
+#: stores them as 32-bit signed integers and refuses larger ones, so ours do too.
+MAX_INTEGER_PROPERTY = 2**31 - 1
+
+
 def depth_properties(props) -> tuple[int, int]:
     """``max_depth`` and ``rr_depth`` of a path-tracing integrator, read and checked
-    as Mitsuba's ``MonteCarloIntegrator`` reads them: ``max_depth`` -1 (the default,
-    unbounded, returned as 2^32 - 1) or >= 0; ``rr_depth`` > 0 (default 5)."""
-    max_depth = props.get("max_depth", -1)
-    if max_depth < -1:
-        raise ValueError(f"max_depth={max_depth}: expected -1 (unbounded) or a value >= 0")
-    rr_depth = props.get("rr_depth", 5)
-    if rr_depth <= 0:
-        raise ValueError(f"rr_depth={rr_depth}: expected a value > 0")
+    as Mitsuba's ``MonteCarloIntegrator`` reads them: integers (not floats, booleans or
+    strings), ``max_depth`` -1 (the default, unbounded, returned as 2^32 - 1) or in
+    0 .. :data:`MAX_INTEGER_PROPERTY`, ``rr_depth`` in 1 .. :data:`MAX_INTEGER_PROPERTY`
+    (default 5): the values Mitsuba's ``path`` accepts, so a scene loads under ours
+    exactly when it loads under Mitsuba's.
+
+    Raises:
+        ValueError: naming the property, its value and the range expected.
+    """
+    depths = []
+    for name, default, least, expected in (
+            ("max_depth", -1, -1, "-1 (unbounded) or an integer in 0.."),
+            ("rr_depth", 5, 1, "an integer in 1..")):
+        value = props.get(name, default)
+        if (isinstance(value, bool) or not isinstance(value, int)
+                or not least <= value <= MAX_INTEGER_PROPERTY):
+            raise ValueError(f"{name}={value!r}: expected {expected}{MAX_INTEGER_PROPERTY} "
+                             f"(Mitsuba's integer properties are 32-bit)")
+        depths.append(value)
+    max_depth, rr_depth = depths
     return (max_depth if max_depth != -1 else 0xFFFFFFFF), rr_depth
 
 
