@@ -37,6 +37,12 @@ if). A wide node pushes at most three entries and the packer refuses trees deepe
 ``layout.MAX_DEPTH`` binary levels, so ``STACK_SIZE`` entries always suffice; the
 packer also refuses cycles and shared subtrees, so every ray ends.
 
+**Keyed trees** (:class:`~hlbvh.kernels.keyed.KeyedTree`, deforming motion blur): the
+same loop, with each slot read at the ray's two neighbouring keys and interpolated at
+its time (child boxes, triangle vertices) before the same two tests. Which reads a
+query makes is chosen in Python when the kernel is traced, so the still kernel is
+unchanged.
+
 The slots are packed once per BVH (or per set of BVHs, :func:`layout.joined`) and
 cached on it: call :func:`packed_records` (or ``joined``) outside any symbolic loop if
 the traversal is then traced inside one, since packing evaluates arrays.
@@ -51,6 +57,7 @@ import drjit as dr
 
 from .arrays import Bool, Float, high_half, low_half, namespace_of, pack_halves, plain
 from .bvh import BVH
+from .keyed import KeyedTree, RayKeys, keyed_node, keyed_slot, keyed_triangle, ray_keys
 from .layout import Packed
 from .packing import packed_records  # noqa: F401  (what traversal reads, built on first use)
 from .ray_tests import (BARYCENTRIC_MARGIN, TFAR_SCALE, Ray, ray_setup,  # noqa: F401
@@ -78,49 +85,57 @@ _MISS32 = 0xFFFFFFFF  # the same for any hit's 32-bit entries
 # ---------------------------------------------------------------------------------------
 
 
-def closest_hit(bvh: BVH | Packed, o: dr.ArrayBase, d: dr.ArrayBase, maxt: Float | float,
-                active: Bool | bool = True):
+def closest_hit(bvh: BVH | Packed | KeyedTree, o: dr.ArrayBase, d: dr.ArrayBase,
+                maxt: Float | float, active: Bool | bool = True, time: Float | float | None = None):
     """Nearest intersection of each ray with the BVH's triangles.
 
     Args:
         bvh: an ``hlbvh.BVH``, or the :class:`~hlbvh.kernels.layout.Packed` slots of
-            several (:func:`~hlbvh.kernels.layout.joined`).
+            several (:func:`~hlbvh.kernels.layout.joined`), or a
+            :class:`~hlbvh.kernels.keyed.KeyedTree` (a deforming mesh at S+1 times).
         o: Array3f (or ``mi.Point3f``) ray origins, width R (or 1).
         d: Array3f (or ``mi.Vector3f``) ray directions, width R (or 1); need not be
             normalised (``t`` is in units of ``d``).
         maxt: Float (or Python float) largest accepted ``t``, width R or 1.
         active: Bool (or Python bool) mask; inactive rays miss.
+        time: Float (or Python float) each ray's time in the shutter, normalised to
+            [0, 1] (the caller maps ``ray.time``); needed by a keyed tree, which is
+            traced at that time (values outside [0, 1] are clamped, a NaN time misses);
+            ignored by the others (still geometry is the same at every time).
     Returns:
         ``(t, u, v, prim, valid)``: Float ``t`` (``inf`` on a miss), Float ``u``, ``v``
         with ``p = (1-u-v)·p0 + u·p1 + v·p2`` of the face's vertices, UInt32 ``prim``
         the input face index (0 on a miss), Bool ``valid``; all of width R, plain
         (non-AD) arrays of the input's backend.
     """
-    return _trace(bvh, o, d, maxt, active, any_hit=False)
+    return _trace(bvh, o, d, maxt, active, any_hit=False, time=time)
 
 
-def any_hit(bvh: BVH | Packed, o: dr.ArrayBase, d: dr.ArrayBase, maxt: Float | float,
-            active: Bool | bool = True):
+def any_hit(bvh: BVH | Packed | KeyedTree, o: dr.ArrayBase, d: dr.ArrayBase,
+            maxt: Float | float, active: Bool | bool = True, time: Float | float | None = None):
     """Whether each ray hits any triangle at ``0 < t <= maxt`` (stops at the first hit):
     a Bool of width R. Arguments as in :func:`closest_hit`."""
-    return _trace(bvh, o, d, maxt, active, any_hit=True)
+    return _trace(bvh, o, d, maxt, active, any_hit=True, time=time)
 
 
-def steps(bvh: BVH | Packed, o: dr.ArrayBase, d: dr.ArrayBase, maxt: Float | float,
-          active: Bool | bool = True, any_hit: bool = False):
+def steps(bvh: BVH | Packed | KeyedTree, o: dr.ArrayBase, d: dr.ArrayBase,
+          maxt: Float | float, active: Bool | bool = True, any_hit: bool = False,
+          time: Float | float | None = None):
     """Loop iterations of each ray in :func:`closest_hit` (:func:`any_hit`), same arguments:
     UInt32 (R), one per wide node and triangle visited (a packet costs its slowest lane's)."""
-    return _trace(bvh, o, d, maxt, active, any_hit, count_steps=True)
+    return _trace(bvh, o, d, maxt, active, any_hit, count_steps=True, time=time)
 
 
-def intersect(bvh: BVH | Packed, ray, active: Bool | bool = True):
+def intersect(bvh: BVH | Packed | KeyedTree, ray, active: Bool | bool = True,
+              time: Float | float | None = None):
     """Closest hit of ``ray`` (anything with ``o``, ``d``, ``maxt``) as a
     ``mi.PreliminaryIntersection3f``: ``valid``, ``t`` (``inf`` on a miss),
     ``prim_uv``, ``prim_index`` (the input face index); ``shape``, ``shape_index`` and
-    ``instance`` are left null/zero for the caller to fill."""
+    ``instance`` are left null/zero for the caller to fill. ``time``: as in
+    :func:`closest_hit` (normalised to the shutter: not ``ray.time`` itself)."""
     import mitsuba as mi
 
-    t, u, v, prim, valid = closest_hit(bvh, ray.o, ray.d, ray.maxt, active)
+    t, u, v, prim, valid = closest_hit(bvh, ray.o, ray.d, ray.maxt, active, time)
     pi = dr.zeros(mi.PreliminaryIntersection3f, dr.width(t))
     pi.valid = mi.Bool(valid)
     pi.t = mi.Float(t)
@@ -129,11 +144,13 @@ def intersect(bvh: BVH | Packed, ray, active: Bool | bool = True):
     return pi
 
 
-def occluded(bvh: BVH | Packed, ray, active: Bool | bool = True):
-    """Whether anything lies on ``ray`` at ``0 < t <= ray.maxt``: a ``mi.Bool``."""
+def occluded(bvh: BVH | Packed | KeyedTree, ray, active: Bool | bool = True,
+             time: Float | float | None = None):
+    """Whether anything lies on ``ray`` at ``0 < t <= ray.maxt``: a ``mi.Bool``
+    (``time`` as in :func:`intersect`)."""
     import mitsuba as mi
 
-    return mi.Bool(any_hit(bvh, ray.o, ray.d, ray.maxt, active))
+    return mi.Bool(any_hit(bvh, ray.o, ray.d, ray.maxt, active, time))
 
 
 def closest_instance_hit(two_level: TwoLevel, o, d, maxt, active=True):
@@ -191,6 +208,7 @@ class _Query:
     two_level: Any = None  # TwoLevel: instances at the top level's leaf slots, or None
     world_o: Any = None  # Array3f: the world rays' origins (two levels)
     world_d: Any = None  # Array3f: their directions (two levels)
+    keys: RayKeys | None = None  # a keyed tree: which keys each ray reads, and weights
 
     @property
     def Entry(self):
@@ -203,9 +221,30 @@ class _Query:
 
     def slot(self, base):
         """The 16 floats of slot ``base``: one packet gather (a vector load per lane
-        and a transpose, far cheaper than a gather per float)."""
+        and a transpose, far cheaper than a gather per float). A keyed tree: the 32
+        floats of the slot at the ray's two keys, interpolated by :meth:`triangle` or
+        :meth:`node` once the lane knows which the slot is."""
+        if self.keys is not None:
+            return keyed_slot(self.records, self.keys, base, self.n)
         ns = namespace_of(self.records)
         return dr.gather(ns.ArrayXf, self.records, base, shape=(SLOT, self.n))
+
+    def triangle(self, rec):
+        """The triangle record the watertight test reads, from what :meth:`slot` read."""
+        return rec if self.keys is None else keyed_triangle(self.keys, rec)
+
+    def node(self, rec, cur):
+        """The 32 floats of the wide node whose first slot (at ``cur``) :meth:`slot`
+        read: its second slot is read here."""
+        if self.keys is not None:
+            return keyed_node(self.keys, rec, self.slot(cur + 1))
+        return [*rec, *self.slot(cur + 1)]
+
+    def face_at(self, slot):
+        """The Float index of the face index field of triangle slots ``slot``."""
+        if self.keys is not None:
+            slot = slot * self.keys.stride  # key 0 (every key holds the same face)
+        return slot * SLOT + TRI_FACE
 
     def entry_of(self, ref, t_near):
         if self.any_hit:
@@ -224,7 +263,7 @@ def _box_test(query: _Query, ray: Ray, rec, cur, t_best):
     """The wide node whose first slot is ``rec`` (at slot ``cur``; its second slot
     is read here): entries of the children the ray enters before ``t_best``, sorted
     ascending, a missed or absent child as ``miss`` (so the hit ones come first)."""
-    rec = [*rec, *query.slot(cur + 1)]
+    rec = query.node(rec, cur)
     keys = []
     limit = t_best * TFAR_SCALE
     for k in range(WIDTH):
@@ -380,7 +419,7 @@ def _step(query: _Query, world: Ray, stack: _Stack, s: _TraceState) -> _TraceSta
         at_triangle &= ~at_instance
     hit, t, u, v = dr.if_stmt(
         args=(rec, s.t_best), cond=at_triangle,
-        true_fn=lambda rec, t_max: triangle_test(ray, rec, t_max),
+        true_fn=lambda rec, t_max: triangle_test(ray, query.triangle(rec), t_max),
         false_fn=lambda rec, t_max: (dr.zeros(Bool, n), dr.zeros(Float, n),
                                      dr.zeros(Float, n), dr.zeros(Float, n)),
         arg_labels=("rec", "t_best"), rv_labels=("hit", "t", "u", "v"),
@@ -444,12 +483,16 @@ def _step(query: _Query, world: Ray, stack: _Stack, s: _TraceState) -> _TraceSta
     return s
 
 
-def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False):
+def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False, time=None):
     if not dr.is_array_v(o) or not dr.is_array_v(d):
         raise TypeError("ray origin and direction must be Dr.Jit Array3f/Point3f/Vector3f")
+    keyed = bvh if isinstance(bvh, KeyedTree) else None
+    if keyed is not None and time is None:
+        raise ValueError("a keyed tree is traced at each ray's time: pass time= (Float in "
+                         "[0, 1] over the shutter)")
     ns = namespace_of(o)
     Float, UInt32, Bool = ns.Float, ns.UInt32, ns.Bool
-    widths = {dr.width(x) for x in (o, d, maxt, active) if dr.is_array_v(x)} - {1}
+    widths = {dr.width(x) for x in (o, d, maxt, active, time) if dr.is_array_v(x)} - {1}
     if len(widths) > 1:
         raise ValueError(f"ray arrays of different widths {sorted(widths)}: expected one")
     n = widths.pop() if widths else 1
@@ -459,7 +502,7 @@ def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False):
         return (Float(), Float(), Float(), UInt32()) + \
             ((UInt32(),) if isinstance(bvh, TwoLevel) else ()) + (Bool(),)
     two_level = bvh if isinstance(bvh, TwoLevel) else None
-    if isinstance(bvh, (Packed, TwoLevel)):
+    if isinstance(bvh, (Packed, TwoLevel, KeyedTree)):
         records, root = bvh.records, bvh.root
     else:
         records, root = packed_records(bvh)
@@ -472,9 +515,13 @@ def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False):
     # ---- Per-ray set-up ----
     finite = dr.all(dr.isfinite(o)) & dr.all(dr.isfinite(d))
     alive = active & finite & dr.any(d != 0) & (maxt > 0)
+    keys = None
+    if keyed is not None:  # (a Python-level choice: the still kernel is not touched)
+        keys = ray_keys(keyed, _broadcast(time, "Float", ns, n))
+        alive &= keys.known
     ray = ray_setup(o, d)
     query = _Query(records=records, n=n, any_hit=any_hit, no_t=dr.zeros(Float, n),
-                   two_level=two_level, world_o=o, world_d=d)
+                   two_level=two_level, world_o=o, world_d=d, keys=keys)
     # Two levels: a tree under a tree, and the two entries an instance pushes.
     stack = _Stack(query.Entry, n, STACK_SIZE) if two_level is None else \
         _Stack(query.Entry, n, 2 * STACK_SIZE + 2, ordered=True)
@@ -492,7 +539,7 @@ def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False):
     if any_hit:
         return valid
     prim = dr.reinterpret_array(UInt32, dr.gather(Float, records,
-                                                  state.hit_slot * SLOT + TRI_FACE, valid))
+                                                  query.face_at(state.hit_slot), valid))
     hit = (dr.select(valid, state.t_best, dr.inf), dr.select(valid, state.u_best, 0),
            dr.select(valid, state.v_best, 0), dr.select(valid, prim, 0))
     if two_level is not None:

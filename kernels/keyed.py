@@ -1,0 +1,322 @@
+"""Keyed trees, for the motion blur of deforming meshes: one tree topology, its packed
+slots at ``S + 1`` evenly spaced times over the shutter (the *keys*), each ray traced at
+its own time.
+
+A deforming mesh gives its vertex positions at keys ``0 .. S`` (key ``k`` at time
+``k / S`` of the shutter, normalised to [0, 1]). The tree is built once (which triangles
+go together), then refit at every key (:func:`hlbvh.kernels.refit.refit`: a tree
+packed before takes the fused refit, which writes each key's slots with the same
+topology). A ray at time ``t`` reads keys ``k = min(floor(t·S), S - 1)`` and ``k + 1``
+and interpolates, with ``f = t·S - k``, the child boxes of each wide node it visits and
+the vertices of each triangle it tests; then it makes the still tree's tests (Ize's
+conservative slab test, Woop's watertight triangle test,
+:mod:`hlbvh.kernels.ray_tests`). The traversal loop is the still one
+(:mod:`hlbvh.kernels.traversal`): a keyed tree only changes how a slot is read.
+
+**Layout.** Slot ``s`` of key ``k`` is slot ``s·(S+1) + k`` of one Float array, so a ray
+reads a slot's two keys from two adjacent 64-byte lines. References (slot numbers) are
+the still tree's. Memory: ``S + 1`` times the still tree's slots.
+
+**The interpolation**, one function for boxes and vertices (:func:`lerp`):
+``lerp(a, b, f) = float32(fma(f, b, (1 - f)·a))`` computed in double. It is
+
+- *monotone* in ``a`` and in ``b`` (each step rounds monotonically, the weights are
+  never negative), so a key box corner below a vertex at both keys stays below the
+  vertex at every time: the interpolated box contains the interpolated triangle
+  exactly, with no rounding margin (linear bounds as Embree's, conservative in float
+  arithmetic too). A float ``fma(f, b - a, a)`` is not monotone: the rounding of
+  ``b - a`` can put a vertex outside its interpolated box (``docs/motion.md``);
+- *exact* at the keys (``f = 0`` gives ``a``, ``f = 1`` gives ``b``) and wherever
+  ``a == b`` (the double result is within 2^-51 of ``a`` and rounds back to it): a
+  keyed tree whose keys are equal traces bit-identically to the still tree;
+- *the same for every triangle that shares a vertex* (same inputs, same output), so
+  the watertight test stays watertight at every time.
+
+**Zero-area triangles.** The still tree packs them with NaN vertices (never hit). A
+keyed tree keeps the real vertices of a triangle that has an area at some key (a mesh
+scaled through zero is flat at one instant, not over two whole segments) and packs NaN
+only for a triangle flat at every key. (At the instant it is flat, such a triangle's
+determinant is zero and the watertight test reports no hit, or, where rounding leaves a
+sliver, a hit on the sliver.)
+
+**Which pose to build.** :func:`build_keyed` builds the topology over the mid-shutter
+positions (key ``S/2``, or the two middle keys interpolated at one half). A refit
+tree's boxes grow with how far the mesh has moved since the pose the tree was built
+for; the middle of the shutter is never more than half a shutter away from a ray's
+time, key 0 a whole shutter.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import drjit as dr
+
+from .arrays import Float, UInt32, namespace_of
+from .bvh import BVH
+from .geometry import as_faces, as_points
+from .packing import packed_records
+from .refit import refit
+from .slots import NODE_REF, SLOT, TRI_FACE, TRI_P
+
+#: A keyed tree's floats are addressed with 32-bit indices.
+MAX_FLOATS = 2**32 - 1
+#: Fields of a wide node's 32 floats that are box coordinates (interpolated); the rest
+#: are child references and padding, the same at every key.
+_NODE_BOX_FIELDS = NODE_REF
+#: Fields of a triangle slot that are its vertices (interpolated).
+_TRI_VERTEX_FIELDS = range(TRI_P[0], TRI_P[2] + 3)
+assert list(_TRI_VERTEX_FIELDS) == list(range(9)) and TRI_FACE == 9
+
+
+@dataclass
+class KeyedTree:
+    """A tree's packed slots at ``keys`` evenly spaced times (what :func:`keyed_tree`
+    returns; traversal takes it with a ``time`` per ray).
+
+    Attributes:
+        records: Float, ``SLOT`` floats per slot and key: slot ``s`` of key ``k`` at
+            slot ``s·keys + k``.
+        root: the root's reference (a slot number of the still layout).
+        keys: ``S + 1`` (at least 2).
+        slots: slots of one key (the still tree's slot count).
+        bvh: the tree whose topology the slots have (as given: not refit here), for the
+            next frame's :func:`keyed_tree`.
+    """
+
+    records: Any
+    root: int
+    keys: int
+    slots: int
+    bvh: BVH
+
+    @property
+    def segments(self) -> int:
+        """``S``: the intervals between keys."""
+        return self.keys - 1
+
+
+@dataclass
+class RayKeys:
+    """What a ray of a keyed trace reads, fixed through its traversal loop.
+
+    Attributes:
+        stride: the tree's key count (slots of one place).
+        k: UInt32, the ray's first key (its slot ``s`` is read at ``s·stride + k`` and
+            the next).
+        f: Float64, the weight of key ``k + 1`` (``t·S - k``, in [0, 1]).
+        g: Float64, the weight of key ``k`` (``1 - f``).
+        known: Bool, the ray has a time (not NaN); the others miss.
+    """
+
+    stride: int
+    k: Any
+    f: Any
+    g: Any
+    known: Any
+
+
+# ---------------------------------------------------------------------------------------
+# Making a keyed tree
+# ---------------------------------------------------------------------------------------
+
+
+def checked_keys(keys, faces, top: int | None = None) -> list:
+    """The keys as flat Float[3·V] arrays, after checking that there are at least two,
+    that every key holds as many vertices as key 0, enough for ``faces`` (flat UInt32),
+    and only finite values.
+
+    Raises:
+        TypeError: ``keys`` is not a sequence of Dr.Jit arrays (naming the key).
+        ValueError: fewer than two keys; a key of another vertex count than key 0's, or
+            with a NaN or infinite coordinate, naming the key (``keys[k]``); faces that
+            index past the keys' vertices.
+    """
+    if dr.is_array_v(keys) or not isinstance(keys, Sequence):
+        raise TypeError("keys: expected a list of the vertex positions at each key "
+                        f"(flat Float 3·V or Array3f, S + 1 of them), got {type(keys).__name__}")
+    if len(keys) < 2:
+        raise ValueError(f"keys: {len(keys)} given, a keyed tree needs at least 2 (S + 1 "
+                         "keys over the shutter, S >= 1)")
+    points = []
+    for k, key in enumerate(keys):
+        try:
+            p = as_points(key)
+        except (TypeError, ValueError) as error:
+            raise type(error)(f"keys[{k}]: {error}") from None
+        if k and len(p) != len(points[0]):
+            raise ValueError(f"keys[{k}]: {len(p) // 3} vertices, but keys[0] has "
+                             f"{len(points[0]) // 3}: every key holds the same vertices")
+        points.append(p)
+    bad = [dr.count(~dr.isfinite(p)) for p in points]
+    if top is None:
+        largest = dr.max(faces) if len(faces) else dr.zeros(type(faces), 1)
+    dr.eval(bad, largest if top is None else ())  # every reduction, then one wait
+    top = int(largest[0]) if top is None else top
+    v = len(points[0]) // 3
+    for k, count in enumerate(bad):
+        if int(count[0]):
+            raise ValueError(f"keys[{k}]: {int(count[0])} of {3 * v} coordinates are "
+                             "non-finite (NaN or infinite); fix or drop those vertices")
+    if v == 0 or top >= v:
+        raise ValueError(f"keys: the faces index vertex {top}, but each key holds {v} "
+                         "vertices")
+    return points
+
+
+def keyed_tree(bvh: BVH, keys) -> KeyedTree:
+    """The slots of ``bvh``'s topology at every key: a refit per key (fused with its
+    packing for a builder's tree), each key's slots copied to their places in the keyed
+    layout. ``bvh`` is left as it was (refit on a copy that shares its caches' plans).
+
+    Args:
+        bvh: the tree (any pose: the keys give the positions; :func:`build_keyed` says
+            which pose to build it over).
+        keys: ``S + 1`` arrays of vertex positions (S >= 1), each a flat Float (3·V) or
+            Array3f (V), of the faces ``bvh`` was built over.
+    Returns:
+        a :class:`KeyedTree`.
+    Raises:
+        TypeError, ValueError: as :func:`checked_keys`, naming the key; ValueError when
+            the keyed slots would exceed 32-bit float indices.
+    """
+    points = checked_keys(keys, bvh.faces)
+    count = len(points)
+    ns = namespace_of(bvh.node_count)
+    UInt32_, Float_ = ns.UInt32, ns.Float
+    work = _working_copy(bvh)
+    packed_records(work)  # where the fused refit writes (cached on bvh when traced)
+    total = work.cache.pack_plan[1].total
+    if SLOT * count * total + SLOT > MAX_FLOATS:
+        raise ValueError(f"keys: {count} keys of {total} slots need {SLOT * count * total} "
+                         f"floats; a keyed tree holds at most {MAX_FLOATS}")
+    records = dr.empty(Float_, SLOT * count * total)
+    record_of = work.cache.pack_plan[1].record_of  # each triangle slot's slot
+    place = dr.arange(UInt32_, total)
+    flat_somewhere = dr.zeros(ns.Bool, bvh.prim_count)
+    flat_everywhere = dr.ones(ns.Bool, bvh.prim_count)
+    root = None
+    for k, p in enumerate(points):
+        refit(work, p)
+        key_records, root = packed_records(work)
+        rows = dr.gather(ns.ArrayXf, key_records, place, shape=(SLOT, total))
+        dr.scatter(records, rows, place * count + dr.opaque(UInt32_, k))
+        # The still packing's mark of a zero-area triangle: NaN vertices.
+        flat = dr.isnan(dr.gather(Float_, key_records, record_of * SLOT + TRI_P[0]))
+        flat_somewhere |= flat
+        flat_everywhere &= flat
+        dr.eval(records, flat_somewhere, flat_everywhere)
+    _unflatten(records, count, points, bvh, record_of, flat_somewhere & ~flat_everywhere)
+    return KeyedTree(records=records, root=root, keys=count, slots=total, bvh=bvh)
+
+
+def build_keyed(keys, faces, **options) -> KeyedTree:
+    """Build a tree over the mid-shutter positions (:func:`mid_shutter`) and key it:
+    ``hlbvh.build`` then :func:`keyed_tree`.
+
+    Args:
+        keys: as :func:`keyed_tree`.
+        faces: flat UInt32 (3·F) or Array3u (F).
+        options: ``hlbvh.build``'s (``builder``, ``leaf_size``, ...).
+    """
+    from .build import build
+
+    points = checked_keys(keys, as_faces(faces))
+    return keyed_tree(build(mid_shutter(points), faces, **options), points)
+
+
+def mid_shutter(points: list) -> Float:
+    """Flat Float[3·V]: the positions at the middle of the shutter, key ``S/2`` (S
+    even) or the two middle keys interpolated at one half (as a ray at time 0.5
+    sees them)."""
+    s = len(points) - 1
+    if s % 2 == 0:
+        return points[s // 2]
+    Float64 = dr.float64_array_t(type(points[0]))
+    half = Float64(0.5)
+    return lerp(points[s // 2], points[s // 2 + 1], half, half)
+
+
+def _working_copy(bvh: BVH) -> BVH:
+    """``bvh`` with its own arrays, statistics and cache entries (the entries' values
+    shared: what a refit replaces is replaced on the copy only)."""
+    stats = copy.copy(bvh.stats)
+    stats.stage_ms = dict(bvh.stats.stage_ms)
+    return dataclasses.replace(bvh, stats=stats, cache=copy.copy(bvh.cache))
+
+
+def _unflatten(records, count, points, bvh, record_of, partly_flat):
+    """Write the real vertices of ``partly_flat`` triangles (Bool per triangle slot:
+    flat at some keys, not at all) at every key, over the NaN the packing gave them
+    where they were flat. Usually there are none: a count, and nothing else."""
+    if not int(dr.count(partly_flat)[0]):
+        return
+    ns = namespace_of(record_of)
+    slot = dr.compress(partly_flat)
+    face = dr.gather(ns.Array3u, as_faces(bvh.faces), dr.gather(ns.UInt32, bvh.prim_ids, slot))
+    first = dr.gather(ns.UInt32, record_of, slot) * count
+    for k, p in enumerate(points):
+        at = (first + k) * SLOT
+        for c in range(3):
+            vertex = dr.gather(ns.Array3f, p, face[c])
+            for axis in range(3):
+                dr.scatter(records, vertex[axis], at + TRI_P[c] + axis)
+    dr.eval(records)
+
+
+# ---------------------------------------------------------------------------------------
+# Reading a keyed tree (the traversal's slot reads, :mod:`hlbvh.kernels.traversal`)
+# ---------------------------------------------------------------------------------------
+
+
+def lerp(a, b, f, g):
+    """``a`` and ``b`` (Float arrays, or lists of them) interpolated with Float64
+    weights ``f`` (of ``b``) and ``g = 1 - f`` (of ``a``): ``float32(fma(f, b, g·a))``
+    in double. Monotone in ``a`` and ``b``, exact at ``f = 0``, ``f = 1`` and
+    ``a == b`` (module docstring)."""
+    if isinstance(a, (list, tuple)):
+        return [lerp(x, y, f, g) for x, y in zip(a, b)]
+    if dr.depth_v(a) > 1:
+        return type(a)(*(lerp(x, y, f, g) for x, y in zip(a, b)))
+    Float64 = type(f)
+    return type(a)(dr.fma(f, Float64(b), g * Float64(a)))
+
+
+def ray_keys(keyed: KeyedTree, time: Float) -> RayKeys:
+    """The keys and weights of rays at ``time`` (Float, normalised to the shutter;
+    clamped to [0, 1]; NaN: ``known`` False)."""
+    ns = namespace_of(time)
+    s = keyed.segments
+    known = ~dr.isnan(time)
+    x = dr.clip(dr.select(known, time, 0.0), 0.0, 1.0) * s
+    k = dr.minimum(ns.UInt32(dr.floor(x)), s - 1)
+    f = ns.Float64(x - ns.Float(k))  # exact: x and k within a factor two (or k = 0)
+    return RayKeys(stride=keyed.keys, k=k, f=f, g=1.0 - f, known=known)
+
+
+def keyed_slot(records: Float, keys: RayKeys, base: UInt32, n: int) -> list:
+    """The 32 floats of slot ``base`` at each ray's keys ``k`` and ``k + 1`` (two
+    packet gathers of adjacent 64-byte lines), not yet interpolated."""
+    ns = namespace_of(records)
+    at = base * keys.stride + keys.k
+    return [*dr.gather(ns.ArrayXf, records, at, shape=(SLOT, n)),
+            *dr.gather(ns.ArrayXf, records, at + 1, shape=(SLOT, n))]
+
+
+def keyed_triangle(keys: RayKeys, rec: list) -> list:
+    """The triangle record at the ray's time from :func:`keyed_slot`'s 32 floats: the
+    vertices interpolated, the rest key ``k``'s."""
+    return [lerp(rec[i], rec[SLOT + i], keys.f, keys.g) if i in _TRI_VERTEX_FIELDS
+            else rec[i] for i in range(SLOT)]
+
+
+def keyed_node(keys: RayKeys, first: list, second: list) -> list:
+    """A wide node's 32 floats at the ray's time, from :func:`keyed_slot`'s reads of
+    its two slots: the child boxes interpolated, the references key ``k``'s."""
+    rec = first[:SLOT] + second[:SLOT]
+    nxt = first[SLOT:] + second[SLOT:]
+    return [lerp(rec[i], nxt[i], keys.f, keys.g) if i < _NODE_BOX_FIELDS else rec[i]
+            for i in range(2 * SLOT)]
