@@ -20,14 +20,17 @@ T = mi.ScalarTransform4f
 
 def media_scene(res=24, spp=4, heterogeneous=False) -> dict:
     """A floor, a box of fog behind a null interface (a homogeneous medium, or a
-    heterogeneous one over a 4^3 grid), a glass sphere filled with a medium, a
-    diffuse sphere inside the fog, an area light, a point light and an environment.
-    The fog box floats above the floor: a face coplanar with the floor would make
-    which surface is hit first a matter of the last bit of t."""
+    heterogeneous one over a 4^3 grid whose box is the fog box's: every ray through
+    the fog samples the grid, delta tracking's null scattering included), a glass
+    sphere filled with a medium, a diffuse sphere inside the fog, an area light, a
+    point light and an environment. The fog box floats above the floor: a face
+    coplanar with the floor would make which surface is hit first a matter of the
+    last bit of t."""
     if heterogeneous:
         density = np.linspace(0.2, 1.0, 64, dtype=np.float32).reshape(4, 4, 4, 1)
-        fog = dict(type="heterogeneous", scale=2.0,
-                   sigma_t=dict(type="gridvolume", grid=mi.VolumeGrid(density)),
+        grid = dict(type="gridvolume", grid=mi.VolumeGrid(density),
+                    to_world=T().translate([-1.2, 0.05, -0.6]).scale(1.2))
+        fog = dict(type="heterogeneous", scale=2.0, sigma_t=grid,
                    albedo=dict(type="rgb", value=[0.8, 0.6, 0.4]))
     else:
         fog = dict(type="homogeneous", scale=1.5,
@@ -74,6 +77,9 @@ OPTIONS = [dict(max_depth=6), dict(max_depth=-1, rr_depth=2, hide_emitters=True)
 @pytest.mark.parametrize("heterogeneous", [False, True], ids=["homogeneous", "heterogeneous"])
 @pytest.mark.parametrize("options", OPTIONS)
 def test01_volpath_native_bit_identical_to_cpp_volpath(heterogeneous, options):
+    """In the heterogeneous fog every path samples the grid, so null and real
+    scattering are weighted by the mean of their probability over the colour
+    channels: it must round as C++'s does."""
     scene = mi.load_dict(media_scene(heterogeneous=heterogeneous))
     reference = render(scene, dict(type="volpath", **options), seed=3)
     ours = render(scene, dict(type="hlbvh_volpath", accel="native", **options), seed=3)

@@ -20,6 +20,15 @@ def _channel_value(spectrum, channel):
     return value
 
 
+def _channel_mean(spectrum):
+    """The mean of a spectrum's entries as Mitsuba's C++ computes it: their sum times
+    the reciprocal of their count. Dr.Jit's Python ``dr.mean`` of a colour scales the
+    sum by the lane count over the total entry count instead, which rounds
+    differently in the last bit (so would the null and real scattering weights of a
+    heterogeneous medium)."""
+    return dr.sum(spectrum) * (1.0 / dr.size_v(spectrum))
+
+
 def _sampled_channel(sampler, active):
     """The colour channel whose extinction samples this path's distances: drawn
     uniformly in RGB variants, 0 otherwise."""
@@ -184,7 +193,7 @@ class VolpathIntegrator(AccelIntegrator):
                                            is_spectral)
 
             # Null and real scattering
-            null_scatter_prob = dr.mean(mei.sigma_n / mei.combined_extinction)
+            null_scatter_prob = _channel_mean(mei.sigma_n / mei.combined_extinction)
             null_scatter = sampler.next_1d(active_medium) < null_scatter_prob
             act_null_scatter = null_scatter & active_medium
             act_medium_scatter = ~act_null_scatter & active_medium
@@ -199,7 +208,7 @@ class VolpathIntegrator(AccelIntegrator):
             si.t[act_null_scatter] = si.t - mei.t
 
             throughput[is_spectral & act_medium_scatter] = throughput * (
-                mei.sigma_s / dr.mean(mei.sigma_t / mei.combined_extinction))
+                mei.sigma_s / _channel_mean(mei.sigma_t / mei.combined_extinction))
             throughput[not_spectral & act_medium_scatter] = throughput * (
                 mei.sigma_s / mei.sigma_t)
 
