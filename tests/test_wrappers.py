@@ -149,3 +149,34 @@ def test06_mitsubas_aov_is_not_taken_as_a_wrapper_and_a_bad_wrapper_is_named():
     assert settings.integrator_dict()["type"] == "moment"
     assert settings.integrator_dict()["nested"]["type"] == "hlbvh_path"
     assert "wrapper" not in RenderSettings().as_dict()  # older folders still resume
+
+
+@pytest.mark.parametrize("wrapper", WRAPPERS)
+@pytest.mark.parametrize("moving_accel", ["scene", "auto"])
+def test07_a_wrapper_renders_when_the_whole_scene_traces_the_moving_meshes(
+        wrapper, moving_accel):
+    """With the whole scene chosen (forced, or by ``auto``), the nested integrator's
+    ``sample()`` traces the scene's own queries, as its own render does: a render through
+    the wrapper of a moving mesh equals the wrapper around ``accel="native"``, frame by
+    frame (it raised "query the scene itself" before)."""
+    def scene(inner):
+        desc = cornell_box(res=16, spp=2)
+        desc["integrator"] = dict(type=wrapper, **WRAPPERS[wrapper], inner=inner)
+        return mi.load_dict(desc)
+
+    inner = mi.load_dict(dict(type="hlbvh_path", max_depth=3, moving_accel=moving_accel))
+    ours = scene(inner)
+    reference = scene(dict(type="hlbvh_path", max_depth=3, accel="native"))
+    params, ref_params = hlbvh.traverse(ours), mi.traverse(reference)
+    key, ref_key = (next(k for k in p.keys() if k.endswith("vertex_positions"))
+                    for p in (params, ref_params))
+    still = mi.Float(ref_params[ref_key])
+    for frame in range(1, 3):
+        moved = still * (1.0 - 0.05 * frame)
+        params[key], ref_params[ref_key] = moved, mi.Float(moved)
+        params.update()
+        ref_params.update()
+        np.testing.assert_array_equal(np.array(mi.render(ours, seed=frame)),
+                                      np.array(mi.render(reference, seed=frame)))
+    if moving_accel == "scene":
+        assert inner.scene_accel.moving_structure == "scene"

@@ -65,9 +65,9 @@ class MovingMeshes:
         self.probed = False
         self.instances = False
         self.still_share = 1.0
-        # Whether a build of the native group since the scene's last rebuild cleared the
-        # moving meshes' marks of change, which the scene's rebuild reads
-        self.marks_cleared = False
+        # Whether the whole scene's accelerator was rebuilt by us once (before that, the
+        # writes it misses may predate this object's record of motion)
+        self.scene_rebuilt_once = False
         self._forced = moving_accel
         self._choosable = choosable
         # Structures whose view of the moving meshes is out of date: the scene's own
@@ -159,7 +159,6 @@ class MovingMeshes:
         self.native.update(Change(shapes, self.indices, moved=moved or "native" in self._behind))
         if self.native.last.decision != "kept" and self.indices:
             self.costs.record_update("native", self.native.last.ms)
-            self.marks_cleared = True
         self._behind.discard("native")
 
     def plan(self, budget: RayBudget, shapes) -> str:
@@ -196,7 +195,7 @@ class MovingMeshes:
         through it, when timed."""
         self.costs.record_update("scene", ms)
         self._behind.discard("scene")
-        self.marks_cleared = False
+        self.scene_rebuilt_once = True
         if ns is not None:
             self.costs.record_queries("scene", ns)
 

@@ -291,9 +291,29 @@ class SceneAccel(SceneQueries):
         (the integrator times its renders; the costs learn from them)."""
         self.costs.record_render(self.moving_structure, ms, samples)
 
-    def scene_rebuilt(self, ms: float, ns: float | None = None):
-        """The integrator rebuilt the whole scene's own accelerator (``"scene"``) in
-        ``ms``; ``ns``: the time of a query through it, when the integrator timed one."""
+    def rebuild_scene(self, scene, rays=None):
+        """Rebuild ``scene``'s own accelerator over its shapes as they are now, for the
+        whole scene to trace the moving meshes (``"scene"``), and record its cost;
+        ``rays``: a probe's rays to time a query through it with, when not timed yet.
+
+        The shapes are told first that they changed, from our own record of motion, not
+        from Mitsuba's marks: any Mitsuba (sub-)scene built over a shape since its last
+        write (the moving meshes' native group, or another scene holding the same mesh)
+        cleared the mark that write left, and the scene would rebuild nothing. At the
+        first rebuild every shape is told (writes made before this accelerator existed
+        are in no record of ours), the moving ones after. A mesh is told its positions
+        and normals changed, so it keeps the normals it was given; telling one costs
+        about a millisecond per million triangles (its box)."""
+        told = (self.moving if self.moving_meshes.scene_rebuilt_once
+                else range(len(self.shapes)))
+        start = clock_ms()
+        for i in told:
+            shape = self.shapes[i]
+            shape.parameters_changed(["vertex_positions", "vertex_normals"]
+                                     if shape.is_mesh() else [])
+        scene.parameters_changed([])
+        ms = clock_ms() - start
+        ns = query_ns(scene.ray_intersect_preliminary, rays) if rays is not None else None
         self.moving_meshes.scene_rebuilt(ms, ns)
 
     def absorb(self, earlier: dict):
@@ -307,17 +327,6 @@ class SceneAccel(SceneQueries):
         for name, group in earlier["groups"].items():
             if rank(group["decision"]) > rank(now["groups"][name]["decision"]):
                 now["groups"][name] = group
-
-    def mark_moving_dirty(self):
-        """Tell the moving shapes that they changed, so that the scene's next
-        ``parameters_changed`` rebuilds its own accelerator over them: a Mitsuba
-        (sub-)scene built over a shape since it last changed (the moving meshes' native
-        group) has already cleared the mark its change left. A mesh is told its
-        positions and normals changed (so it keeps the normals it was given)."""
-        for i in self.moving:
-            shape = self.shapes[i]
-            shape.parameters_changed(["vertex_positions", "vertex_normals"]
-                                     if shape.is_mesh() else [])
 
     @property
     def needs_probe(self) -> bool:

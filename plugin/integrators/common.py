@@ -18,9 +18,8 @@ import numpy as np
 
 from hlbvh.accel import NativeAccel, SceneAccel
 from hlbvh.accel.choice import Probe, RayBudget
-from hlbvh.accel.scene_accel import query_ns
 from hlbvh.kernels.arrays import concat
-from hlbvh.timing import clock_ms, timed
+from hlbvh.timing import clock_ms
 from hlbvh.accel.policy import ACCELS, BUILD_OPTIONS, UPDATE_OPTIONS, split_options
 
 
@@ -100,10 +99,8 @@ class AccelIntegrator(mi.SamplingIntegrator):
             accel.update()  # the newly chosen structure catches up
             accel.absorb(done)
         if accel.moving_structure == "scene" and accel.scene_behind:
-            ms, _ = timed(_rebuild_scene, scene, accel)
             timed_once = "scene" not in accel.costs.query_ns and self._probe_rays is not None
-            accel.scene_rebuilt(ms, query_ns(scene.ray_intersect_preliminary,
-                                             self._probe_rays.rays) if timed_once else None)
+            accel.rebuild_scene(scene, self._probe_rays.rays if timed_once else None)
         return accel
 
     def accel(self, scene):
@@ -158,10 +155,12 @@ class AccelIntegrator(mi.SamplingIntegrator):
         (:meth:`accel`); otherwise brought up to date here (:meth:`update_accel`).
         The second case is a wrapper integrator's render (Mitsuba's ``moment``,
         ``aov``, ``stokes``), which calls this integrator's ``sample()`` directly, so
-        a render through the wrapper follows the shapes that moved since the last."""
-        if self._rendering or self._updated:
-            return self.accel(scene)
-        return self.update_accel(scene)
+        a render through the wrapper follows the shapes that moved since the last, and
+        traces what :meth:`accel` hands out (the scene's own queries where the whole
+        scene traces the moving meshes)."""
+        if not (self._rendering or self._updated):
+            self.update_accel(scene)
+        return self.accel(scene)
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         """Bring the intersector up to date (:meth:`update_accel`), then render as
@@ -248,15 +247,6 @@ def probe(accel, sensor, n: int = PROBE_RAYS) -> Probe:
     camera_hits, bounce_hits = dr.count(valid)[0], dr.count(bounced)[0]
     dr.eval(rays)
     return Probe(rays, camera_hits / n, bounce_hits / max(camera_hits, 1))
-
-
-def _rebuild_scene(scene, accel):
-    """Rebuild the scene's own accelerator over its shapes as they are now (its moving
-    shapes told first that they changed, where a build of the native group cleared the
-    marks their writes left: :meth:`SceneAccel.mark_moving_dirty`)."""
-    if accel.moving_meshes.marks_cleared:
-        accel.mark_moving_dirty()
-    scene.parameters_changed([])
 
 
 #: The largest value of a Mitsuba integer property (``max_depth``, ``rr_depth``): Mitsuba
