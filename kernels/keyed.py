@@ -146,7 +146,8 @@ def checked_keys(keys, faces, top: int | None = None) -> list:
         try:
             p = as_points(key)
         except (TypeError, ValueError) as error:
-            raise type(error)(f"keys[{k}]: {error}") from None
+            raise type(error)(f"keys[{k}]: {str(error).removeprefix('vertices: ')}") \
+                from None
         if k and len(p) != len(points[0]):
             raise ValueError(f"keys[{k}]: {len(p) // 3} vertices, but keys[0] has "
                              f"{len(points[0]) // 3}: every key holds the same vertices")
