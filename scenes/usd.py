@@ -34,8 +34,9 @@ Not supported
     Curves, points, volumes, implicit shapes (Sphere, Cube, ...), NURBS, references
     and payloads that do not resolve: one warning line each on stderr, with the prim's
     path. UsdSkel skinning is pxr's own (``UsdSkelBakeSkinning`` into the session layer,
-    in memory), but over meshes whose points are time-sampled (already baked); where
-    pxr cannot bake it the rest points render (said).
+    in memory), over the time codes of the frames asked for only (:mod:`.usd_skinning`),
+    but over meshes whose points are time-sampled (already baked); where pxr cannot
+    bake it the rest points render (said).
 No light
     A stage without UsdLux lights is said, and lit by a default sky and sun
     (``default_light=False``: not).
@@ -69,9 +70,10 @@ from .usd_materials import _Materials
 from .usd_meshes import (mesh_frame, mesh_parts, read_mesh, renders, shading_normals,
                          stats_lines, world_geometry)
 from .usd_prims import (DEFAULT_INTEGRATOR, DEFAULT_SPP, Sdf, UNSUPPORTED, Usd, UsdGeom,
-                        UsdLux, _Mesh, _RESERVED, _Stats, _filenames, _bake_skinning, _matrix,
+                        UsdLux, _Mesh, _RESERVED, _Stats, cached_name, _filenames, _matrix,
                         _mitsuba_mesh, _open, _print_warning, _root_transform,
                         _unresolved_arcs, _visibility_varies)
+from .usd_skinning import bake_skinning
 from .usd_said import grouped_arcs, nothing_renderable, usd_quiet
 from .usd_time import frame_range, sample_times as _sample_times, transform_attributes
 
@@ -98,16 +100,20 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             the module docstring); False: every mesh in world space.
         default_light: light a stage without UsdLux lights by a default sky and sun
             (:data:`hlbvh.scenes.usd_lights.DEFAULT_LIGHTS`; said either way).
+        frames: the frames that will be read (``None``: all): UsdSkel skinning is
+            baked over their time codes (:meth:`time_span`) only, and :meth:`frame` of
+            a frame outside them is refused when the stage is skinned.
 
     Raises:
         ValueError: naming the file: it does not exist, USD cannot open it, its time
-            range is reversed, nothing in it renders, the camera path names no camera.
+            range is reversed, nothing in it renders, the camera path names no camera,
+            a skinned mesh's joint weight is not finite.
     """
 
     name = "usd"
 
     def __init__(self, path, camera: str | None = None, warn=None, instancing: bool = True,
-                 default_light: bool = True):
+                 default_light: bool = True, frames: range | None = None):
         self._path = Path(path)
         emit = warn or _print_warning
         pending: list[str] = []
@@ -118,8 +124,9 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         self.stage = _open(self._path, self._where)
         self._start, self.frame_count = frame_range(self.stage, self._where)
         self.frames_per_second = float(self.stage.GetTimeCodesPerSecond())
-        self._skinned = _bake_skinning(self.stage, self._start,
-                                       self._start + self.frame_count - 1)
+        self._span = self.time_span(frames)
+        self._skinned, said = bake_skinning(self.stage, *self._span, self._where)
+        pending += said
         self._root = _root_transform(self.stage, self._where)
         self._placements = Placements(self.stage, self._root)
         self._ids: set[str] = set(_RESERVED)
@@ -153,6 +160,14 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
     def time_code(self, i: int) -> float:
         """The time code of frame ``i``: ``startTimeCode + i``."""
         return self._start + self._check_frame_index(i)
+
+    def time_span(self, frames: range | None = None) -> tuple[float, float]:
+        """``(first, last)``: the time codes that reading ``frames`` (``None``: every
+        frame) reads, within the stage's range; a frame reads its own time code."""
+        frames = range(self.frame_count) if frames is None else frames
+        first = min(max(frames.start, 0), self.frame_count - 1)
+        last = min(max(frames.stop - 1, first), self.frame_count - 1)
+        return self._start + first, self._start + last
 
     def animated_ids(self) -> list[str]:
         return [m.id for m in self._shapes if m.motion != "static"]
@@ -191,10 +206,11 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             ValueError: naming the stage, the prim and the frame: ``i`` outside
                 ``0 .. frame_count - 1``; a mesh whose point count changes while its
                 faces do not; points or a transform that are not finite; an instance
-                whose transform is singular at this frame.
+                whose transform is singular at this frame; a skinned stage's frame
+                outside the frames it was opened for.
         """
+        at = self._baked_at(i)
         time = Usd.TimeCode(self.time_code(i))
-        at = self._at(i)
         cache = UsdGeom.XformCache(time)
         frame = {}
         given = self.__dict__.setdefault("_faces_given", set())
@@ -218,11 +234,12 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         """Every mesh's triangles at frame ``i`` as ``(F, 3, 3)`` float64 world-space
         corners (Mitsuba's Y-up metres), computed from ``pxr`` alone: what the frames
         hold, for checks."""
+        at = self._baked_at(i)
         time = Usd.TimeCode(self.time_code(i))
         cache = UsdGeom.XformCache(time)
         result = {}
         for mesh in self._meshes:
-            points, faces = world_geometry(self._placements, mesh, time, cache, self._at(i),
+            points, faces = world_geometry(self._placements, mesh, time, cache, at,
                                            self._where)
             result[mesh.id] = points[faces if faces is not None else mesh.faces]
         placed = self._placements.instances(self._instances, cache)
@@ -236,7 +253,10 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
     def source_digest(self) -> str:
         """SHA-256 (hex) of every layer the stage uses and the textures its lights and
         materials read, so a render folder can tell that the stage changed between two
-        runs."""
+        runs. A texture rewritten into the temporary folder (scaled, or taken out of a
+        .usdz package) counts by its name there, which is its content's digest, not by
+        where that folder is: a resume under another ``$TMPDIR`` (a farm job's own)
+        agrees."""
         # A layer inside a .usdz package is "package.usdz[layer.usdc]": the package is
         # the file that changes.
         files = [Path(layer.realPath.split("[")[0]) for layer in self.stage.GetUsedLayers()
@@ -246,8 +266,10 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
                   for name in _filenames({"bsdf": mesh.bsdf, "emission": mesh.emission}
                                          if isinstance(mesh.emission, dict) else mesh.bsdf)]
         digest = hashlib.sha256()
-        for path in sorted(set(files)):
-            digest.update(str(path).encode() + b"\0")
+        for name, path in sorted({(cached_name(path) or str(path), path) for path in files}):
+            digest.update(name.encode() + b"\0")
+            if cached_name(path) is not None:
+                continue  # its name holds its content's digest
             try:
                 digest.update(path.read_bytes())
             except OSError:
@@ -481,6 +503,18 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
     def _at(self, i: int) -> str:
         """Frame ``i`` and its time code, as messages name them."""
         return f"frame {i} (time code {self.time_code(i):g})"
+
+    def _baked_at(self, i: int) -> str:
+        """:meth:`_at`, and a ValueError naming it when the stage's skinning was not
+        baked at frame ``i`` (outside the frames the stage was opened for), where its
+        skinned meshes would hold the nearest baked pose."""
+        at = self._at(i)
+        first, last = self._span
+        if self._skinned and not first <= self.time_code(i) <= last:
+            raise ValueError(f"{self._where}: {at}: its UsdSkel skinning was baked over time "
+                             f"codes {first:g}..{last:g} only (the frames it was opened "
+                             f"for); open it with frames that hold this one")
+        return at
 
     def _warn_once(self, line: str) -> None:
         said = self.__dict__.setdefault("_said", set())

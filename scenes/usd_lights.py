@@ -20,11 +20,21 @@ from dataclasses import dataclass
 import mitsuba as mi
 import numpy as np
 
-from .usd_prims import (Sdf, UsdLux, _FLIP_Z, _checked, _dome_pole, _matrix, _transform_varies,
+from .usd_prims import (Sdf, UsdGeom, UsdLux, _FLIP_Z, _checked, _dome_pole, _matrix, _transform_varies,
                         _local_asset, _unreadable_image)
 
 #: The largest radiance Mitsuba's single-precision emitters hold.
 _LARGEST = float(np.finfo(np.float32).max)
+
+#: A SphereLight whose radius is below this fraction of the farthest distance from its
+#: centre to the scene's geometry is lit as a point light of the same power. Sampling a
+#: sphere seen under a half-angle of sine ``s = r / d`` takes ``1 - cos`` of that angle,
+#: about ``s^2 / 2``, from a single-precision cosine that steps by 2^-24 near 1: its
+#: error is about ``6e-8 / s^2`` of the light, 1% at this ratio, 24% at a 1 mm bulb
+#: seen from 2 m, and past ``s`` about 2.4e-4 the cosine is 1 and the light black. A
+#: point of the same power gives the irradiance such a sphere does wherever it is
+#: seen whole, and the sphere covers less than a pixel of most cameras.
+SPHERE_POINT_RATIO = 2.5e-3
 
 
 def distant_size_factor(angle: float) -> float:
@@ -121,7 +131,23 @@ class _Lights:
         key = self._new_id(path)
         self._lights[key] = reader(_LightPrim(
             prim, kind, where, time, self.stage, power, color, power * color, normalize,
-            transform, scale, transform[:3, :3] / np.where(scale > 0, scale, 1)), self._warn)
+            transform, scale, transform[:3, :3] / np.where(scale > 0, scale, 1),
+            self._scene_corners(time) if kind == "SphereLight" else None), self._warn)
+
+    def _scene_corners(self, time) -> np.ndarray | None:
+        """The 8 corners ``(8, 3)`` of the stage's world bounding box at ``time`` (its
+        renderable prims, from their extents) in Mitsuba's Y-up metres, computed once;
+        None when the stage bounds nothing."""
+        if "_corners" not in self.__dict__:
+            box = UsdGeom.BBoxCache(time, [UsdGeom.Tokens.default_, UsdGeom.Tokens.render]) \
+                .ComputeWorldBound(self.stage.GetPseudoRoot()).ComputeAlignedRange()
+            corners = None
+            if not box.IsEmpty():
+                low, high = np.array(box.GetMin()), np.array(box.GetMax())
+                corners = np.array([[(low, high)[k >> axis & 1][axis] for axis in range(3)]
+                                    for k in range(8)]) @ self._root[:3, :3].T + self._root[:3, 3]
+            self._corners = corners
+        return self._corners
 
 
 @dataclass
@@ -142,6 +168,27 @@ class _LightPrim:
     transform: np.ndarray
     scale: np.ndarray
     rotation: np.ndarray
+    scene_corners: np.ndarray | None = None  # a SphereLight's: what it may light
+
+
+def _area_radiance(light: _LightPrim, area: float) -> np.ndarray:
+    """The radiance of an area light of ``area`` (m^2): its radiance, divided by the
+    area with ``normalize``.
+
+    Raises:
+        ValueError: naming the light (the stage and the prim): that radiance is past
+            single precision (a tiny light with ``normalize``), where Mitsuba's emitter
+            would hold an infinity and render black.
+    """
+    if not light.normalize or area <= 0:
+        return light.radiance
+    radiance = light.radiance / area
+    if not float(radiance.max()) <= _LARGEST:
+        raise ValueError(f"{light.where}: inputs:intensity * 2^inputs:exposure * inputs:color "
+                         f"/ its area ({area:.3g} m^2, inputs:normalize) is "
+                         f"{float(radiance.max()):.3g}, past single precision "
+                         f"({_LARGEST:.3g})")
+    return radiance
 
 
 def _rgb(value) -> dict:
@@ -199,15 +246,23 @@ def _dome(light: _LightPrim, warn) -> dict:
 
 
 def _sphere(light: _LightPrim, warn) -> dict:
-    """A SphereLight as a ``sphere`` area light, or a ``point`` of the sphere's power
-    (``treatAsPoint``, or a radius of 0)."""
+    """A SphereLight as a ``sphere`` area light, or a ``point`` of the sphere's power:
+    with ``treatAsPoint``, a radius of 0, or a radius below :data:`SPHERE_POINT_RATIO`
+    of the farthest distance to the scene's geometry (said)."""
     sphere = UsdLux.SphereLight(light.prim)
     radius = _checked(f"{light.where}: inputs:radius",
                       float(sphere.GetRadiusAttr().Get(light.time) or 0.0), least=0) \
         * float(light.scale.mean())
-    centre = light.transform[:3, 3].tolist()
-    radiance = light.radiance
-    if bool(sphere.GetTreatAsPointAttr().Get(light.time)) or radius <= 0:
+    centre = light.transform[:3, 3]
+    reach = 0.0 if light.scene_corners is None else \
+        float(np.linalg.norm(light.scene_corners - centre, axis=1).max())
+    small = 0 < radius < SPHERE_POINT_RATIO * reach
+    if small:
+        warn(f"{light.where}: a SphereLight of radius {radius:.3g} m, {radius / reach:.2g} "
+             f"of the farthest distance to the scene ({reach:.3g} m), cannot be sampled "
+             f"as a sphere in single precision; it is lit as a point light of the same "
+             f"power")
+    if bool(sphere.GetTreatAsPointAttr().Get(light.time)) or radius <= 0 or small:
         # A point of the sphere's power: a sphere of radiance L seen from afar is a
         # disc of area pi r^2, an intensity of L pi r^2 in every direction (L / 4
         # with normalize, whatever the radius).
@@ -215,10 +270,10 @@ def _sphere(light: _LightPrim, warn) -> dict:
         if factor == 0:
             warn(f"{light.where}: a SphereLight of radius 0 without inputs:normalize "
                  f"emits nothing (UsdLux: radiance times its area)")
-        return {"type": "point", "position": centre, "intensity": _rgb(radiance * factor)}
-    if light.normalize:
-        radiance = radiance / (4 * math.pi * radius ** 2)
-    return {"type": "sphere", "center": centre, "radius": radius, "bsdf": _black(),
+        return {"type": "point", "position": centre.tolist(),
+                "intensity": _rgb(light.radiance * factor)}
+    radiance = _area_radiance(light, 4 * math.pi * radius ** 2)
+    return {"type": "sphere", "center": centre.tolist(), "radius": radius, "bsdf": _black(),
             "emitter": {"type": "area", "radiance": _rgb(radiance)}}
 
 
@@ -241,9 +296,7 @@ def _rect_or_disk(light: _LightPrim, warn) -> dict:
                      float(UsdLux.DiskLight(light.prim).GetRadiusAttr().Get(time)), 0, True)
         half = np.array([r, r, 1.0])
         area = math.pi * r * r * scale[0] * scale[1]
-    radiance = light.radiance
-    if light.normalize and area > 0:
-        radiance = radiance / area
+    radiance = _area_radiance(light, area)
     to_world = light.transform @ np.diag([*half, 1.0]) @ _FLIP_Z
     return {"type": "rectangle" if light.kind == "RectLight" else "disk",
             "to_world": mi.ScalarTransform4f(to_world.tolist()), "bsdf": _black(),

@@ -27,8 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .animated import FrameGeometry
-from .usd_prims import (UsdGeom, _Mesh, _Stats, _array, _has_normals, _skel_binding,
-                        _transform_varies, _triangulate, _vertex_normals, _visibility_varies)
+from .usd_prims import (UsdGeom, _Mesh, _Stats, _array, _has_normals, _transform_varies,
+                        _triangulate, _vertex_normals, _visibility_varies)
+from .usd_skinning import skel_binding
 
 
 @dataclass
@@ -101,7 +102,7 @@ def read_mesh(prim, time, where: str, warn, skinned: bool, group_only: bool,
     mesh = UsdGeom.Mesh(prim)
     path = prim.GetPath()
     deforming, topology_varies, motion = mesh_motion(prim, mesh)
-    if prim.HasAPI(_skel_binding()) and not deforming and not skinned:
+    if prim.HasAPI(skel_binding()) and not deforming and not skinned:
         warn(f"{where}: {path}: bound to a UsdSkel skeleton whose skinning "
              f"is not applied (bake it into points); its rest points render")
     points = _array(mesh.GetPointsAttr().Get(time), 3)

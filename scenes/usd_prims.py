@@ -10,8 +10,10 @@ import functools
 import hashlib
 import os
 import re
+import shutil
 import sys
 import tempfile
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -258,48 +260,6 @@ def _has_normals(mesh) -> bool:
     primvar = UsdGeom.PrimvarsAPI(mesh).GetPrimvar("normals")
     return bool(primvar and primvar.HasAuthoredValue()) or mesh.GetNormalsAttr().HasAuthoredValue()
 
-def _bake_skinning(stage, start: float, end: float) -> bool:
-    """UsdSkel's own skinning of every skinned mesh of ``stage`` over time codes
-    ``start .. end``, written into the stage's session layer (in memory: the files are
-    never touched) as the points and transforms a DCC's baked export holds, which the
-    loader then reads like any other. A mesh whose points are time-sampled already holds
-    its skinning (baked by the export): its own points are kept. False when the stage has
-    no skeleton, or this USD build has no ``UsdSkelBakeSkinning`` or it fails (the rest
-    points then render, said)."""
-    try:
-        from pxr import UsdSkel
-    except ImportError:  # pragma: no cover - depends on the USD build
-        return False
-    if not hasattr(UsdSkel, "BakeSkinning") or not any(
-            prim.IsA(UsdSkel.Skeleton) for prim in stage.Traverse()):
-        return False
-    baked = [prim.GetPath() for prim in stage.Traverse() if prim.IsA(UsdGeom.Mesh)
-             and UsdGeom.Mesh(prim).GetPointsAttr().GetNumTimeSamples() > 1]
-    session = stage.GetSessionLayer()
-    target = stage.GetEditTarget()
-    stage.SetEditTarget(Usd.EditTarget(session))
-    try:
-        done = bool(UsdSkel.BakeSkinning(stage.Traverse(), Gf.Interval(start, end)))
-    except Tf.ErrorException:
-        done = False
-    finally:
-        stage.SetEditTarget(target)
-    with Sdf.ChangeBlock():
-        for path in baked:
-            spec = session.GetPrimAtPath(path)
-            if spec:
-                del session.GetPrimAtPath(path.GetParentPath()).nameChildren[path.name]
-    return done
-
-def _skel_binding():
-    """``UsdSkel.BindingAPI`` (imported when a mesh is checked: UsdSkel is optional in
-    some USD builds)."""
-    try:
-        from pxr import UsdSkel
-    except ImportError:  # pragma: no cover
-        return "SkelBindingAPI"
-    return UsdSkel.BindingAPI
-
 def _dome_pole(dome, kind: str, stage) -> np.ndarray:
     """The rotation (3x3, in the dome's space) that takes a latlong map's +Y pole to the
     dome's pole: none for a ``DomeLight`` (its pole is +Y whatever the up axis),
@@ -384,7 +344,7 @@ def _local_asset(resolved: str) -> str | None:
     itself, or, for an asset inside a .usdz package (``shot.usdz[0/map.png]``, however
     the converter laid the package out), its bytes read through pxr's resolver and
     written once to ``hlbvh-usdz/<their SHA-256>/<its name>`` in the temporary folder (a
-    path that depends on the bytes alone, so resume digests and cluster workers agree).
+    path that depends on the bytes alone, so cluster workers agree; :func:`_written_once`).
     ``None`` when pxr cannot open it."""
     if not Ar.IsPackageRelativePath(resolved):
         return resolved
@@ -402,7 +362,7 @@ def _scaled_image(filename: str, scale: tuple, bias: tuple) -> str:
     outputs it: its linear RGB times ``scale`` plus ``bias``, channel by channel (values
     below 0, which no colour holds, become 0), written once as an OpenEXR to
     ``hlbvh-textures/<SHA-256 of the image's bytes, scale and bias>/`` in the temporary
-    folder (Mitsuba's bitmap has no scale or bias of its own)."""
+    folder (Mitsuba's bitmap has no scale or bias of its own; :func:`_written_once`)."""
     key = hashlib.sha256(Path(filename).read_bytes() + repr((scale, bias)).encode())
 
     def write(path: str) -> None:
@@ -415,18 +375,73 @@ def _scaled_image(filename: str, scale: tuple, bias: tuple) -> str:
                          write)
 
 
+#: The most bytes each folder of rewritten files (``hlbvh-textures/``, ``hlbvh-usdz/`` in
+#: the temporary folder) keeps once a new file is written: the least recently used
+#: entries go first (a scaled texture is a float OpenEXR, 72 MB for a 1.1 MB 4k JPEG).
+CACHE_BYTES = 2**30
+
+#: Entries used this recently (seconds) are kept whatever the folder's size: a render
+#: that opened its stage reads them when its scene loads.
+CACHE_GRACE_S = 3600.0
+
+
+def cache_folder(kind: str) -> Path:
+    """Where rewritten files of ``kind`` (``hlbvh-textures``, ``hlbvh-usdz``) live: in
+    the temporary folder (``$TMPDIR``), which a render farm gives each job and cleans
+    after it, and which :data:`CACHE_BYTES` bounds on a workstation."""
+    return Path(tempfile.gettempdir()) / kind
+
+
+def cached_name(path: Path) -> str | None:
+    """``kind/<content digest>/name`` of a file :func:`_written_once` wrote (its name
+    depends on its content alone, so it stands for that content), ``None`` for any
+    other file: what a scene digest names it by, wherever the temporary folder is."""
+    for kind in ("hlbvh-textures", "hlbvh-usdz"):
+        if path.parent.parent == cache_folder(kind):
+            return f"{kind}/{path.parent.name}/{path.name}"
+    return None
+
+
 def _written_once(kind: str, digest: str, name: str, write) -> str:
     """``<temporary folder>/<kind>/<digest>/<name>``, written by ``write(path)`` unless
-    it is there: a path that depends on the content (``digest``) alone, so resume
-    digests and cluster workers agree; written to a partial file (same suffix) moved
-    into place, so a concurrent process never reads half of it."""
-    target = Path(tempfile.gettempdir()) / kind / digest / name
-    if not target.is_file():
-        target.parent.mkdir(parents=True, exist_ok=True)
-        partial = target.parent / f".{os.getpid()}.{name}"
-        write(str(partial))
-        os.replace(partial, target)
+    it is there (then marked used): a path that depends on the content (``digest``)
+    alone, so cluster workers agree; written to a partial file (same suffix) moved
+    into place, so a concurrent process never reads half of it; the folder then
+    trimmed to :data:`CACHE_BYTES` (:func:`_trim_cache`)."""
+    target = cache_folder(kind) / digest / name
+    if target.is_file():
+        with contextlib.suppress(OSError):
+            os.utime(target)  # least recently used goes first
+        return str(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    partial = target.parent / f".{os.getpid()}.{name}"
+    write(str(partial))
+    os.replace(partial, target)
+    _trim_cache(cache_folder(kind))
     return str(target)
+
+
+def _trim_cache(folder: Path, limit: int | None = None) -> None:
+    """Remove the least recently used entries (``<digest>/`` folders, by their newest
+    file's modification time) of ``folder`` until it holds at most ``limit`` bytes
+    (:data:`CACHE_BYTES`), never one used in the last :data:`CACHE_GRACE_S` seconds;
+    files another process removes meanwhile are skipped."""
+    limit = CACHE_BYTES if limit is None else limit
+    entries = []
+    for entry in folder.iterdir():
+        try:
+            stats = [f.stat() for f in entry.iterdir()]
+        except OSError:
+            continue
+        entries.append((max((st.st_mtime for st in stats), default=0.0),
+                        sum(st.st_size for st in stats), entry))
+    total = sum(size for _, size, _ in entries)
+    now = time.time()
+    for used, size, entry in sorted(entries):
+        if total <= limit or now - used < CACHE_GRACE_S:
+            break
+        shutil.rmtree(entry, ignore_errors=True)
+        total -= size
 
 def _filenames(description: dict) -> list[str]:
     """Every ``filename`` a Mitsuba description dict names, nested ones included."""

@@ -100,8 +100,9 @@ def open_animation(spec: SceneSpec) -> tuple:
         source = {"scene": str(scene), "triangles": animation.triangles}
     elif stage is not None:
         held: list[str] = []  # the stage's warnings, said once the frames are valid
+        asked = range(start, sys.maxsize if stop is None else stop)
         animation, source = _open_usd(stage, scene, frames_dir, triangles, topology, camera,
-                                      held.append)
+                                      held.append, asked)
         stop = animation.frame_count if stop is None else stop
         if stop > animation.frame_count:
             last = animation.frame_count - 1
@@ -183,11 +184,12 @@ def usd_scene_string(path, options: dict) -> str:
 
 
 def _open_usd(stage: tuple, scene: str, frames_dir, triangles, topology, camera,
-              warn) -> tuple:
+              warn, frames: range) -> tuple:
     """``(animation, source)`` of a USD stage (``stage``: :func:`usd_stage`'s path and
-    options): a :class:`hlbvh.scenes.usd.UsdScene` (imported here, ``pxr`` being an
-    optional extra) and what identifies it (with its options, and the camera when
-    ``--camera`` names one, so a resume through others is refused)."""
+    options) opened for ``frames`` (what its skinning is baked over): a
+    :class:`hlbvh.scenes.usd.UsdScene` (imported here, ``pxr`` being an optional extra)
+    and what identifies it (with its options, and the camera when ``--camera`` names
+    one, so a resume through others is refused)."""
     path, options = stage
     for flag, value in (("--frames-dir", frames_dir), ("--triangles", triangles),
                         ("--topology", topology)):
@@ -199,7 +201,7 @@ def _open_usd(stage: tuple, scene: str, frames_dir, triangles, topology, camera,
     except ImportError as error:
         raise UserError(f"scene {scene!r}: {error}") from None
     try:
-        animation = UsdScene(str(path), camera=camera, warn=warn, **options)
+        animation = UsdScene(str(path), camera=camera, warn=warn, frames=frames, **options)
     except ValueError as error:
         raise UserError(str(error)) from None
     source = {"scene": usd_scene_string(path.resolve(), options),

@@ -1,0 +1,153 @@
+"""UsdSkel skinning of a USD stage, computed by pxr's own ``UsdSkelBakeSkinning`` into
+the stage's session layer (in memory: the files are never written) as the points and
+transforms a DCC's baked export holds, which the mesh loader then reads like any other.
+
+Only the time codes a render reads are baked (:func:`bake_skinning`): pxr bakes every
+time code of the stage's playback range inside the interval it is given, so a stage of
+10,000 frames rendered for two would otherwise hold 10,000 copies of every skinned
+mesh's points. The inputs pxr does not check in a way a user sees are checked first
+(:func:`check_bindings`): weights that are not finite (pxr would bake NaN points) and
+joint indices past the skeleton's joints (pxr prints a raw warning per time code and
+leaves the mesh at rest).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .usd_prims import Gf, Sdf, Tf, Usd, UsdGeom, _checked, _stderr_captured
+from .usd_time import transform_attributes
+
+try:
+    from pxr import UsdSkel
+except ImportError:  # pragma: no cover - UsdSkel is optional in some USD builds
+    UsdSkel = None
+
+
+def skel_binding():
+    """``UsdSkel.BindingAPI`` (the schema's name where this USD build has no UsdSkel)."""
+    return "SkelBindingAPI" if UsdSkel is None else UsdSkel.BindingAPI
+
+
+def _skinned_meshes(stage) -> list:
+    """The mesh prims pxr skins: bound to a skeleton, under a ``SkelRoot``."""
+    return [prim for prim in stage.Traverse()
+            if prim.IsA(UsdGeom.Mesh) and prim.HasAPI(UsdSkel.BindingAPI)
+            and UsdSkel.Root.Find(prim)
+            and UsdSkel.BindingAPI(prim).GetInheritedSkeleton()]
+
+
+def check_bindings(stage, where: str) -> list[str]:
+    """Check every skinned mesh's joint weights and indices, as pxr reads them.
+
+    Returns:
+        The lines to say (naming ``where``, the stage, and the prim), one per mesh whose
+        joint indices point past its skeleton's joints: pxr leaves it at rest.
+    Raises:
+        ValueError: naming the stage, the prim and the primvar: a joint weight that is
+            not finite (every skinned point would be NaN).
+    """
+    lines = []
+    for prim in _skinned_meshes(stage):
+        binding = UsdSkel.BindingAPI(prim)
+        name = f"{where}: {prim.GetPath()}: primvars:skel:jointWeights"
+        weights = binding.GetJointWeightsPrimvar()
+        if weights and weights.HasAuthoredValue():
+            _checked(name, np.asarray(weights.ComputeFlattened() or [], dtype=np.float64))
+        indices = binding.GetJointIndicesPrimvar()
+        if not (indices and indices.HasAuthoredValue()):
+            continue
+        values = np.asarray(indices.ComputeFlattened() or [], dtype=np.int64)
+        joints = binding.GetJointsAttr().Get() if binding.GetJointsAttr().HasAuthoredValue() \
+            else binding.GetInheritedSkeleton().GetJointsAttr().Get()
+        count = len(joints or [])
+        bad = (values < 0) | (values >= count)
+        if bad.any():
+            first = int(np.flatnonzero(bad)[0])
+            lines.append(f"{where}: {prim.GetPath()}: primvars:skel:jointIndices holds "
+                         f"{values[first]} (value {first} of {len(values)}), outside its "
+                         f"{count} joints 0..{count - 1}: UsdSkel does not skin it; its "
+                         f"rest points render")
+    return lines
+
+
+def _animation_attributes(stage) -> list:
+    """The attributes whose time samples pxr's bake follows: every skeleton
+    animation's, and the transforms of the skeletons and skinned meshes."""
+    found = []
+    for prim in stage.Traverse():
+        if prim.IsA(UsdSkel.Animation):
+            found += prim.GetAttributes()
+        elif prim.IsA(UsdSkel.Skeleton):
+            found += transform_attributes(prim)
+    for prim in _skinned_meshes(stage):
+        found += transform_attributes(prim)
+    return found
+
+
+def bake_span(attributes, first: float, last: float) -> tuple[float, float]:
+    """The interval to bake so that time codes ``first .. last`` read the skinning pxr
+    computes: widened to the authored samples of ``attributes`` just before ``first``
+    and just after ``last`` (pxr bakes at the samples inside the interval it is given,
+    and a mesh between two samples outside it would be left at rest)."""
+    low, high = first, last
+    for attribute in attributes:
+        if attribute.GetNumTimeSamples() == 0:
+            continue
+        below = attribute.GetBracketingTimeSamples(first)
+        above = attribute.GetBracketingTimeSamples(last)
+        if below:
+            low = min(low, below[0])
+        if above:
+            high = max(high, above[1])
+    return low, high
+
+
+def bake_skinning(stage, first: float, last: float, where: str) -> tuple[bool, list[str]]:
+    """UsdSkel's own skinning of every skinned mesh of ``stage`` at the time codes
+    ``first .. last`` (a render's: the interval of the frames it reads), into the
+    session layer: at the stage's playback time codes inside that interval (pxr's own
+    step, ``timeCodesPerSecond / framesPerSecond``) and at the animation's samples that
+    bracket it, no others. A mesh whose points are time-sampled already holds its
+    skinning (baked by the export): its own points are kept.
+
+    Returns:
+        ``(baked, lines)``: False when the stage has no skeleton, or this USD build has no
+        ``UsdSkelBakeSkinning`` or it fails (the rest points then render, said by the
+        mesh loader); the lines to say (:func:`check_bindings`; pxr's own diagnostics,
+        once each, those on joint indices left to :func:`check_bindings`'s line).
+    Raises:
+        ValueError: see :func:`check_bindings`.
+    """
+    if UsdSkel is None or not hasattr(UsdSkel, "BakeSkinning") or not any(
+            prim.IsA(UsdSkel.Skeleton) for prim in stage.Traverse()):
+        return False, []
+    lines = check_bindings(stage, where)
+    low, high = bake_span(_animation_attributes(stage), first, last)
+    baked = [prim.GetPath() for prim in stage.Traverse() if prim.IsA(UsdGeom.Mesh)
+             and UsdGeom.Mesh(prim).GetPointsAttr().GetNumTimeSamples() > 1]
+    session = stage.GetSessionLayer()
+    target = stage.GetEditTarget()
+    stage.SetEditTarget(Usd.EditTarget(session))
+    # pxr bakes every playback time code of the stage's range inside the interval:
+    # the session layer's range (stronger than the root layer's) narrows it to ours.
+    stage.SetStartTimeCode(first)
+    stage.SetEndTimeCode(last)
+    try:
+        with _stderr_captured() as said:
+            done = bool(UsdSkel.BakeSkinning(stage.Traverse(), Gf.Interval(low, high)))
+    except Tf.ErrorException:
+        done = False
+    finally:
+        session.ClearStartTimeCode()
+        session.ClearEndTimeCode()
+        stage.SetEditTarget(target)
+    with Sdf.ChangeBlock():
+        for path in baked:
+            spec = session.GetPrimAtPath(path)
+            if spec:
+                del session.GetPrimAtPath(path.GetParentPath()).nameChildren[path.name]
+    for text in dict.fromkeys(" ".join(line.split(" -- ", 1)[-1].split()) for line in said):
+        if text and "joint index" not in text:
+            lines.append(f"{where}: USD says: {text[:300]}")
+    return done, lines
