@@ -211,6 +211,10 @@ def keyed_tree(bvh: BVH, keys) -> KeyedTree:
         flat_everywhere &= flat
         dr.eval(records, flat_somewhere, flat_everywhere)
     _unflatten(records, count, points, bvh, record_of, flat_somewhere & ~flat_everywhere)
+    # The plans the refits made depend on the topology only (each keyed by it): kept on
+    # bvh, so that the next frame's keys refit without making them again.
+    for plan in ("pack_plan", "refit_plan", "refit_faces"):
+        setattr(bvh.cache, plan, getattr(work.cache, plan))
     return KeyedTree(records=records, root=root, keys=count, slots=total, bvh=bvh)
 
 
