@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import mitsuba as mi
 import numpy as np
 
-from .usd_prims import (Sdf, UsdGeom, UsdLux, _FLIP_Z, _checked, _dome_pole, _matrix, _transform_varies,
-                        _local_asset, _unreadable_image)
+from .usd_prims import (Sdf, UsdGeom, UsdLux, _FLIP_Z, _checked, _dome_pole, _local_asset,
+                        _matrix, _stderr_captured, _transform_varies, _unreadable_image)
 
 #: The largest radiance Mitsuba's single-precision emitters hold.
 _LARGEST = float(np.finfo(np.float32).max)
@@ -137,10 +137,13 @@ class _Lights:
     def _scene_corners(self, time) -> np.ndarray | None:
         """The 8 corners ``(8, 3)`` of the stage's world bounding box at ``time`` (its
         renderable prims, from their extents) in Mitsuba's Y-up metres, computed once;
-        None when the stage bounds nothing."""
+        None when the stage bounds nothing. What pxr says of the prims it bounds is said
+        where they are read, so not here."""
         if "_corners" not in self.__dict__:
-            box = UsdGeom.BBoxCache(time, [UsdGeom.Tokens.default_, UsdGeom.Tokens.render]) \
-                .ComputeWorldBound(self.stage.GetPseudoRoot()).ComputeAlignedRange()
+            with _stderr_captured():
+                box = UsdGeom.BBoxCache(time, [UsdGeom.Tokens.default_,
+                                               UsdGeom.Tokens.render]) \
+                    .ComputeWorldBound(self.stage.GetPseudoRoot()).ComputeAlignedRange()
             corners = None
             if not box.IsEmpty():
                 low, high = np.array(box.GetMin()), np.array(box.GetMax())
