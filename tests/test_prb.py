@@ -244,20 +244,15 @@ def test07_hlbvh_bench_prb(capsys):
     assert lines[3].split()[-2:] == [f"{row['ratio']:.2f}x", f"{100 * row['agree']:.4f}%"]
 
 
-@pytest.mark.parametrize("kept", [True, False])
-def test08_the_replay_reads_the_primal_pass_s_answers(monkeypatch, kept):
-    """A backward pass's replay traces the rays its primal pass traced: their answers
-    are kept and read back, so the replay asks the intersector only for a textured
-    emitter's point; the derivative is the one a traced replay gives. Without room
-    for them (the memory limit), the replay traces again."""
+def _count_queries(monkeypatch):
+    """Record, from now on, every closest-hit and shadow query as (the pass's mode,
+    "closest" | "shadow"), and every store of kept answers made; (queries, stores)."""
     from hlbvh.accel import SceneAccel
     from hlbvh.integrators import prb
-    reference = backward(hlbvh_options(), BOX)
-    if not kept:
-        monkeypatch.setattr(prb, "REPLAY_CACHE_BYTES", 0)
-    mode, asked = [None], []
-    real_sample, real_closest, real_test = (prb.PRBIntegrator.sample, prb._preliminary,
-                                            SceneAccel.ray_test)
+    mode, asked, stores = [None], [], []
+    real_sample, real_closest, real_test, real_init = (
+        prb.PRBIntegrator.sample, prb._preliminary, SceneAccel.ray_test,
+        prb._ReplayHits.__init__)
 
     def sample(self, *args, **kwargs):
         mode[0] = kwargs["mode"] if "mode" in kwargs else args[0]
@@ -271,11 +266,35 @@ def test08_the_replay_reads_the_primal_pass_s_answers(monkeypatch, kept):
         asked.append((mode[0], "shadow"))
         return real_test(self, *args, **kwargs)
 
+    def init(self, *args, **kwargs):
+        real_init(self, *args, **kwargs)
+        stores.append(self)
+
     monkeypatch.setattr(prb.PRBIntegrator, "sample", sample)
     monkeypatch.setattr(prb, "_preliminary", closest)
     monkeypatch.setattr(SceneAccel, "ray_test", test)
+    monkeypatch.setattr(prb._ReplayHits, "__init__", init)
+    return asked, stores
+
+
+def _replayed(asked):
+    """The queries the replay asked (of :func:`_count_queries`)."""
+    return [kind for m, kind in asked if m == dr.ADMode.Backward]
+
+
+@pytest.mark.parametrize("kept", [True, False])
+def test08_the_replay_reads_the_primal_pass_s_answers(monkeypatch, kept):
+    """A backward pass's replay traces the rays its primal pass traced: their answers
+    are kept and read back, so the replay asks the intersector only for a textured
+    emitter's point; the derivative is the one a traced replay gives. Without room
+    for them (the memory limit), the replay traces again."""
+    from hlbvh.integrators import prb
+    reference = backward(hlbvh_options(), BOX)
+    if not kept:
+        monkeypatch.setattr(prb, "REPLAY_CACHE_BYTES", 0)
+    asked, _ = _count_queries(monkeypatch)
     assert backward(hlbvh_options(), BOX) == pytest.approx(reference, rel=1e-6)
-    replay = [kind for m, kind in asked if m == dr.ADMode.Backward]
+    replay = _replayed(asked)
     primal = [kind for m, kind in asked if m == dr.ADMode.Primal]
     # Dr.Jit may record a loop's body more than once: count in recordings of the body
     bodies = primal.count("shadow") // 2  # two primal passes: the render's, the backward's
@@ -284,3 +303,44 @@ def test08_the_replay_reads_the_primal_pass_s_answers(monkeypatch, kept):
         assert replay == ["closest"] * bodies
     else:  # the camera ray, and per body the next vertex and the emitter's point
         assert sorted(replay) == ["closest"] * (1 + 2 * bodies) + ["shadow"] * bodies
+
+
+@pytest.mark.parametrize("max_depth, first", [(1000, None), (-1, 1)])
+def test09_the_kept_answers_are_as_deep_as_the_paths(monkeypatch, max_depth, first):
+    """The store of the primal pass's answers is sized by the paths (here under a
+    bright sky none goes past 8 vertices), not by ``max_depth`` (1000, or
+    unbounded), which would ask 1001 vertices a path; from a first stretch of eight
+    vertices, or of one, doubling while paths go on (1, 2, 4, 8: four stretches of
+    the primal loop). The replay reads it (no shadow ray traced) and its derivative is that of
+    a traced replay."""
+    from hlbvh.integrators import prb
+    options = dict(hlbvh_options(), max_depth=max_depth)
+    monkeypatch.setattr(prb, "REPLAY_CACHE_BYTES", 0)
+    reference = backward(options, BOX)
+    monkeypatch.undo()
+    if first is not None:
+        monkeypatch.setattr(prb, "REPLAY_FIRST_DEPTHS", first)
+    asked, stores = _count_queries(monkeypatch)
+    assert backward(options, BOX) == pytest.approx(reference, rel=1e-6)
+    [store] = stores
+    assert dr.width(store.hits) == store.n * 9 and dr.width(store.occluded) == store.n * 8
+    assert store.kept and store.depths == 8
+    assert "shadow" not in _replayed(asked)
+
+
+def test10_a_store_that_would_outgrow_the_limit_is_given_up(monkeypatch):
+    """Where the store, doubled for paths that go on, would pass the memory limit,
+    the answers are given up: the rest of the primal pass and the replay trace, and
+    the derivative is still that of a traced replay."""
+    from hlbvh.integrators import prb
+    n = 16 * 16 * 4
+    monkeypatch.setattr(prb, "REPLAY_CACHE_BYTES", 0)
+    reference = backward(hlbvh_options(), BOX)
+    monkeypatch.setattr(prb, "REPLAY_FIRST_DEPTHS", 1)
+    # Room for the first stretch's two slots a path, not for the doubled store's three
+    monkeypatch.setattr(prb, "REPLAY_CACHE_BYTES", n * 2 * prb._BYTES_PER_VERTEX)
+    asked, stores = _count_queries(monkeypatch)
+    assert backward(hlbvh_options(), BOX) == pytest.approx(reference, rel=1e-6)
+    [store] = stores
+    assert not store.kept and store.hits is None
+    assert "shadow" in _replayed(asked)

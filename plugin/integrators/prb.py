@@ -20,11 +20,14 @@ def _preliminary(accel, ray, coherent, active):
 
 
 #: The most memory the primal pass's answers kept for the replay may take; beyond it
-#: (or with an unbounded ``max_depth``) the replay traces its rays again.
+#: the replay traces its rays again.
 REPLAY_CACHE_BYTES = 1 << 30
 #: Bytes a path keeps per vertex: a preliminary intersection (eight 32-bit words) and a
 #: shadow ray's answer.
 _BYTES_PER_VERTEX = 36
+#: Vertices per path the answers' store holds at first; it doubles while paths go on
+#: past it, so that its size follows the deepest path of the render, not max_depth.
+REPLAY_FIRST_DEPTHS = 8
 
 
 class _Traced:
@@ -42,6 +45,18 @@ class _Traced:
     def keep_camera(self, pi):
         """Keep what the camera ray found (slot 0), after hidden emitters were skipped."""
 
+    def stretches(self):
+        """The path loop's stretches, one loop each: here one, the whole path."""
+        yield
+
+    def goes_on(self, active, depth):
+        """The path loop's condition in the current stretch: the lanes still active."""
+        return active
+
+    def stretch_ended(self, active, sampler, state):
+        """After a stretch, with the lanes still ``active`` and the loop's ``state``
+        (the sampler apart): nothing to do when the loop ran in one stretch."""
+
 
 class _ReplayHits(_Traced):
     """The answers of a backward pass's primal queries, kept for its replay, which
@@ -49,15 +64,25 @@ class _ReplayHits(_Traced):
     vertex ``d`` was found by (slot 0: the camera ray, past hidden emitters), and the
     answer of the shadow ray of its emitter sample. The replay then asks the
     intersector nothing but the points of textured emitters, instead of tracing every
-    ray of the primal pass again."""
+    ray of the primal pass again.
+
+    The store is sized by the paths, not by ``max_depth``: the primal pass runs its
+    loop in stretches, the first of :data:`REPLAY_FIRST_DEPTHS` vertices; while a path
+    is still active at a stretch's end, the loop's state is evaluated, the store
+    doubles (up to ``max_depth``) and the next stretch continues the paths. Where the
+    doubled store would pass :data:`REPLAY_CACHE_BYTES`, it is given up: the rest of
+    the primal pass is traced in one stretch and so is the replay (:attr:`kept`)."""
 
     def __init__(self, n: int, max_depth: int):
         self.n = n
-        loops = self._loops(max_depth)
-        self.hits = dr.zeros(mi.PreliminaryIntersection3f, n * (loops + 1))
-        self.occluded = dr.zeros(mi.Bool, n * loops)
+        self.loops = self._loops(max_depth)
+        self.depths = self._first_depths(max_depth)
+        self.hits = dr.zeros(mi.PreliminaryIntersection3f, n * (self.depths + 1))
+        self.occluded = dr.zeros(mi.Bool, n * self.depths)
         self.lane = dr.arange(mi.UInt32, n)
-        self.loops = loops
+        self.kept = True        # the store holds every answer the replay reads
+        self.recorded = False   # the primal pass has ended
+        self._more = False      # a path went on past the store's last stretch
 
     @staticmethod
     def _loops(max_depth: int) -> int:
@@ -67,10 +92,20 @@ class _ReplayHits(_Traced):
         return max(max_depth, 1)
 
     @classmethod
+    def _first_depths(cls, max_depth: int) -> int:
+        """Vertices a path keeps in the first stretch."""
+        return min(cls._loops(max_depth), REPLAY_FIRST_DEPTHS)
+
+    @staticmethod
+    def _fits(n: int, depths: int) -> bool:
+        """Whether ``n`` paths may keep the answers of ``depths`` vertices each
+        (:data:`REPLAY_CACHE_BYTES`)."""
+        return n * (depths + 1) * _BYTES_PER_VERTEX <= REPLAY_CACHE_BYTES
+
+    @classmethod
     def fits(cls, n: int, max_depth: int) -> bool:
-        """Whether a render of ``n`` paths of at most ``max_depth`` vertices may keep
-        its answers (:data:`REPLAY_CACHE_BYTES`)."""
-        return n * (cls._loops(max_depth) + 1) * _BYTES_PER_VERTEX <= REPLAY_CACHE_BYTES
+        """Whether a render of ``n`` paths may keep its answers of the first stretch."""
+        return cls._fits(n, cls._first_depths(max_depth))
 
     def _index(self, slot, last: int):
         """Where path lanes keep slot ``slot`` (clamped to ``last``: a write past the
@@ -81,21 +116,71 @@ class _ReplayHits(_Traced):
         """The closest hit of vertex ``slot`` (a UInt32 per path): kept in the primal
         pass, read back in the replay."""
         if replay:
-            return dr.gather(mi.PreliminaryIntersection3f, self.hits, self._index(slot, self.loops))
+            return dr.gather(mi.PreliminaryIntersection3f, self.hits,
+                             self._index(slot, self.depths))
         pi = _preliminary(accel, ray, coherent, active)
-        dr.scatter(self.hits, pi, self._index(slot, self.loops))
+        if self.kept:
+            dr.scatter(self.hits, pi, self._index(slot, self.depths))
         return pi
 
     def shadow(self, accel, slot, ray, active, replay: bool):
         """Whether the shadow ray of vertex ``slot``'s emitter sample is blocked."""
         if replay:
-            return dr.gather(mi.Bool, self.occluded, self._index(slot, self.loops - 1)) & active
+            return dr.gather(mi.Bool, self.occluded, self._index(slot, self.depths - 1)) & active
         occluded = accel.ray_test(ray, active)
-        dr.scatter(self.occluded, occluded, self._index(slot, self.loops - 1))
+        if self.kept:
+            dr.scatter(self.occluded, occluded, self._index(slot, self.depths - 1))
         return occluded
 
     def keep_camera(self, pi):
         dr.scatter(self.hits, pi, self.lane)
+
+    def stretches(self):
+        """The primal pass's stretches: one, then one more per doubling of the store
+        while paths go on (:meth:`stretch_ended`); the replay's loop runs in one."""
+        if self.recorded:
+            yield
+            return
+        yield
+        while self._more:
+            self._grow()
+            yield
+        self.recorded = True
+
+    def goes_on(self, active, depth):
+        """The primal pass's lanes active with a vertex left in the store (a path's
+        depth is its loop iteration while it is active); every active lane where the
+        store reaches ``max_depth``, or once it was given up, and in the replay."""
+        if self.recorded or not self.kept or self.depths >= self.loops:
+            return active
+        return active & (depth < self.depths)
+
+    def stretch_ended(self, active, sampler, state):
+        """The loop's state evaluated (the next stretch starts from it, in a kernel of
+        its own) where a path goes on past the store; whether one does."""
+        self._more = False
+        if not self.recorded and self.kept and self.depths < self.loops:
+            sampler.schedule_state()
+            dr.eval(active, state, self.hits, self.occluded)
+            self._more = bool(dr.any(active))
+
+    def _grow(self):
+        """The store doubled (up to ``max_depth`` vertices), its slots copied; given up
+        (:attr:`kept` false) where the doubled one would not fit."""
+        depths = min(2 * self.depths, self.loops)
+        if not self._fits(self.n, depths):
+            self.kept, self.hits, self.occluded = False, None, None
+            return
+        self.hits = self._grown(mi.PreliminaryIntersection3f, self.hits, depths + 1)
+        self.occluded = self._grown(mi.Bool, self.occluded, depths)
+        self.depths = depths
+
+    def _grown(self, kind, kept, slots: int):
+        """``kept`` copied to the first slots of a store of ``slots`` slots (slot-major,
+        so its slots keep their places)."""
+        grown = dr.zeros(kind, self.n * slots)
+        dr.scatter(grown, kept, dr.arange(mi.UInt32, dr.width(kept)))
+        return grown
 
 
 def _attached_emitter_sample(accel, scene, si, ds, em_weight, active):
@@ -220,8 +305,9 @@ class PRBIntegrator(_ad.RBIntegrator):
     differentiated) and detached BSDF sampling.
 
     In backward mode the replay does not trace its rays again: the primal pass keeps
-    what each of its queries answered, and the replay reads it back (where it fits in
-    :data:`REPLAY_CACHE_BYTES` and ``max_depth`` is bounded).
+    what each of its queries answered, in a store as deep as its deepest path (not
+    ``max_depth``), and the replay reads it back (where it fits in
+    :data:`REPLAY_CACHE_BYTES`).
 
     The rays go through the chosen intersector: camera and continuation rays, shadow
     rays of emitter samples (Mitsuba's ``test_visibility=True`` would trace them
@@ -305,15 +391,15 @@ class PRBIntegrator(_ad.RBIntegrator):
     def _queries(self, primal: bool, n: int):
         """How a pass of ``n`` paths asks: the answers it keeps (a backward pass's
         primal pass) or replays (its replay), else :class:`_Traced` (a plain render, a
-        forward pass, too many paths or an unbounded depth)."""
+        forward pass, or too many paths)."""
         if not self._keep_hits:
             return _Traced()
         if primal:
-            bounded = self.max_depth < 0xFFFFFFFF
-            self._hits = _ReplayHits(n, self.max_depth) if (
-                bounded and _ReplayHits.fits(n, self.max_depth)) else None
+            self._hits = _ReplayHits(n, self.max_depth) if _ReplayHits.fits(
+                n, self.max_depth) else None
+            return self._hits or _Traced()
         hits = self._hits
-        return hits if hits is not None and hits.n == n else _Traced()
+        return hits if hits is not None and hits.kept and hits.n == n else _Traced()
 
     @dr.syntax
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
@@ -359,80 +445,85 @@ class PRBIntegrator(_ad.RBIntegrator):
         if dr.hint(not replay, mode="scalar"):
             queries.keep_camera(pi)
 
-        while dr.hint(active, max_iterations=self.max_depth, label=f"hlbvh_prb ({mode.name})"):
-            active_next = mi.Bool(active)
+        for _ in queries.stretches():  # one stretch; more where the kept answers grow
+            while dr.hint(queries.goes_on(active, depth), max_iterations=self.max_depth,
+                          label=f"hlbvh_prb ({mode.name})"):
+                active_next = mi.Bool(active)
 
-            # The interaction, attached to the shapes' parameters when differentiating
-            with dr.resume_grad(when=not primal):
-                si = accel.surface_interaction(pi, ray, mi.RayFlags.All)
+                # The interaction, attached to the shapes' parameters when differentiating
+                with dr.resume_grad(when=not primal):
+                    si = accel.surface_interaction(pi, ray, mi.RayFlags.All)
+                    if dr.hint(not primal, mode="scalar"):
+                        if depth >= 1:
+                            # The incoming direction follows the previous vertex's motion
+                            si_prev = dr.replace_grad(si_prev, accel.surface_interaction(
+                                pi_prev, ray_prev, mi.RayFlags.Minimal))
+                            here = dr.detach(si)
+                            si.wi = dr.replace_grad(
+                                si.wi, here.to_local(dr.normalize(si_prev.p - here.p)))
+
+                bsdf = si.bsdf(ray)
+
+                # --------------------- Emission hit by the last bounce ---------------------
+
+                if dr.hint(self.hide_emitters, mode="scalar"):
+                    active_next &= ~((depth == 0) & ~si.is_valid())
+                ds = mi.DirectionSample3f(scene, si=si, ref=si_prev)
+                mis = mis_weight(bsdf_pdf_prev,
+                                 scene.pdf_emitter_direction(si_prev, ds, ~bsdf_delta_prev))
+                with dr.resume_grad(when=not primal):
+                    Le = β * mis * ds.emitter.eval(si, active_next)
+
+                # --------------------- Emitter sample ---------------------
+
+                active_next &= (depth + 1 < self.max_depth) & si.is_valid()
+                active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+                Lr_dir = _emitter_radiance(accel, scene, sampler, si, bsdf, bsdf_ctx, β, primal,
+                                           active_em, queries, depth)
+
+                # --------------------- BSDF sample (detached) ---------------------
+
+                bsdf_sample, bsdf_weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(),
+                                                       sampler.next_2d(), active_next)
+                L = (L + Le + Lr_dir) if primal else (L - Le - Lr_dir)
+                ray_next = si.spawn_ray(si.to_world(bsdf_sample.wo))
+                η *= bsdf_sample.eta
+                β *= bsdf_weight
+                si_prev = dr.detach(si, True)
+                bsdf_pdf_prev = bsdf_sample.pdf
+                bsdf_delta_prev = mi.has_flag(bsdf_sample.sampled_type, mi.BSDFFlags.Delta)
+
+                # --------------------- Russian roulette ---------------------
+
+                β_max = dr.max(mi.unpolarized_spectrum(β))
+                active_next &= β_max != 0
+                rr_prob = dr.minimum(β_max * η**2, 0.95)
+                rr_active = depth >= self.rr_depth
+                β[rr_active] *= dr.rcp(rr_prob)
+                rr_continue = sampler.next_1d() < rr_prob
+                active_next &= ~rr_active | rr_continue
+
+                pi_next = queries.closest(accel, depth + 1, ray_next, False, active_next, replay)
+
+                # --------------------- Derivatives of this vertex ---------------------
+
                 if dr.hint(not primal, mode="scalar"):
-                    if depth >= 1:
-                        # The incoming direction follows the previous vertex's motion
-                        si_prev = dr.replace_grad(si_prev, accel.surface_interaction(
-                            pi_prev, ray_prev, mi.RayFlags.Minimal))
-                        here = dr.detach(si)
-                        si.wi = dr.replace_grad(
-                            si.wi, here.to_local(dr.normalize(si_prev.p - here.p)))
+                    si_next = accel.surface_interaction(pi_next, ray_next, mi.RayFlags.Minimal,
+                                                        active_next)
+                    δL = _propagated(mode, δL, si, si_next, ray_next, bsdf, bsdf_ctx, L, Le,
+                                     Lr_dir, active_next)
 
-            bsdf = si.bsdf(ray)
+                # Group lanes by the shape they hit next (CUDA; a no-op on LLVM)
+                hint = dr.reinterpret_array(mi.UInt32, pi_next.shape)
+                depth = dr.reorder_threads((hint << 1) | dr.select(active_next, 1, 0), 16, depth)
 
-            # --------------------- Emission hit by the last bounce ---------------------
-
-            if dr.hint(self.hide_emitters, mode="scalar"):
-                active_next &= ~((depth == 0) & ~si.is_valid())
-            ds = mi.DirectionSample3f(scene, si=si, ref=si_prev)
-            mis = mis_weight(bsdf_pdf_prev,
-                             scene.pdf_emitter_direction(si_prev, ds, ~bsdf_delta_prev))
-            with dr.resume_grad(when=not primal):
-                Le = β * mis * ds.emitter.eval(si, active_next)
-
-            # --------------------- Emitter sample ---------------------
-
-            active_next &= (depth + 1 < self.max_depth) & si.is_valid()
-            active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-            Lr_dir = _emitter_radiance(accel, scene, sampler, si, bsdf, bsdf_ctx, β, primal,
-                                       active_em, queries, depth)
-
-            # --------------------- BSDF sample (detached) ---------------------
-
-            bsdf_sample, bsdf_weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(),
-                                                   sampler.next_2d(), active_next)
-            L = (L + Le + Lr_dir) if primal else (L - Le - Lr_dir)
-            ray_next = si.spawn_ray(si.to_world(bsdf_sample.wo))
-            η *= bsdf_sample.eta
-            β *= bsdf_weight
-            si_prev = dr.detach(si, True)
-            bsdf_pdf_prev = bsdf_sample.pdf
-            bsdf_delta_prev = mi.has_flag(bsdf_sample.sampled_type, mi.BSDFFlags.Delta)
-
-            # --------------------- Russian roulette ---------------------
-
-            β_max = dr.max(mi.unpolarized_spectrum(β))
-            active_next &= β_max != 0
-            rr_prob = dr.minimum(β_max * η**2, 0.95)
-            rr_active = depth >= self.rr_depth
-            β[rr_active] *= dr.rcp(rr_prob)
-            rr_continue = sampler.next_1d() < rr_prob
-            active_next &= ~rr_active | rr_continue
-
-            pi_next = queries.closest(accel, depth + 1, ray_next, False, active_next, replay)
-
-            # --------------------- Derivatives of this vertex ---------------------
-
-            if dr.hint(not primal, mode="scalar"):
-                si_next = accel.surface_interaction(pi_next, ray_next, mi.RayFlags.Minimal,
-                                                    active_next)
-                δL = _propagated(mode, δL, si, si_next, ray_next, bsdf, bsdf_ctx, L, Le,
-                                 Lr_dir, active_next)
-
-            # Group lanes by the shape they hit next (CUDA; a no-op on LLVM)
-            hint = dr.reinterpret_array(mi.UInt32, pi_next.shape)
-            depth = dr.reorder_threads((hint << 1) | dr.select(active_next, 1, 0), 16, depth)
-
-            depth[si.is_valid()] += 1
-            active = active_next
-            pi_prev, pi = pi, pi_next
-            ray_prev, ray = ray, ray_next
+                depth[si.is_valid()] += 1
+                active = active_next
+                pi_prev, pi = pi, pi_next
+                ray_prev, ray = ray, ray_next
+            queries.stretch_ended(active, sampler, (
+                ray, depth, L, δL, β, η, pi, ray_prev, pi_prev, si_prev, bsdf_pdf_prev,
+                bsdf_delta_prev))
 
         return (L if primal else δL), depth != 0, [], L
 
