@@ -38,37 +38,41 @@ def _skinned_meshes(stage) -> list:
 
 
 def check_bindings(stage, where: str) -> list[str]:
-    """Check every skinned mesh's joint weights and indices, as pxr reads them.
+    """Check every skinned mesh's joint weights and indices, as pxr's skinning queries
+    resolve them (inherited primvars, a mesh's own ``skel:joints`` order).
 
     Returns:
         The lines to say (naming ``where``, the stage, and the prim), one per mesh whose
-        joint indices point past its skeleton's joints: pxr leaves it at rest.
+        joint indices point past its joints: pxr leaves it at rest.
     Raises:
         ValueError: naming the stage, the prim and the primvar: a joint weight that is
             not finite (every skinned point would be NaN).
     """
     lines = []
-    for prim in _skinned_meshes(stage):
-        binding = UsdSkel.BindingAPI(prim)
-        name = f"{where}: {prim.GetPath()}: primvars:skel:jointWeights"
-        weights = binding.GetJointWeightsPrimvar()
-        if weights and weights.HasAuthoredValue():
-            _checked(name, np.asarray(weights.ComputeFlattened() or [], dtype=np.float64))
-        indices = binding.GetJointIndicesPrimvar()
-        if not (indices and indices.HasAuthoredValue()):
-            continue
-        values = np.asarray(indices.ComputeFlattened() or [], dtype=np.int64)
-        joints = binding.GetJointsAttr().Get() if binding.GetJointsAttr().HasAuthoredValue() \
-            else binding.GetInheritedSkeleton().GetJointsAttr().Get()
-        count = len(joints or [])
-        bad = (values < 0) | (values >= count)
-        if bad.any():
-            first = int(np.flatnonzero(bad)[0])
-            lines.append(f"{where}: {prim.GetPath()}: primvars:skel:jointIndices holds "
-                         f"{values[first]} (value {first} of {len(values)}), outside its "
-                         f"{count} joints 0..{count - 1}: UsdSkel does not skin it; its "
-                         f"rest points render")
-    return lines
+    cache = UsdSkel.Cache()
+    for root in (prim for prim in stage.Traverse() if prim.IsA(UsdSkel.Root)):
+        cache.Populate(UsdSkel.Root(root), Usd.PrimDefaultPredicate)
+        for binding in cache.ComputeSkelBindings(UsdSkel.Root(root), Usd.PrimDefaultPredicate):
+            skeleton = binding.GetSkeleton().GetJointsAttr().Get() or []
+            for query in binding.GetSkinningTargets():
+                path = query.GetPrim().GetPath()
+                weights = query.GetJointWeightsPrimvar()
+                if weights:
+                    _checked(f"{where}: {path}: primvars:skel:jointWeights", np.asarray(
+                        weights.ComputeFlattened() or [], dtype=np.float64))
+                indices = np.asarray((query.GetJointIndicesPrimvar().ComputeFlattened()
+                                      if query.GetJointIndicesPrimvar() else None) or [],
+                                     dtype=np.int64)
+                order = query.GetJointOrder()
+                count = len(skeleton if order is None else order)
+                bad = (indices < 0) | (indices >= count)
+                if bad.any():
+                    first = int(np.flatnonzero(bad)[0])
+                    lines.append(f"{where}: {path}: primvars:skel:jointIndices holds "
+                                 f"{indices[first]} (value {first} of {len(indices)}), "
+                                 f"outside its {count} joints 0..{count - 1}: UsdSkel does "
+                                 f"not skin it; its rest points render")
+    return list(dict.fromkeys(lines))  # a nested SkelRoot's meshes are its parent's too
 
 
 def _animation_attributes(stage) -> list:
