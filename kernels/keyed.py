@@ -59,7 +59,7 @@ from .arrays import Float, UInt32, namespace_of
 from .bvh import BVH
 from .geometry import as_faces, as_points
 from .packing import packed_records
-from .refit import refit
+from .refit import _slot_faces, refit, refit_packed
 from .slots import NODE_REF, SLOT, TRI_FACE, TRI_P
 
 #: A keyed tree's floats are addressed with 32-bit indices.
@@ -189,7 +189,9 @@ def keyed_tree(bvh: BVH, keys) -> KeyedTree:
     ns = namespace_of(bvh.node_count)
     UInt32_, Float_ = ns.UInt32, ns.Float
     work = _working_copy(bvh)
-    packed_records(work)  # where the fused refit writes (cached on bvh when traced)
+    if work.cache.last_pack != (0, 0, 0):  # last packed elsewhere (joined): pack here
+        work.cache.traversal_records = None
+    _, root = packed_records(work)  # the slots' place (kept on bvh when it was traced)
     total = work.cache.pack_plan[1].total
     if SLOT * count * total + SLOT > MAX_FLOATS:
         raise ValueError(f"keys: {count} keys of {total} slots need {SLOT * count * total} "
@@ -199,14 +201,17 @@ def keyed_tree(bvh: BVH, keys) -> KeyedTree:
     place = dr.arange(UInt32_, total)
     flat_somewhere = dr.zeros(ns.Bool, bvh.prim_count)
     flat_everywhere = dr.ones(ns.Bool, bvh.prim_count)
-    root = None
+    slot_faces = _slot_faces(work)[0] if work.built_topology is not None else None
     for k, p in enumerate(points):
-        refit(work, p)
-        key_records, root = packed_records(work)
-        rows = dr.gather(ns.ArrayXf, key_records, place, shape=(SLOT, total))
-        dr.scatter(records, rows, place * count + dr.opaque(UInt32_, k))
+        key = dr.opaque(UInt32_, k)
+        # A builder's tree: the fused refit writes the key's slots in place. Another
+        # (made by hand): refit through its binary levels, packed, the slots copied.
+        if slot_faces is None or not refit_packed(work, p, slot_faces, (records, count, k)):
+            refit(work, p)
+            rows = dr.gather(ns.ArrayXf, packed_records(work)[0], place, shape=(SLOT, total))
+            dr.scatter(records, rows, place * count + key)
         # The still packing's mark of a zero-area triangle: NaN vertices.
-        flat = dr.isnan(dr.gather(Float_, key_records, record_of * SLOT + TRI_P[0]))
+        flat = dr.isnan(dr.gather(Float_, records, (record_of * count + key) * SLOT + TRI_P[0]))
         flat_somewhere |= flat
         flat_everywhere &= flat
         dr.eval(records, flat_somewhere, flat_everywhere)

@@ -67,7 +67,7 @@ def _slot_faces(bvh):
 # ---- The fused refit: boxes and slots in one pass over the wide levels ----
 
 
-def refit_packed(bvh: BVH, points: Float, slot_faces: Array3u) -> bool:
+def refit_packed(bvh: BVH, points: Float, slot_faces: Array3u, key: tuple | None = None) -> bool:
     """Refit ``bvh`` for new vertex ``points`` and write its slots in the same passes,
     where it was last packed (:func:`_write_packed`). The BVH's triangle arrays are left
     as lazy reads of ``points`` (computed only if read).
@@ -80,6 +80,10 @@ def refit_packed(bvh: BVH, points: Float, slot_faces: Array3u) -> bool:
         bvh: a tree as the builder returned it, packed before (else nothing is done).
         points: flat Float[3·V] vertex positions, checked.
         slot_faces: Array3u[F], the vertex indices of each slot's face.
+        key: ``(records, keys, k)``: write the slots as key ``k`` of a keyed tree's
+            ``records`` instead (slot ``s`` at ``s·keys + k``,
+            :mod:`hlbvh.kernels.keyed`); the node boxes and the slots kept for the next
+            pack are then left as they were.
     Returns:
         Whether it refit ``bvh`` (False: the caller refits through the binary tree).
     """
@@ -90,11 +94,11 @@ def refit_packed(bvh: BVH, points: Float, slot_faces: Array3u) -> bool:
     ns = namespace_of(bvh.node_count)
     p = [dr.gather(ns.Array3f, points, slot_faces[k]) for k in range(3)]
     bvh.tri_p0, bvh.tri_p1, bvh.tri_p2 = p  # lazy: computed only if read
-    _write_packed(bvh, last, plan, points, slot_faces)
+    _write_packed(bvh, last, plan, points, slot_faces, key)
     return True
 
 
-def _write_packed(bvh, place, plan, points, slot_faces):
+def _write_packed(bvh, place, plan, points, slot_faces, key=None):
     """The slots of ``bvh`` at ``place`` and its node boxes: one pass over the leaves
     (each leaf's lane writes its triangles' records and takes the union of their boxes)
     and one per wide level (deepest first). Boxes move as 8-float records, one packet
@@ -113,20 +117,27 @@ def _write_packed(bvh, place, plan, points, slot_faces):
         plan: the tree's placement at ``slot_base`` (``bvh.cache.pack_plan``).
         points: flat Float[3·V] vertex positions.
         slot_faces: Array3u[F], the vertex indices of each slot's face.
+        key: as :func:`refit_packed`'s.
     """
     slot_base, face_base, front = place
     total = plan[1].total
     ns = namespace_of(bvh.node_count)
     UInt32, Float, ArrayXf = ns.UInt32, ns.Float, ns.ArrayXf
     refit = _refit_plan(bvh, plan)
-    records = dr.empty(Float, SLOT * (front + total))
-    front_o = dr.opaque(UInt32, front)
+    if key is None:
+        records = dr.empty(Float, SLOT * (front + total))
+        front_o = dr.opaque(UInt32, front)
+        stride, at = 1, (lambda slot: slot + front_o)
+    else:  # slot s of key k at s·keys + k (the place's front and base are 0 there)
+        records, stride, k = key
+        k = dr.opaque(UInt32, k)
+        at = lambda slot: slot * stride + k  # noqa: E731
 
     # ---- Leaves: their triangles' records, and the union of their boxes ----
     boxes = dr.empty(Float, BOX_RECORD * bvh.size)  # every node's box, a record each
     leaf_node, leaf_record, leaf_count, leaf_slot, widest = refit.leaves
     lo, hi = _leaf_triangles(records, points, slot_faces, bvh.prim_ids, face_base,
-                             leaf_slot, leaf_record + front_o, leaf_count, widest)
+                             leaf_slot, at(leaf_record), leaf_count, widest, stride)
     dr.scatter(boxes, ArrayXf(box_rows(lo, hi)), leaf_node)
     dr.eval(records, boxes)
 
@@ -137,10 +148,12 @@ def _write_packed(bvh, place, plan, points, slot_faces):
         # read would make the scatter copy the array. One scatter a target: each is a
         # kernel of its own.
         dr.eval(rows, own)
-        dr.scatter(records, ArrayXf(rows[:SLOT]), slots + front_o)
-        dr.scatter(records, ArrayXf(rows[SLOT:]), slots + front_o + 1)
+        dr.scatter(records, ArrayXf(rows[:SLOT]), at(slots))
+        dr.scatter(records, ArrayXf(rows[SLOT:]), at(slots) + stride)
         dr.scatter(boxes, ArrayXf(own), nodes)
         dr.eval(records, boxes)
+    if key is not None:
+        return
 
     # ---- Every node's box in one pass: a binary node at odd depth (no record of its
     # own) is the union of its two children, the others their own record ----
@@ -154,11 +167,12 @@ def _write_packed(bvh, place, plan, points, slot_faces):
 
 
 def _leaf_triangles(records, points, slot_faces, prim_ids, face_base, first_slot,
-                    first_record, count, widest):
+                    first_record, count, widest, stride=1):
     """Write the triangle records of leaves (slots ``first_slot ..``, ``count`` of
-    them, records from ``first_record`` on) and return the union of their boxes,
-    ``(lo, hi)`` Array3f per leaf: one lane a leaf walks its triangles (a symbolic loop,
-    so the record scatter is one kernel with the boxes, and no record is read back).
+    them, records from ``first_record`` on, ``stride`` apart) and return the union of
+    their boxes, ``(lo, hi)`` Array3f per leaf: one lane a leaf walks its triangles (a
+    symbolic loop, so the record scatter is one kernel with the boxes, and no record is
+    read back).
     Every lane takes ``widest`` steps (the most triangles in a leaf, a UInt32[1]): a
     short leaf repeats its last triangle, writing the same record again, because the
     masked gathers of lanes that stopped early cost more."""
@@ -172,7 +186,7 @@ def _leaf_triangles(records, points, slot_faces, prim_ids, face_base, first_slot
         face = dr.gather(ns.Array3u, slot_faces, slot)
         p = [dr.gather(Array3f, points, face[c]) for c in range(3)]
         rows = triangle_rows(p, dr.gather(ns.UInt32, prim_ids, slot), face_base)
-        dr.scatter(records, ns.ArrayXf(rows), first_record + j)
+        dr.scatter(records, ns.ArrayXf(rows), first_record + (j if stride == 1 else j * stride))
         return (k + 1, dr.minimum(lo, Array3f(*rows[TRI_LO:TRI_LO + 3])),
                 dr.maximum(hi, Array3f(*rows[TRI_HI:TRI_HI + 3])))
 
