@@ -46,7 +46,7 @@ A stage that cannot be opened, has nothing renderable or a bad time range is one
 
 This module walks the stage and gives its frames; the meshes are read by
 ``usd_meshes``, instances placed by ``usd_instances``, time codes counted by
-``usd_time``; the materials, lights and camera are converted by the mixins of
+``usd_time``, skinning baked by ``usd_skinning``; the materials, lights and camera are converted by the mixins of
 ``usd_materials``, ``usd_lights`` and ``usd_camera``, and what they share (pxr, the
 constants, the prim helpers) is in ``usd_prims``.
 """
