@@ -72,7 +72,8 @@ def _best(fn, repeats: int) -> tuple[float, float]:
     return min(r[0] for r in runs), min(r[1] for r in runs)
 
 
-def run(size: int = 1_000_000, resolution: int = 512, repeats: int = 7, leaf_size: int = 4):
+def run(size: int = 1_000_000, resolution: int = 512, repeats: int = 7, leaf_size: int = 4,
+        amplitude: float = 0.05):
     vertices, faces = displaced_grid(size)
     ray = primary_rays(mesh_scene(vertices, faces, _grid_sensor(resolution)))
     n = dr.width(ray.o)
@@ -80,10 +81,10 @@ def run(size: int = 1_000_000, resolution: int = 512, repeats: int = 7, leaf_siz
     time_ = rng.next_float32()
     dr.eval(ray, time_)
 
-    mid = wave_keys(vertices, 2)[1]  # the wave at mid-shutter
+    mid = wave_keys(vertices, 2, amplitude)[1]  # the wave at mid-shutter
     still = hlbvh.build(mid, faces, leaf_size=leaf_size)
     trees, build_ms = {"still": (still, None)}, {}
-    keys = {1: wave_keys(vertices, 1), 4: wave_keys(vertices, 4)}
+    keys = {s: wave_keys(vertices, s, amplitude) for s in (1, 4)}
     other = hlbvh.build(mid, faces, leaf_size=leaf_size)
     packed_records(other)  # a traced tree: refit fused with its packing
     refit_ms = _best(lambda: other.refit(keys[1][0]).node_min, repeats)
@@ -117,7 +118,7 @@ def run(size: int = 1_000_000, resolution: int = 512, repeats: int = 7, leaf_siz
                          "steps": dr.mean(mi.Float(count))[0],
                          "refit_ms_per_key": build_ms.get(name),
                          "mb_per_key": slots * SLOT * 4 / 2**20})
-    return {"rays": n, "triangles": len(faces) // 3, "refit_ms": refit_ms,
+    return {"rays": n, "triangles": len(faces) // 3, "refit_ms": refit_ms, "amplitude": amplitude,
             "cpu": cpu_model(), "rows": rows}
 
 
@@ -131,7 +132,8 @@ def format_table(result: dict) -> str:
                      f"{r['vs_still']:.2f}× | {r['cpu_ns_per_ray']:.0f} | "
                      f"{r['cpu_vs_still']:.2f}× | {r['steps']:.1f} | {refit} | "
                      f"{r['mb_per_key']:.1f} |")
-    lines.append(f"\n{result['triangles']} triangles, {result['rays']} camera rays, "
+    lines.append(f"\n{result['triangles']} triangles (wave amplitude {result['amplitude']}), "
+                 f"{result['rays']} camera rays, "
                  f"{result['cpu']}; BVH.refit of one pose (fused with its packing) "
                  "{:.1f} / {:.1f} ms (wall / CPU)".format(*result["refit_ms"]))
     return "\n".join(lines)
@@ -142,9 +144,11 @@ def main(argv=None) -> int:
     parser.add_argument("--size", type=int, default=1_000_000)
     parser.add_argument("--resolution", type=int, default=512)
     parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--amplitude", type=float, default=0.05)
     args = parser.parse_args(argv)
     start = time.perf_counter()
-    print(format_table(run(args.size, args.resolution, args.repeats)))
+    print(format_table(run(args.size, args.resolution, args.repeats,
+                           amplitude=args.amplitude)))
     print(f"({time.perf_counter() - start:.0f} s)")
     return 0
 
