@@ -217,8 +217,12 @@ def keyed_tree(bvh: BVH, keys) -> KeyedTree:
         dr.eval(records, flat_somewhere, flat_everywhere)
     _unflatten(records, count, points, bvh, record_of, flat_somewhere & ~flat_everywhere)
     # The plans the refits made depend on the topology only (each keyed by it): kept on
-    # bvh, so that the next frame's keys refit without making them again.
-    for plan in ("pack_plan", "refit_plan", "refit_faces"):
+    # bvh, so that the next frame's keys refit without making them again (the
+    # placement only where bvh was last packed at slot 0, as here).
+    kept = ("refit_plan", "refit_faces")
+    if bvh.cache.last_pack in (None, (0, 0, 0)):
+        kept += ("pack_plan",)
+    for plan in kept:
         setattr(bvh.cache, plan, getattr(work.cache, plan))
     return KeyedTree(records=records, root=root, keys=count, slots=total, bvh=bvh)
 

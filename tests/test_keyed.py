@@ -352,6 +352,9 @@ def test07_time_argument_clamped_nan_misses_and_still_trees_ignore_it():
     # A still tree is the same at every time.
     bvh = build(vertices, faces)
     assert closest_hit(bvh, o, d, 100.0, time=mi.Float(0.3))[0][0] == 5
+    # Keys as Point3f (V) make the same tree as flat keys (3·V).
+    points = keyed_tree(tree.bvh, [mi.Point3f(k.T) for k in keys])
+    np.testing.assert_array_equal(points.records.numpy(), tree.records.numpy())
 
 
 def test08_a_triangle_flat_at_one_key_is_hit_between_keys():
