@@ -508,3 +508,28 @@ def test14_the_whole_scene_sees_motion_whatever_another_scene_built(other):
                                       np.array(mi.render(reference, seed=frame)))
     assert a.integrator().scene_accel.moving_structure == "scene"
     assert b.integrator().scene_accel.costs.update_ms.get("native") is not None
+
+
+@needs_native_moving
+def test15_a_decal_on_a_still_floor_shows_the_same_surface_under_ours_and_the_native_group():
+    """A moving decal coplanar with a still floor: our BVH and the native moving group
+    show the same surface in every pixel (the tie rule: the lower index in
+    scene.shapes()), not each its own rounding's mix of the two."""
+    def shape_ids(moving_accel):
+        scene = mi.load_dict({
+            "type": "scene",
+            "integrator": {"type": "hlbvh_aov", "moving": "decal",
+                           "moving_accel": moving_accel},
+            "sensor": {"type": "perspective",
+                       "to_world": T().look_at([0, 2, 3], [0, 0, 0], [0, 1, 0]),
+                       "film": {"type": "hdrfilm", "width": 64, "height": 48,
+                                "rfilter": {"type": "box"}},
+                       "sampler": {"type": "independent", "sample_count": 1}},
+            "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(3)},
+            "decal": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(0.5)}})
+        assert [s.id() for s in scene.shapes()] == ["decal", "floor"]
+        return np.array(mi.render(scene))[..., 4]  # the shape_index channel
+
+    ours, native = shape_ids("hlbvh"), shape_ids("native")
+    np.testing.assert_array_equal(ours, native)
+    assert (ours == 0).sum() > 300  # the decal, index 0, wins its ties: a whole square

@@ -10,6 +10,14 @@ import drjit as dr
 import mitsuba as mi
 
 
+#: The relative difference in ``t`` under which two hits on different shapes tie. Two
+#: intersectors (Embree's and our watertight test) round the distance to one plane
+#: differently by a few ulps, so coplanar surfaces traced by two structures would
+#: otherwise show whichever rounded nearer, pixel by pixel (z-fighting that changes
+#: with the structure); 2^-20 is about eight float32 ulps.
+TIE = 2.0 ** -20
+
+
 @dataclass
 class NearestHit:
     """The nearest hit so far of a query over several structures, as Mitsuba reports
@@ -35,11 +43,21 @@ class NearestHit:
                    dr.zeros(mi.ShapePtr, n), dr.zeros(mi.ShapePtr, n),
                    dr.zeros(mi.Bool, n), dr.zeros(mi.UInt32, n))
 
+    def reach(self, maxt: mi.Float) -> mi.Float:
+        """How far the next structure must look (``maxt`` at most): past the nearest hit
+        so far by the tie tolerance, so that it sees a hit that ties with it."""
+        return dr.minimum(maxt, self.t * (1.0 + TIE))
+
     def take(self, t, prim_uv, prim_index, shape_index, instance=None) -> mi.Bool:
         """Take the hit of one more structure (``t`` infinite where it has none) where
-        it is strictly nearer, so ties keep the earlier; ``instance``: for a hit inside
-        one of our instances, the instance's index. Returns where it was taken."""
-        closer = t < self.t
+        it is nearer, or ties with the nearest so far (:data:`TIE`) on a shape of lower
+        index in ``scene.shapes()`` (the one tie rule: whichever structure traced
+        either); ``instance``: for a hit inside one of our instances, the instance's
+        index (the instance's index is the one compared). Returns where it was taken."""
+        index = shape_index if instance is None else instance
+        held = dr.select(self.in_instance, self.instance, self.shape_index)
+        tie = (dr.abs(t - self.t) <= TIE * dr.minimum(t, self.t)) & (index != held)
+        closer = dr.select(tie, index < held, t < self.t)
         self.t = dr.select(closer, t, self.t)
         self.prim_uv = dr.select(closer, mi.Point2f(prim_uv), self.prim_uv)
         self.prim_index = dr.select(closer, prim_index, self.prim_index)

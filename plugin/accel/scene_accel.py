@@ -16,9 +16,9 @@ symbolic loop would trace every registered shape); any other moving shape is ref
 naming it. With ``static="hlbvh"`` every mesh is in our BVHs and traced by our
 watertight traversal; instances, curves and the like are refused.
 
-A query asks each structure and keeps the nearest hit (:class:`NearestHit`); ties go
-to the one asked first (the still world, our meshes, the moving meshes' sub-scene, the
-instances, the analytic shapes in scene order). Meshes without triangles are refused,
+A query asks each structure and keeps the nearest hit (:class:`NearestHit`); hits of
+two structures that tie (:data:`hlbvh.accel.hits.TIE`) go to the shape of lower index in
+``scene.shapes()``, whichever structure traced it. Meshes without triangles are refused,
 naming them (more likely a mistake than an intent); a scene without geometry misses
 everywhere. :meth:`SceneAccel.update` does only what changed (the dynamic group refit
 or rebuilt as the :class:`UpdatePolicy` says); a query after a change the accelerator
@@ -425,7 +425,7 @@ class SceneAccel(SceneQueries):
     def _preliminary(self, ray, coherent, active, reorder):
         """The static group's closest hit, then the moving meshes' (our BVHs' or their
         native sub-scene's), then the instances', then each analytic shape's own
-        routine, merged by nearest ``t`` (ties to the earlier)."""
+        routine, merged by nearest ``t`` (ties as :meth:`NearestHit.take` breaks them)."""
         self._check_current()
         n = dr.width(ray)
         active = mi.Bool(active) & dr.full(mi.Bool, True, n)
@@ -436,13 +436,13 @@ class SceneAccel(SceneQueries):
         # Each later structure looks no further than the nearest hit so far.
         ray = mi.Ray3f(ray)
         if self._tree is not None:
-            ray.maxt = dr.minimum(ray.maxt, hit.t)
+            ray.maxt = hit.reach(ray.maxt)
             hit.take(*self._closest_mesh_hit(ray, active))
         if self.moving_structure == "native" and self.native_moving.scene is not None:
-            ray.maxt = dr.minimum(ray.maxt, hit.t)
+            ray.maxt = hit.reach(ray.maxt)
             hit.take_native(self.native_moving.preliminary(ray, coherent, active, reorder))
         if self.instances is not None and self.instances.tree is not None:
-            ray.maxt = dr.minimum(ray.maxt, hit.t)
+            ray.maxt = hit.reach(ray.maxt)
             t_i, u_i, v_i, prim_i, inst_i, valid_i = closest_instance_hit(
                 self.instances.tree, ray.o, ray.d, ray.maxt, active)
             valid_i = mi.Bool(valid_i)
@@ -452,7 +452,7 @@ class SceneAccel(SceneQueries):
                      mi.Point2f(mi.Float(u_i), mi.Float(v_i)), local, in_group,
                      instance=inst_index)
         for index, shape in self._routine_shapes():
-            ray.maxt = dr.minimum(ray.maxt, hit.t)
+            ray.maxt = hit.reach(ray.maxt)
             pi_s = shape.ray_intersect_preliminary(ray, 0, active)
             hit.take(dr.select(pi_s.is_valid(), pi_s.t, dr.inf), pi_s.prim_uv,
                      pi_s.prim_index, dr.full(mi.UInt32, index, n))
