@@ -85,13 +85,15 @@ def test01_equal_keys_trace_bit_identical_to_the_still_tree(builder):
     still = [x.numpy() for x in closest_hit(bvh, O, D, 10.0)]
     still_any = any_hit(bvh, O, D, 10.0).numpy()
     assert still[4].sum() > 500
-    tree = keyed_tree(bvh, [flat(vertices)] * 2)
-    assert tree.keys == 2 and dr.width(tree.records) == 2 * tree.slots * SLOT
-    for time in (rng.random(4000).astype(np.float32), 0.0, 1.0, 0.5):
-        keyed = [x.numpy() for x in closest_hit(tree, O, D, 10.0, time=time)]
-        for ours, theirs in zip(keyed, still):
-            np.testing.assert_array_equal(ours, theirs)
-        np.testing.assert_array_equal(any_hit(tree, O, D, 10.0, time=time).numpy(), still_any)
+    for count in (2, 4):  # S = 1, and S = 3 (rays reading different keys)
+        tree = keyed_tree(bvh, [flat(vertices)] * count)
+        assert tree.keys == count and dr.width(tree.records) == count * tree.slots * SLOT
+        for time in (rng.random(4000).astype(np.float32), 0.0, 1.0, 0.5):
+            keyed = [x.numpy() for x in closest_hit(tree, O, D, 10.0, time=time)]
+            for ours, theirs in zip(keyed, still):
+                np.testing.assert_array_equal(ours, theirs)
+            np.testing.assert_array_equal(any_hit(tree, O, D, 10.0, time=time).numpy(),
+                                          still_any)
 
 
 # ---------------------------------------------------------------------------------------
