@@ -184,7 +184,11 @@ def keyed_tree(bvh: BVH, keys) -> KeyedTree:
         TypeError, ValueError: as :func:`checked_keys`, naming the key; ValueError when
             the keyed slots would exceed 32-bit float indices.
     """
-    points = checked_keys(keys, bvh.faces)
+    return _keyed(bvh, checked_keys(keys, bvh.faces))
+
+
+def _keyed(bvh: BVH, points: list) -> KeyedTree:
+    """:func:`keyed_tree` of checked keys (flat Float arrays)."""
     count = len(points)
     ns = namespace_of(bvh.node_count)
     UInt32_, Float_ = ns.UInt32, ns.Float
@@ -201,12 +205,12 @@ def keyed_tree(bvh: BVH, keys) -> KeyedTree:
     place = dr.arange(UInt32_, total)
     flat_somewhere = dr.zeros(ns.Bool, bvh.prim_count)
     flat_everywhere = dr.ones(ns.Bool, bvh.prim_count)
-    slot_faces = _slot_faces(work)[0] if work.built_topology is not None else None
+    slot_faces = _slot_faces(work)[0]
     for k, p in enumerate(points):
         key = dr.opaque(UInt32_, k)
         # A builder's tree: the fused refit writes the key's slots in place. Another
         # (made by hand): refit through its binary levels, packed, the slots copied.
-        if slot_faces is None or not refit_packed(work, p, slot_faces, (records, count, k)):
+        if not refit_packed(work, p, slot_faces, (records, count, k)):
             refit(work, p)
             rows = dr.gather(ns.ArrayXf, packed_records(work)[0], place, shape=(SLOT, total))
             dr.scatter(records, rows, place * count + key)
@@ -239,7 +243,7 @@ def build_keyed(keys, faces, **options) -> KeyedTree:
     from .build import build
 
     points = checked_keys(keys, as_faces(faces))
-    return keyed_tree(build(mid_shutter(points), faces, **options), points)
+    return _keyed(build(mid_shutter(points), faces, **options), points)
 
 
 def mid_shutter(points: list) -> Float:
