@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from hlbvh.comparison.metrics import hit_agreement, image_metrics
+from hlbvh.comparison.metrics import NOISE_LIMIT, hit_agreement, image_metrics, noise_judge
 
 H, W, C = 6, 5, 3
 PIXELS = H * W
@@ -235,3 +235,45 @@ def test14_hit_agreement_counts_nonfinite_indices_as_disagreeing():
 def test15_hit_agreement_rejects_what_is_not_an_index_image(reference, test, message):
     with pytest.raises(ValueError, match=message):
         hit_agreement(reference, test)
+
+
+# ---- noise_judge ----
+
+
+def _renders(seed: int, samples: int = 4, shape=(48, 40, 3)) -> np.ndarray:
+    """A Monte Carlo render of a fixed image (a ramp): the mean of ``samples``
+    exponential samples per pixel, so that independent seeds differ by noise alone."""
+    mean = np.linspace(0.1, 2.0, shape[0] * shape[1] * shape[2]).reshape(shape)
+    rng = np.random.default_rng(seed)
+    return (mean * rng.exponential(size=(samples, *shape)).mean(axis=0)).astype(np.float32)
+
+
+def test16_noise_judge_passes_other_seeds_and_fails_a_bias():
+    reference, again, test = _renders(0), _renders(1), _renders(2)
+    judged = noise_judge(test, reference, again)
+    assert judged["passed"] and abs(judged["largest_z"]) < NOISE_LIMIT
+    assert judged["fraction_identical"] == 0.0
+    # A 16x16 region brighter by one render's noise (sigma): its block sum moves by
+    # 256 sigma against a noise of sqrt(256 * 2 sigma^2), z about 11.
+    biased = test.copy()
+    biased[16:32, 16:32] += np.float32(judged["noise_rms"])
+    failed = noise_judge(biased, reference, again)
+    assert not failed["passed"] and failed["largest_z"] > NOISE_LIMIT
+    assert failed["largest_z_block"].startswith(("16x16 at 16,16", "8x8 at"))
+
+
+def test17_noise_judge_one_outlier_passes_a_nan_fails():
+    reference = _renders(0)
+    quiet = reference.copy()  # a native pair that agrees to the bit: no noise at all
+    outlier = reference.copy()
+    outlier[5, 5, 1] += 1000.0  # a firefly on a parted path
+    assert noise_judge(outlier, reference, quiet)["passed"]
+    rounding = reference * np.float32(1 + 2e-7)  # last bits, one way everywhere
+    assert noise_judge(rounding, reference, quiet)["passed"]
+    nan = reference.copy()
+    nan[3, 4, 0] = np.nan
+    judged = noise_judge(nan, reference, _renders(1))
+    assert not judged["passed"] and judged["nonfinite_pixels"] == 1
+    assert noise_judge(reference.copy(), reference)["passed"]  # bit-identical: no noise needed
+    with pytest.raises(ValueError, match="reference_again"):
+        noise_judge(outlier, reference)
