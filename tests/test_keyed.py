@@ -373,3 +373,19 @@ def test08_a_triangle_flat_at_one_key_is_hit_between_keys():
     # Flat at every key: never hit (as the still tree).
     tree = build_keyed([flat(collapsed)] * 2, mi.UInt32(faces.ravel()))
     assert not closest_hit(tree, o, d, 10.0, time=mi.Float(0.5))[4][0]
+
+
+def test09_traced_inside_a_symbolic_loop():
+    """An integrator traces inside its own symbolic loop, each bounce at the ray's time."""
+    vertices, faces = triangle_grid(1, 1)
+    tree = build_keyed([flat(vertices), flat(vertices + np.float32([0, 0, 1]))],
+                       mi.UInt32(faces.ravel()))
+
+    def body(i, total):
+        t = closest_hit(tree, mi.Point3f(0.3, 0.3, 5), mi.Vector3f(0, 0, -1), 100.0,
+                        time=mi.Float(i) / 4)[0]
+        return i + 1, total + t
+
+    _, total = dr.while_loop((dr.zeros(mi.UInt32, 8), dr.zeros(mi.Float, 8)),
+                             lambda i, total: i < 5, body, mode="symbolic")
+    np.testing.assert_allclose(total.numpy(), 5 + 4.75 + 4.5 + 4.25 + 4)
