@@ -5,14 +5,17 @@ last update did."""
 from __future__ import annotations
 
 import drjit as dr
+import mitsuba as mi
 
 from hlbvh.accel.groups import Change, MeshUpdate
+from hlbvh.accel.keys import motion_keys
 from hlbvh.accel.policy import RefitOrRebuild
 from hlbvh.accel.scene_geometry import collect_geometry, named_build_error
 from hlbvh.kernels.arrays import concat
 from hlbvh.kernels.build import build
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.kernels.geometry import half_area
+from hlbvh.kernels.keyed import build_keyed
 from hlbvh.timing import clock_ms
 
 
@@ -33,6 +36,14 @@ class MeshGroup:
         last: what the group's last update did (:class:`~hlbvh.accel.groups.MeshUpdate`;
             its ``ms`` includes the packing of the traversal records, its ``drift`` is
             over ``built_sah``).
+        keyed: where a mesh of the group has motion keys
+            (:func:`hlbvh.accel.keys.set_motion_keys`), the group's
+            :class:`~hlbvh.kernels.keyed.KeyedTree` (built over the mid-shutter pose,
+            refit per key; the meshes without keys the same at every key), else None.
+        shutter: the keys' ``(open, close)`` while ``keyed``.
+        key_points: the group's vertices at each key, in one flat Float (key ``k``'s
+            3·V values from ``k·3·V``), while ``keyed``: where shading reads a hit's
+            triangle at its time.
     """
 
     native = False  # our BVH traces it (hlbvh.accel.groups.Group)
@@ -46,6 +57,7 @@ class MeshGroup:
         self.builds = 0
         self.refits = 0
         self.last = None
+        self.keyed = self.shutter = self.key_points = None
         self._built_indices = ()  # the meshes the tree was built over
         self._policy = RefitOrRebuild()  # what "auto" remembers of past refits
         self.keep()
@@ -71,6 +83,14 @@ class MeshGroup:
             return
         start = clock_ms()
         shapes = change.shapes
+        keys = [motion_keys(shapes[i]) for i in self.indices]
+        if any(keys):
+            self._build_keyed(shapes, keys, change.config)
+            self.last = MeshUpdate(decision="build" if change.first else "rebuild",
+                                   ms=clock_ms() - start, triangles=self.triangles,
+                                   sah_cost=self._sah())
+            return
+        self.keyed = self.shutter = self.key_points = None
         reshaped = change.reshaped or self.bvh is None or self.stale
         chosen, seeded, drift = self._policy.update(
             change.policy, reshaped, lambda seed: self._build(shapes, change.config, seed=seed),
@@ -85,6 +105,7 @@ class MeshGroup:
         structure and have moved since (the tree is out of date, and its next update
         would build anew anyway): their memory is given back. The next update builds."""
         self.geometry, self.bvh, self._built_indices, self.built_sah = None, None, (), None
+        self.keyed = self.shutter = self.key_points = None
         self.keep()
 
     def keep(self):
@@ -117,6 +138,32 @@ class MeshGroup:
         self.built_sah = None if bvh is None else bvh.stats.sah_cost
         self.builds += 1
         return bvh is not None and bvh.stats.csd_seeded
+
+    def _build_keyed(self, shapes, keys: list, config: BuildConfig):
+        """A keyed tree over the meshes' keys: built over the mid-shutter pose, refit
+        per key (:func:`hlbvh.kernels.keyed.build_keyed`); a mesh without keys is at
+        its positions at every key. Every mesh with keys must have the same number of
+        keys over the same shutter (one tree, one time per ray)."""
+        given = [k for k in keys if k is not None]
+        first = given[0]
+        for i, k in zip(self.indices, keys):
+            if k is not None and (k.count, k.shutter) != (first.count, first.shutter):
+                raise ValueError(
+                    f"mesh {shapes[i].id()!r}: {k.count} motion keys over shutter "
+                    f"{k.shutter}, another moving mesh {first.count} over {first.shutter}: "
+                    "give every moving mesh the same keys' times")
+        geometry = collect_geometry(shapes, self.indices)
+        points = [concat([k.points[j] if k is not None else shapes[i].vertex_positions_buffer()
+                          for i, k in zip(self.indices, keys)]) for j in range(first.count)]
+        try:
+            keyed = build_keyed(points, geometry.faces, config=config)
+        except ValueError as error:
+            raise named_build_error(shapes, self.indices, error) from error
+        self.geometry, self.keyed, self.bvh = geometry, keyed, keyed.bvh
+        self.shutter, self.key_points = first.shutter, mi.Float(concat(points))
+        self._built_indices, self.built_sah = self.indices, keyed.bvh.stats.sah_cost
+        self.builds += 1
+        dr.eval(self.key_points)
 
     def _refit(self, shapes) -> float:
         """The same tree with boxes for the meshes' new positions; its SAH drift."""

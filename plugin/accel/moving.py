@@ -68,6 +68,9 @@ class MovingMeshes:
         # Whether the whole scene's accelerator was rebuilt by us once (before that, the
         # writes it misses may predate this object's record of motion)
         self.scene_rebuilt_once = False
+        # Whether a moving mesh has motion keys this frame (hlbvh.accel.keys): only our
+        # HLBVH traces a ray at its time, Mitsuba's structures have one pose
+        self.keyed = False
         self._forced = moving_accel
         self._choosable = choosable
         # Structures whose view of the moving meshes is out of date: the scene's own
@@ -82,8 +85,8 @@ class MovingMeshes:
     def allowed(self) -> tuple:
         """The structures :meth:`plan` chooses among (moving instances alone, or moving
         meshes that are nearly the whole scene: ours or the whole scene)."""
-        if self._forced != "auto":
-            return (self._forced,)
+        if self._forced != "auto" or self.keyed:
+            return ("hlbvh",) if self.keyed else (self._forced,)
         if not self._choosable:
             return ("hlbvh",)
         if (not native_moving_possible() or not self.indices
@@ -103,7 +106,15 @@ class MovingMeshes:
                policy):
         """Bring the structure that traces the moving meshes up to date (``changed``: the
         moving meshes whose state differs from ``before``, the last update's states;
-        ``before`` None at the first update); the others keep."""
+        ``before`` None at the first update); the others keep. Moving meshes with
+        motion keys go through ours, whatever traced them before."""
+        if self.keyed:
+            if self._forced not in ("auto", "hlbvh"):
+                raise ValueError(
+                    f"moving_accel={self._forced!r}: a moving mesh has motion keys (an "
+                    "open shutter), which only our HLBVH traces at each ray's time; use "
+                    "'hlbvh' or 'auto'")
+            self.structure = "hlbvh"
         if self.structure == "hlbvh":
             self.update_ours(shapes, states, before, changed, config, policy)
         elif "hlbvh" in self._behind:

@@ -36,6 +36,8 @@ from hlbvh.accel.hits import NearestHit
 from hlbvh.accel.instance_group import InstanceGroup, group_of
 from hlbvh.accel.instance_shading import InstanceShading, is_instance
 from hlbvh.accel.mesh_group import MeshGroup, joined_sah_cost
+from hlbvh.accel.keyed_shading import at_ray_time
+from hlbvh.accel.keys import motion_keys
 from hlbvh.accel.motion import MeshState, shape_states
 from hlbvh.accel.moving import MovingMeshes, query_ns, still_share
 from hlbvh.accel.groups import Change
@@ -143,6 +145,7 @@ class SceneAccel(SceneQueries):
         self._current = False  # whether the last update succeeded
         self._traced = []  # the mesh groups with triangles our BVHs trace, static first
         self._tree = None  # their joined traversal slots (None: no triangles)
+        self._keyed = None  # the group traced at each ray's time (motion keys), if any
         self._prim_shape = self._prim_local = None  # mesh, in-mesh index per face index
         self.update()
 
@@ -177,7 +180,9 @@ class SceneAccel(SceneQueries):
         first = self._states is None
         changed = [] if first else [i for i in states if states[i].moved(self._states[i])]
         # ---- Shapes that changed for the first time start moving ----
-        started = sorted(set(changed) - set(self.moving))
+        # (a mesh with motion keys moves inside the frame, even unchanged since the last)
+        keyed = {i for i in self.meshes if motion_keys(self.shapes[i]) is not None}
+        started = sorted((set(changed) | keyed) - set(self.moving))
         for i in changed:
             self._check_movable(i)
         moving = tuple(sorted(self.moving + tuple(started)))
@@ -190,6 +195,8 @@ class SceneAccel(SceneQueries):
         self.moving_meshes.still_share = still_share(self.shapes, self.dynamic.indices)
         dynamic_changed = [i for i in changed if i in self.dynamic.indices]
         structure = self.moving_structure
+        self.moving_meshes.keyed = bool(keyed)
+        structure = "hlbvh" if self.moving_meshes.keyed else structure
         self.moving_meshes.fell_behind(bool(dynamic_changed or started), bool(changed))
         self.moving_meshes.update(self.shapes, states, None if first else self._states,
                                   dynamic_changed, self.config, self.policy)
@@ -344,8 +351,13 @@ class SceneAccel(SceneQueries):
         instances, expanded without Mitsuba's call through a shape pointer, whose kernel
         grows with the number of instances (:mod:`hlbvh.accel.instance_shading`)."""
         if self.shading is None:
-            return pi.compute_surface_interaction(ray, ray_flags, active)
-        return self.shading.surface_interaction(pi, ray, ray_flags, active)
+            si = pi.compute_surface_interaction(ray, ray_flags, active)
+        else:
+            si = self.shading.surface_interaction(pi, ray, ray_flags, active)
+        if self._keyed is not None:  # a mesh with motion keys: where it is at ray.time
+            si = at_ray_time(si, pi, ray, self._keyed, self._keyed_faces,
+                             self._ray_time(ray), active)
+        return si
 
     def _check_movable(self, i: int):
         """Refuse a change this accelerator cannot follow: a shape that cannot be traced
@@ -409,11 +421,28 @@ class SceneAccel(SceneQueries):
     def _join(self, traced):
         """One tree over our groups' BVHs (static first: its slots stay cached while
         the dynamic group changes), packed now, not inside some integrator's symbolic
-        loop, and the mesh and in-mesh index of each of its face indices."""
+        loop, and the mesh and in-mesh index of each of its face indices. A group with
+        motion keys is traced on its own, at each ray's time (:attr:`_keyed`)."""
         self._traced = traced
-        self._tree = joined([g.bvh for g in traced]) if traced else None
-        self._prim_shape = concat([g.geometry.prim_shape for g in traced]) if traced else None
-        self._prim_local = concat([g.geometry.prim_local for g in traced]) if traced else None
+        keyed = [g for g in traced if g.keyed is not None]
+        self._keyed = keyed[0] if keyed else None
+        still = [g for g in traced if g.keyed is None]
+        self._tree = joined([g.bvh for g in still]) if still else None
+        self._prim_shape = concat([g.geometry.prim_shape for g in still]) if still else None
+        self._prim_local = concat([g.geometry.prim_local for g in still]) if still else None
+        self._keyed_faces = None
+        if self._keyed is not None:  # each shape's first face in the keyed group
+            group = self._keyed
+            counts = [self.shapes[i].face_count() for i in group.indices]
+            first = [0xFFFFFFFF] * len(self.shapes)
+            for i, base in zip(group.indices, [sum(counts[:j]) for j in range(len(counts))]):
+                first[i] = base
+            self._keyed_faces = mi.UInt32(first)
+
+    def _ray_time(self, ray) -> mi.Float:
+        """``ray.time`` normalised to the keyed group's shutter (0 at open, 1 at close)."""
+        open_, close = self._keyed.shutter
+        return (ray.time - open_) * (1.0 / (close - open_))
 
     def _routine_shapes(self):
         """``(index, shape)`` of the analytic shapes traced by their own routine: all of
@@ -438,6 +467,9 @@ class SceneAccel(SceneQueries):
         if self._tree is not None:
             ray.maxt = hit.reach(ray.maxt)
             hit.take(*self._closest_mesh_hit(ray, active))
+        if self._keyed is not None:
+            ray.maxt = hit.reach(ray.maxt)
+            hit.take(*self._closest_mesh_hit(ray, active, self._keyed))
         if self.moving_structure == "native" and self.native_moving.scene is not None:
             ray.maxt = hit.reach(ray.maxt)
             hit.take_native(self.native_moving.preliminary(ray, coherent, active, reorder))
@@ -458,14 +490,22 @@ class SceneAccel(SceneQueries):
                      pi_s.prim_index, dr.full(mi.UInt32, index, n))
         return hit.preliminary(active, self.shapes_dr)
 
-    def _closest_mesh_hit(self, ray, active):
+    def _closest_mesh_hit(self, ray, active, keyed=None):
         """(t, prim_uv, prim_index, shape_index) of the closest triangle hit of our
-        groups' joined tree; t infinite where there is none."""
-        t, u, v, prim, valid = closest_hit(self._tree, ray.o, ray.d, ray.maxt, active)
+        groups' joined tree, or of the ``keyed`` group's tree at each ray's time; t
+        infinite where there is none."""
+        if keyed is None:
+            tree, prim_shape, prim_local, time = (self._tree, self._prim_shape,
+                                                  self._prim_local, None)
+        else:
+            tree, prim_shape, prim_local = (keyed.keyed, keyed.geometry.prim_shape,
+                                            keyed.geometry.prim_local)
+            time = self._ray_time(ray)
+        t, u, v, prim, valid = closest_hit(tree, ray.o, ray.d, ray.maxt, active, time=time)
         valid = mi.Bool(valid)
         return (dr.select(valid, mi.Float(t), dr.inf), mi.Point2f(mi.Float(u), mi.Float(v)),
-                dr.gather(mi.UInt32, self._prim_local, mi.UInt32(prim), valid),
-                dr.gather(mi.UInt32, self._prim_shape, mi.UInt32(prim), valid))
+                dr.gather(mi.UInt32, prim_local, mi.UInt32(prim), valid),
+                dr.gather(mi.UInt32, prim_shape, mi.UInt32(prim), valid))
 
     def _test(self, ray, coherent, active):
         self._check_current()
@@ -475,6 +515,9 @@ class SceneAccel(SceneQueries):
             hit |= self.static.test(ray, coherent, active)
         if self._tree is not None:
             hit |= mi.Bool(any_hit(self._tree, ray.o, ray.d, ray.maxt, active & ~hit))
+        if self._keyed is not None:
+            hit |= mi.Bool(any_hit(self._keyed.keyed, ray.o, ray.d, ray.maxt, active & ~hit,
+                                   time=self._ray_time(ray)))
         if self.moving_structure == "native" and self.native_moving.scene is not None:
             hit |= self.native_moving.test(ray, coherent, active & ~hit)
         if self.instances is not None and self.instances.tree is not None:

@@ -1,0 +1,120 @@
+"""Motion blur of deforming meshes through our keyed BVH (hlbvh.set_motion_keys): a
+mesh given its positions at the shutter's keys renders as native's sub-frame
+accumulation converges (judged by block means against two native accumulations'
+noise); equal keys render what the still mesh renders, bit for bit; bad keys and a
+structure that has no time are one line each."""
+
+import hlbvh
+import mitsuba as mi
+import numpy as np
+import pytest
+
+T = mi.ScalarTransform4f
+QUAD = np.array([[-0.3, -0.3, 0], [0.3, -0.3, 0], [0.3, 0.3, 0], [-0.3, 0.3, 0]], np.float32)
+FACES = np.array([[0, 1, 2], [0, 2, 3]], np.uint32)
+SHIFT = np.array([0.8, 0.0, 0.0], np.float32)  # the quad's motion over the shutter
+
+
+def _mesh(v):
+    mesh = mi.Mesh("mover", 4, 2)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(v.ravel())
+    params["faces"] = mi.UInt32(FACES.ravel())
+    params.update()
+    return mesh
+
+
+def _scene(integrator, v=QUAD, shutter=(0.0, 0.0), spp=64):
+    return mi.load_dict({
+        "type": "scene", "integrator": integrator,
+        "sensor": {"type": "perspective", "to_world": T().look_at([0, 0, 3], [0, 0, 0], [0, 1, 0]),
+                   "shutter_open": shutter[0], "shutter_close": shutter[1],
+                   "film": {"type": "hdrfilm", "width": 48, "height": 32,
+                            "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": spp}},
+        "floor": {"type": "rectangle", "to_world": T().translate([0, 0, -1]).scale(3),
+                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.2}}},
+        "mover": _mesh(v), "light": {"type": "constant"}})
+
+
+def _mover(scene):
+    return next(s for s in scene.shapes() if s.id() == "mover")
+
+
+def _blocks(image):
+    """Means of 4x4-pixel blocks of the first channel."""
+    return image[:, :, 0].reshape(8, 4, 12, 4).mean(axis=(1, 3))
+
+
+def _accumulated(seed, sub_frames=16):
+    """Native's sub-frame accumulation: the quad at stratified times, 4 spp each."""
+    reference = _scene({"type": "path", "max_depth": 3})
+    params = mi.traverse(reference)
+    total = 0
+    for j in range(sub_frames):
+        params["mover.vertex_positions"] = mi.Float((QUAD + SHIFT * ((j + 0.5) / sub_frames)).ravel())
+        params.update()
+        total = total + np.array(mi.render(reference, seed=seed + j, spp=4))
+    return total / sub_frames
+
+
+def test01_a_deforming_mesh_blurs_as_natives_sub_frame_accumulation():
+    ours = _scene({"type": "hlbvh_path", "max_depth": 3}, shutter=(0.0, 1.0))
+    hlbvh.set_motion_keys(_mover(ours), [mi.Float(QUAD.ravel()), mi.Float((QUAD + SHIFT).ravel())],
+                          (0.0, 1.0))
+    blurred = _blocks(np.array(mi.render(ours, seed=1)))
+    assert ours.integrator().scene_accel.moving_structure == "hlbvh"
+    reference, other = _blocks(_accumulated(100)), _blocks(_accumulated(500))
+    noise = np.std(reference - other)  # two native accumulations: the noise of one pair
+    assert np.abs(blurred - reference).max() < 5 * noise
+    # the still quad at mid-shutter (what Mitsuba renders) is far from it
+    still = _blocks(np.array(mi.render(_scene({"type": "hlbvh_path", "max_depth": 3},
+                                              QUAD + SHIFT / 2), seed=1)))
+    assert np.abs(still - reference).max() > 20 * noise
+
+
+def test02_equal_keys_render_the_still_mesh_bit_for_bit():
+    ours = _scene({"type": "hlbvh_path", "max_depth": 3}, shutter=(0.0, 1.0), spp=4)
+    hlbvh.set_motion_keys(_mover(ours), [mi.Float(QUAD.ravel())] * 3, (0.0, 1.0))
+    still = _scene({"type": "hlbvh_path", "max_depth": 3, "moving": "mover",
+                    "moving_accel": "hlbvh"}, shutter=(0.0, 1.0), spp=4)
+    keyed = np.array(mi.render(ours, seed=3))
+    assert ours.integrator().scene_accel.dynamic.keyed is not None
+    np.testing.assert_array_equal(keyed, np.array(mi.render(still, seed=3)))
+
+
+def test03_keys_end_with_the_next_write_of_the_mesh():
+    """Keys belong to the positions written with them: a later write without keys
+    renders the mesh still (no blur left over from an earlier frame)."""
+    ours = _scene({"type": "hlbvh_path", "max_depth": 3}, shutter=(0.0, 1.0), spp=4)
+    hlbvh.set_motion_keys(_mover(ours), [mi.Float(QUAD.ravel()), mi.Float((QUAD + SHIFT).ravel())],
+                          (0.0, 1.0))
+    mi.render(ours, seed=1)
+    params = hlbvh.traverse(ours)
+    params["mover.vertex_positions"] = mi.Float(QUAD.ravel())
+    params.update()
+    mi.render(ours, seed=1)
+    assert ours.integrator().scene_accel.dynamic.keyed is None
+
+
+@pytest.mark.parametrize("keys, shutter, message", [
+    ([QUAD, QUAD + SHIFT], (1.0, 0.0), r"shutter \(1.0, 0.0\): expected finite open < close"),
+    ([QUAD, np.full_like(QUAD, np.nan)], (0.0, 1.0), r"keys\[1\]: .*non-finite"),
+    ([QUAD, QUAD[:3]], (0.0, 1.0), r"keys\[1\]"),
+    ([QUAD], (0.0, 1.0), r"mesh 'mover'"),
+])
+def test04_bad_keys_are_one_line_naming_the_mesh(keys, shutter, message):
+    scene = _scene({"type": "hlbvh_path"})
+    with pytest.raises(ValueError, match=message):
+        hlbvh.set_motion_keys(_mover(scene), [mi.Float(k.ravel()) for k in keys], shutter)
+
+
+@pytest.mark.parametrize("forced", ["scene", "native"])
+def test05_a_structure_without_time_is_refused_for_keyed_meshes(forced):
+    scene = _scene({"type": "hlbvh_path", "moving_accel": forced, "moving": "mover"},
+                   shutter=(0.0, 1.0), spp=1)
+    mi.render(scene)
+    hlbvh.set_motion_keys(_mover(scene), [mi.Float(QUAD.ravel()), mi.Float((QUAD + SHIFT).ravel())],
+                          (0.0, 1.0))
+    with pytest.raises(ValueError, match=f"moving_accel='{forced}': a moving mesh has motion keys"):
+        scene.integrator().update_accel(scene)
