@@ -74,6 +74,10 @@ def set_motion_keys(mesh, keys, shutter) -> None:
         raise ValueError(f"mesh {name!r}: keys of {dr.width(points[0]) // 3} vertices, "
                          f"the mesh has {mesh.vertex_count()}")
     params = mi.traverse(mesh)
+    if "vertex_positions" not in params:  # a rectangle or cube keeps a transform instead
+        raise ValueError(f"mesh {name!r} ({mesh.class_name()}) has no vertex_positions "
+                         "parameter to key: load it as a triangle mesh (obj, ply, "
+                         "mi.Mesh)")
     params["vertex_positions"] = mid_shutter(points)
     params.update()
     _KEYS[id(mesh)] = MotionKeys(points, (open_, close), mesh.vertex_positions_buffer())
