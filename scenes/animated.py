@@ -1,7 +1,8 @@
 """The contract every animated scene keeps, and how a frame reaches a loaded Mitsuba scene.
 
 An animated scene is a Mitsuba scene description (``scene_dict``) plus, for each frame,
-the new geometry of the shapes that move (``frame``). A render loop looks like::
+the new geometry of the shapes that move (``frame``), and the sensor's pose and lens
+where the camera moves. A render loop looks like::
 
     scene_desc = hlbvh.scenes.get("cloth", triangles=500_000)
     scene = mi.load_dict(scene_desc.scene_dict(resolution=(640, 360), spp=16))
@@ -71,6 +72,28 @@ class FrameGeometry:
         return None if self.faces is None else _width(self.faces) // 3
 
 
+@dataclass(frozen=True)
+class FrameSensor:
+    """A moving camera in one frame: the sensor's pose, and its lens where that changes.
+    A frame gives it under the sensor's id (a scene description's ``"camera"``), beside
+    its shapes' :class:`FrameGeometry`.
+
+    Attributes:
+        to_world: the camera-to-world transform, a ``(4, 4)`` numpy array in
+            Mitsuba's camera convention (looking down +Z, +X to the left), rigid.
+        fov: ``(horizontal, vertical)`` field of view of the camera's aperture in
+            degrees, or ``None`` to keep the sensor's. The film shows the whole
+            aperture: its horizontal field of view is the larger of ``horizontal``
+            and ``vertical`` widened by the film's aspect.
+        clip: ``(near, far)`` clipping distances in metres, or ``None`` to keep the
+            sensor's.
+    """
+
+    to_world: Any
+    fov: tuple[float, float] | None = None
+    clip: tuple[float, float] | None = None
+
+
 class AnimatedScene(abc.ABC):
     """A Mitsuba scene whose meshes move from frame to frame.
 
@@ -115,7 +138,8 @@ class AnimatedScene(abc.ABC):
 
     @abc.abstractmethod
     def frame(self, i: int) -> dict[str, FrameGeometry]:
-        """The geometry of frame ``i`` for every id of :meth:`animated_ids`.
+        """The geometry of frame ``i`` for every id of :meth:`animated_ids`, and a
+        :class:`FrameSensor` under the sensor's id where the camera moves.
 
         A pure function of the scene's parameters and ``i`` (random access, no state
         carried between calls). Apply it with :func:`apply_frame` before rendering
@@ -154,15 +178,19 @@ class AnimatedScene(abc.ABC):
 def apply_frame(
     scene: mi.Scene,
     params: mi.SceneParameters | None,
-    frame_geometry: dict[str, FrameGeometry],
+    frame_geometry: dict[str, FrameGeometry | FrameSensor],
     deterministic_normals: bool = True,
 ) -> list[str]:
-    """Write one frame's geometry into a loaded scene and let Mitsuba refresh it.
+    """Write one frame's geometry (and camera) into a loaded scene and let Mitsuba
+    refresh it.
 
     Sets ``params[f"{id}.vertex_positions"]`` (and ``params[f"{id}.faces"]`` when the
     frame gives faces) for every mesh of ``frame_geometry``, and, for a mesh with
     vertex normals, ``params[f"{id}.vertex_normals"]``; ``params[f"{id}.to_world"]``
-    for every instance it moves; then calls ``params.update()``
+    for every instance it moves; for a :class:`FrameSensor`, the sensor's
+    ``to_world``, and its ``x_fov``, ``near_clip`` and ``far_clip`` where it gives the
+    lens (Mitsuba's perspective sensor refreshes what it derives from them); then
+    calls ``params.update()``
     once: with ``mi.traverse(scene)``'s parameters it recomputes bounds and rebuilds
     the native acceleration structure; with ``hlbvh.traverse(scene)``'s the meshes
     refresh themselves and Mitsuba's accelerator is not rebuilt (for renders whose
@@ -180,21 +208,32 @@ def apply_frame(
             two scenes given the same frame may no longer render bit-identically.
 
     Returns:
-        The ids written, in the order of ``frame_geometry``.
+        The shapes' ids written, in the order of ``frame_geometry`` (a sensor's left
+        out).
 
     Raises:
         ValueError: an id that names no mesh (or, for a transform, no instance) of the
             scene, positions that are empty, not a multiple of 3 long or not finite, a
             vertex count that differs from the mesh's without new faces, faces indexing
-            past the last vertex, a transform that is not finite or not invertible.
-            Nothing is written then.
+            past the last vertex, a transform that is not finite or not invertible; a
+            sensor entry whose id names no sensor (or one without the lens parameters
+            it gives), a field of view outside ``(0, 180)`` degrees, a clipping range
+            not ``0 < near < far``. Nothing is written then.
     """
     if params is None:
         params = mi.traverse(scene)
     mesh_ids = {shape.id() for shape in scene.shapes() if isinstance(shape, mi.Mesh)}
     instance_ids = {shape.id() for shape in scene.shapes() if shape.class_name() == "Instance"}
-    staged, transforms = [], []
+    sensors = {sensor.id(): sensor for sensor in scene.sensors()}
+    staged, transforms, poses, lenses = [], [], [], []
     for shape_id, geometry in frame_geometry.items():
+        if isinstance(geometry, FrameSensor):
+            if shape_id not in sensors or f"{shape_id}.to_world" not in params:
+                raise ValueError(f"frame sensor {shape_id!r}: the scene has no sensor with "
+                                 f"that id (its sensors: {sorted(sensors)})")
+            poses.append((shape_id, geometry.to_world))
+            lenses.append(_checked_lens(shape_id, geometry, sensors[shape_id], params))
+            continue
         if geometry.to_world is not None:
             if shape_id not in instance_ids or f"{shape_id}.to_world" not in params:
                 raise ValueError(f"frame transform for shape {shape_id!r}: the scene has no "
@@ -223,8 +262,12 @@ def apply_frame(
             faces = _checked_faces(shape_id, geometry.faces, vertex_count)
         staged.append((shape_id, positions, faces))
     # A scalar transform: Mitsuba converts it on the write, in half the time of a JIT one
-    for (shape_id, _), matrix in zip(transforms, _checked_transforms(transforms)):
+    for (shape_id, _), matrix in zip(transforms + poses, np.concatenate(
+            [_checked_transforms(transforms), _checked_transforms(poses, "sensor")])):
         params[f"{shape_id}.to_world"] = mi.ScalarAffineTransform4f(matrix)
+    for lens in lenses:
+        for key, value in lens.items():
+            params[key] = value
     for shape_id, positions, faces in staged:
         params[f"{shape_id}.vertex_positions"] = positions
         if faces is not None:
@@ -234,7 +277,45 @@ def apply_frame(
             triangles = faces if faces is not None else params[f"{shape_id}.faces"]
             params[normals_key] = vertex_normals(positions, triangles)
     params.update()
-    return [shape_id for shape_id in frame_geometry]
+    return [shape_id for shape_id, geometry in frame_geometry.items()
+            if not isinstance(geometry, FrameSensor)]
+
+
+def _checked_lens(sensor_id: str, frame_sensor: FrameSensor, sensor, params) -> dict:
+    """The parameters a :class:`FrameSensor`'s lens writes (``{key: value}``): the
+    horizontal field of view that shows the whole aperture on the sensor's film, and
+    the clipping range; after checking the values and that the sensor has those
+    parameters (a ValueError naming the sensor otherwise)."""
+    written = {}
+    if frame_sensor.fov is not None:
+        horizontal, vertical = _checked_pair(sensor_id, "fov", frame_sensor.fov)
+        if not (0 < horizontal < 180 and 0 < vertical < 180):
+            raise ValueError(f"frame sensor {sensor_id!r}: fov is ({horizontal:g}, "
+                             f"{vertical:g}): expected degrees in (0, 180)")
+        width, height = sensor.film().crop_size()
+        widened = 2 * np.degrees(np.arctan(np.tan(np.radians(vertical) / 2)
+                                           * int(width) / int(height)))
+        written[f"{sensor_id}.x_fov"] = mi.Float(max(horizontal, float(widened)))
+    if frame_sensor.clip is not None:
+        near, far = _checked_pair(sensor_id, "clip", frame_sensor.clip)
+        if not 0 < near < far:
+            raise ValueError(f"frame sensor {sensor_id!r}: clip is ({near:g}, {far:g}): "
+                             f"expected 0 < near < far")
+        written[f"{sensor_id}.near_clip"], written[f"{sensor_id}.far_clip"] = near, far
+    missing = [key for key in written if key not in params]
+    if missing:
+        raise ValueError(f"frame sensor {sensor_id!r}: the sensor ({sensor.class_name()}) "
+                         f"has no parameter {missing[0].split('.', 1)[1]!r}")
+    return written
+
+
+def _checked_pair(sensor_id: str, what: str, pair) -> tuple[float, float]:
+    """``pair`` as two finite floats, or a ValueError naming the sensor and ``what``."""
+    values = np.asarray(pair, dtype=np.float64).reshape(-1)
+    if values.size != 2 or not np.isfinite(values).all():
+        raise ValueError(f"frame sensor {sensor_id!r}: {what} is {pair!r}: expected two "
+                         f"finite numbers")
+    return float(values[0]), float(values[1])
 
 
 def checked_resolution(resolution) -> tuple[int, int]:
@@ -284,15 +365,16 @@ def _flat(shape_id: str, what: str, values, flat_type):
                      f"per entry), a tensor, or an array of 3-vectors")
 
 
-def _checked_transforms(transforms: list) -> np.ndarray:
-    """The ``(shape id, to_world)`` pairs' matrices as float32 ``(K, 4, 4)``, after
-    checking each is a finite, invertible 4x4 (an instance scaled to nothing would
-    vanish, or break its inverse); checked all at once, the first bad one named."""
+def _checked_transforms(transforms: list, kind: str = "shape") -> np.ndarray:
+    """The ``(id, to_world)`` pairs' matrices as float32 ``(K, 4, 4)``, after checking
+    each is a finite, invertible 4x4 (an instance scaled to nothing would vanish, or
+    break its inverse); checked all at once, the first bad one named as the ``kind``
+    (shape or sensor) of that id."""
     matrices = []
     for shape_id, to_world in transforms:
         matrix = np.asarray(to_world, dtype=np.float64)
         if matrix.shape != (4, 4):
-            raise ValueError(f"frame transform for shape {shape_id!r}: shape {matrix.shape}; "
+            raise ValueError(f"frame transform for {kind} {shape_id!r}: shape {matrix.shape}; "
                              "expected a 4x4 matrix")
         matrices.append(matrix)
     if not matrices:
@@ -303,9 +385,9 @@ def _checked_transforms(transforms: list) -> np.ndarray:
     for (shape_id, _), is_finite, is_singular in (
             zip(transforms, finite, singular) if (~finite | singular).any() else ()):
         if not is_finite:
-            raise ValueError(f"frame transform for shape {shape_id!r}: its to_world is not finite")
+            raise ValueError(f"frame transform for {kind} {shape_id!r}: its to_world is not finite")
         if is_singular:
-            raise ValueError(f"frame transform for shape {shape_id!r}: its to_world is singular "
+            raise ValueError(f"frame transform for {kind} {shape_id!r}: its to_world is singular "
                              "(a scale of 0)")
     return stack.astype(np.float32)
 

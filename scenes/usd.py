@@ -23,7 +23,9 @@ Instances
     :data:`RIGID_INSTANCE_TRIANGLES` triangles, are Mitsuba instances of shape groups
     (:mod:`.usd_instances`, with ``instancing=False`` turning them off).
 Cameras (``UsdGeom.Camera``)
-    The named, the render settings', the first, or a framing default (:mod:`.usd_camera`).
+    The named, the render settings', the first, or a framing default (:mod:`.usd_camera`);
+    a time-sampled camera moves the sensor with the frames (pose, field of view,
+    clipping range).
 Lights (``UsdLux``)
     In UsdLux's units, each type as the nearest Mitsuba emitter (:mod:`.usd_lights`).
 Materials
@@ -61,8 +63,8 @@ from pathlib import Path
 import mitsuba as mi
 import numpy as np
 
-from .animated import AnimatedScene, FrameGeometry
-from .usd_camera import _Camera
+from .animated import AnimatedScene, FrameGeometry, FrameSensor
+from .usd_camera import SENSOR_ID, _Camera
 from .usd_instances import (Group, Instance, Placements, check_instance_transform, digest,
                             instancer_points, object_points)
 from .usd_lights import _Lights
@@ -147,8 +149,8 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             emit(line)
 
     def warn_with(self, warn=None) -> None:
-        """Where later warning lines go (those said while rendering, such as a
-        time-sampled camera's): ``warn``, or stderr for ``None``."""
+        """Where later warning lines go (those said while rendering, such as an
+        orthographic camera's): ``warn``, or stderr for ``None``."""
         self._warn = warn or _print_warning
 
     def __repr__(self) -> str:
@@ -194,20 +196,23 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
                 for m in self._shapes}
 
     @usd_quiet
-    def frame(self, i: int) -> dict[str, FrameGeometry]:
+    def frame(self, i: int) -> dict[str, FrameGeometry | FrameSensor]:
         """World-space points (Mitsuba's Y-up metres, float32) of every moving mesh at
         frame ``i``'s time code; faces too where the mesh's topology is time-sampled,
         where its point count or its transform's mirroring differs from the first
         frame's, and for every later call once a mesh was given faces (the loaded mesh
         then holds that frame's faces, so whichever frames came before, the frame
-        applied is the same).
+        applied is the same). Where the camera moves (:meth:`camera_moves`), the
+        sensor's pose and lens at that time code under ``"camera"``
+        (:meth:`camera_at`).
 
         Raises:
             ValueError: naming the stage, the prim and the frame: ``i`` outside
                 ``0 .. frame_count - 1``; a mesh whose point count changes while its
                 faces do not; points or a transform that are not finite; an instance
                 whose transform is singular at this frame; a skinned stage's frame
-                outside the frames it was opened for.
+                outside the frames it was opened for; a moving camera whose lens or
+                transform would not make a sensor at this frame.
         """
         at = self._baked_at(i)
         time = Usd.TimeCode(self.time_code(i))
@@ -227,6 +232,8 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             else:
                 frame[mesh.id] = mesh_frame(self._placements, mesh, time, cache, at,
                                             self._where, given)
+        if self.camera_moves():
+            frame[SENSOR_ID] = self.camera_at(self.time_code(i))
         return frame
 
     @usd_quiet
@@ -289,7 +296,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         description = {
             "type": "scene",
             "integrator": dict(DEFAULT_INTEGRATOR if integrator is None else integrator),
-            "camera": self._sensor(width, height, spp),
+            SENSOR_ID: self._sensor(width, height, spp),
         }
         time = Usd.TimeCode(self._start)
         cache = UsdGeom.XformCache(time)

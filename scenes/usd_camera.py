@@ -5,9 +5,11 @@ The one named by ``camera=``, else the one the stage's render settings
 (``UsdRender.Settings``) name, else the first in traversal order, else a camera
 framing the first frame's meshes (said once). Focal length and apertures give the
 field of view, fitted so the whole aperture shows (``fov_axis`` ``x`` or ``y``),
-the clipping range gives ``near_clip``/``far_clip``. hlbvh's render loop moves
-meshes, not sensors: a time-sampled camera renders every frame from its pose at the
-first frame (said once).
+the clipping range gives ``near_clip``/``far_clip``. A camera that moves (its
+transform, its own xformOps or an ancestor's, or its lens time-sampled) moves the
+sensor: each frame gives a :class:`~hlbvh.scenes.animated.FrameSensor` of its pose,
+field of view and clipping range at the frame's time code (:meth:`_Camera.camera_at`,
+which takes any time code, fractional ones included, for times inside a shutter).
 """
 
 from __future__ import annotations
@@ -17,13 +19,37 @@ import math
 import mitsuba as mi
 import numpy as np
 
-from .animated import checked_resolution
-from .usd_prims import (DEFAULT_WIDTH, Gf, Sdf, Usd, UsdGeom, UsdRender,
+from .animated import FrameSensor, checked_resolution
+from .usd_prims import (DEFAULT_WIDTH, Sdf, Usd, UsdGeom, UsdRender,
                         _USD_TO_MITSUBA_CAMERA, _checked, _matrix, _transform_varies)
+
+
+#: The sensor's id in the scene description, under which a frame gives a moving camera.
+SENSOR_ID = "camera"
 
 
 class _Camera:
     """The camera of a USD stage, as methods of :class:`UsdScene`."""
+
+    def camera_at(self, time_code: float) -> FrameSensor | None:
+        """The stage's camera at ``time_code`` (any time code, between samples too:
+        USD interpolates them) as a :class:`FrameSensor`: its world transform (its
+        own and its ancestors' xformOps, in Mitsuba's Y-up metres, scale removed),
+        its aperture's fields of view from the focal length and apertures, its
+        clipping range in metres. ``None`` for the framing default, which does not
+        move.
+
+        Raises:
+            ValueError: naming the camera and the time code, where a value would not
+                make a sensor (see :meth:`_lens`).
+        """
+        return None if self._camera is None else self._lens(self._camera, time_code)
+
+    def camera_moves(self) -> bool:
+        """Whether the stage's camera is time-sampled (its transform, its own or an
+        ancestor's, or an attribute of its lens), so frames move the sensor."""
+        return self._camera is not None and (_transform_varies(self._camera) or any(
+            a.GetNumTimeSamples() > 1 for a in self._camera.GetAttributes()))
 
     def _pick_camera(self, wanted: str | None):
         """The camera prim to render through (checked by :meth:`_checked_camera`), or
@@ -49,28 +75,42 @@ class _Camera:
         return None
 
     def _checked_camera(self, prim):
-        """``prim`` when its first frame's camera makes a Mitsuba sensor: focal length
+        """``prim`` when its first frame's camera makes a Mitsuba sensor
+        (:meth:`_lens`); else the ValueError naming the camera and the attribute."""
+        self._lens(prim, self._start)
+        return prim
+
+    def _lens(self, prim, time_code: float) -> FrameSensor:
+        """The camera ``prim`` at ``time_code`` as a :class:`FrameSensor`
+        (:meth:`camera_at`), after checking it makes a Mitsuba sensor: focal length
         and apertures finite and above 0, a clipping range of finite ``0 <= near <
         far``, a finite transform that does not scale it to nothing; else a ValueError
-        naming the camera and the attribute (Mitsuba would divide by zero, render a
-        blank image or refuse the sensor)."""
-        where = f"{self._where}: camera {prim.GetPath()}"
-        camera = UsdGeom.Camera(prim)
-        time = Usd.TimeCode(self._start)
-        for name, attribute in (("focalLength", camera.GetFocalLengthAttr()),
-                                ("horizontalAperture", camera.GetHorizontalApertureAttr()),
-                                ("verticalAperture", camera.GetVerticalApertureAttr())):
+        naming the camera, the time code (after the first frame's) and the attribute
+        (Mitsuba would divide by zero, render a blank image or refuse the sensor)."""
+        where = f"{self._where}: camera {prim.GetPath()}" + (
+            "" if time_code == self._start else f" at time code {time_code:g}")
+        usd_camera = UsdGeom.Camera(prim)
+        time = Usd.TimeCode(time_code)
+        for name, attribute in (("focalLength", usd_camera.GetFocalLengthAttr()),
+                                ("horizontalAperture", usd_camera.GetHorizontalApertureAttr()),
+                                ("verticalAperture", usd_camera.GetVerticalApertureAttr())):
             _checked(f"{where}: {name}", float(attribute.Get(time)), least=0, strictly=True)
         near, far = _checked(f"{where}: clippingRange",
-                             tuple(camera.GetClippingRangeAttr().Get(time)), least=0)
+                             tuple(usd_camera.GetClippingRangeAttr().Get(time)), least=0)
         if not near < far:
             raise ValueError(f"{where}: clippingRange is ({near:g}, {far:g}): expected "
                              f"near < far")
-        to_world = self._root @ _matrix(camera.GetCamera(time).transform)
+        camera = usd_camera.GetCamera(time)
+        to_world = self._root @ _matrix(camera.transform)
         if not np.isfinite(to_world).all() or abs(np.linalg.det(to_world[:3, :3])) <= 1e-30:
             raise ValueError(f"{where}: its transform (xformOps, its own or an "
                              f"ancestor's) is not finite or scales it to nothing")
-        return prim
+        to_world[:3, :3] = to_world[:3, :3] / np.linalg.norm(to_world[:3, :3], axis=0)
+        fov = tuple(2 * math.degrees(math.atan(aperture / (2 * camera.focalLength)))
+                    for aperture in (camera.horizontalAperture, camera.verticalAperture))
+        units = float(UsdGeom.GetStageMetersPerUnit(self.stage))
+        return FrameSensor(to_world=to_world @ _USD_TO_MITSUBA_CAMERA, fov=fov,
+                           clip=(max(near * units, 1e-6), max(far * units, near * units * 2)))
 
     def _cameras(self) -> list:
         predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
@@ -95,39 +135,28 @@ class _Camera:
         return DEFAULT_WIDTH, max(1, round(DEFAULT_WIDTH / aspect))
 
     def _sensor(self, width: int, height: int, spp: int) -> dict:
-        """The perspective sensor: the stage's camera at the first frame, or the
-        framing default."""
+        """The perspective sensor: the stage's camera at the first frame
+        (:meth:`camera_at`; the frames move it where it moves), or the framing
+        default."""
         film = {"type": "hdrfilm", "width": width, "height": height,
                 "rfilter": {"type": "box"}}
         sampler = {"type": "independent", "sample_count": spp}
         if self._camera is None:
             return {"type": "perspective", **self._framing(width / height),
                     "film": film, "sampler": sampler}
-        time = Usd.TimeCode(self._start)
-        usd_camera = UsdGeom.Camera(self._camera)
-        if _transform_varies(self._camera) or any(
-                a.GetNumTimeSamples() > 1 for a in self._camera.GetAttributes()):
-            self._warn_once(f"{self._where}: camera {self._camera.GetPath()} is time-sampled; "
-                            f"hlbvh moves meshes, not sensors: every frame is rendered from "
-                            f"its pose at time code {self._start:g}")
-        camera = usd_camera.GetCamera(time)
-        if camera.projection != Gf.Camera.Perspective:
+        if UsdGeom.Camera(self._camera).GetProjectionAttr().Get(
+                Usd.TimeCode(self._start)) != UsdGeom.Tokens.perspective:
             self._warn_once(f"{self._where}: camera {self._camera.GetPath()} is orthographic; "
                             f"rendered as a perspective camera of its focal length")
-        to_world = self._root @ _matrix(camera.transform)
-        scale = np.linalg.norm(to_world[:3, :3], axis=0)
-        to_world[:3, :3] = to_world[:3, :3] / np.where(scale > 0, scale, 1)
-        to_world = to_world @ _USD_TO_MITSUBA_CAMERA
-        h_fov = 2 * math.degrees(math.atan(camera.horizontalAperture / (2 * camera.focalLength)))
-        v_fov = 2 * math.degrees(math.atan(camera.verticalAperture / (2 * camera.focalLength)))
+        lens = self.camera_at(self._start)
+        h_fov, v_fov = lens.fov
         # The whole aperture shows: a film wider than the aperture fits its height.
-        wider = width / height > camera.horizontalAperture / camera.verticalAperture
-        near, far = camera.clippingRange.min, camera.clippingRange.max
-        units = float(UsdGeom.GetStageMetersPerUnit(self.stage))
+        wider = width / height > math.tan(math.radians(h_fov) / 2) / math.tan(
+            math.radians(v_fov) / 2)
         return {"type": "perspective", "fov": v_fov if wider else h_fov,
                 "fov_axis": "y" if wider else "x",
-                "near_clip": max(near * units, 1e-6), "far_clip": max(far * units, near * units * 2),
-                "to_world": mi.ScalarTransform4f(to_world.tolist()),
+                "near_clip": lens.clip[0], "far_clip": lens.clip[1],
+                "to_world": mi.ScalarTransform4f(lens.to_world.tolist()),
                 "film": film, "sampler": sampler}
 
     def _framing(self, aspect: float) -> dict:
