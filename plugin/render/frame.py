@@ -1,6 +1,6 @@
-"""One frame of an animation: its geometry written into the loaded scene, the
-accelerator brought up to date, the render, and the frame's statistics row
-(:data:`STATS_FIELDS`, timed with :func:`hlbvh.timing.clock_ms`)."""
+"""One frame of an animation: its geometry (and a moving camera's pose and lens)
+written into the loaded scene, the accelerator brought up to date, the render, and the
+frame's statistics row (:data:`STATS_FIELDS`, timed with :func:`hlbvh.timing.clock_ms`)."""
 
 from __future__ import annotations
 
@@ -110,7 +110,9 @@ class FrameRenderer:
                 and the frame for sequences).
         """
         # ---- The frame's geometry into the scene; its shapes update themselves ----
-        # (with our accelerator, through hlbvh.traverse: Mitsuba's is never rebuilt)
+        # (with our accelerator, through hlbvh.traverse: Mitsuba's is never rebuilt);
+        # a moving camera's sensor is written with them, from the same frame
+        # description, so every render of frame i (resumed, on a worker) sees its pose
         start = clock_ms()
         parameters = _TimedUpdate(self.params)
         scenes.apply_frame(self.scene, parameters, self.animation.frame(i))
