@@ -9,7 +9,8 @@ triangle's, and the shading frame and the position's derivatives by the rotation
 takes the one face normal to the other. Where the two triangles are equal (a still
 mesh among moving ones, equal keys) nothing is touched, so the interaction is
 Mitsuba's bit for bit. Vertex normals and uv are read from the mesh as Mitsuba reads
-them (the keys hold positions only).
+them (the keys hold positions only). :func:`shutter_points` gives a hit's point at the
+shutter's open and close (motion vectors).
 """
 
 from __future__ import annotations
@@ -36,32 +37,22 @@ def at_ray_time(si, pi, ray, group, first_face: mi.UInt32, time: mi.Float, activ
     Returns:
         the moved SurfaceInteraction3f.
     """
-    base = dr.gather(mi.UInt32, first_face, pi.shape_index, active & pi.is_valid())
-    outside_instances = dr.reinterpret_array(mi.UInt32, pi.instance) == 0
-    on = active & pi.is_valid() & (base != 0xFFFFFFFF) & outside_instances
-    face = base + pi.prim_index
+    on, face = _on_group(pi, first_face, active)
     keys = ray_keys(group.keyed, time)
-    width = dr.width(group.geometry.vertices)  # 3·V: one key's floats
     at_time, at_mid = [], []
     for corner in range(3):
         vertex = dr.gather(mi.UInt32, group.geometry.faces, 3 * face + corner, on)
-        first = keys.k * width + 3 * vertex
-        key_k = [dr.gather(mi.Float, group.key_points, first + c, on) for c in range(3)]
-        key_n = [dr.gather(mi.Float, group.key_points, first + width + c, on) for c in range(3)]
-        at_time.append(mi.Point3f(*lerp(key_k, key_n, keys.f, keys.g)))
+        at_time.append(mi.Point3f(*lerp(_key_point(group, keys.k, vertex, on),
+                                         _key_point(group, keys.k + 1, vertex, on),
+                                         keys.f, keys.g)))
         at_mid.append(mi.Point3f(*[dr.gather(mi.Float, group.geometry.vertices,
                                              3 * vertex + c, on) for c in range(3)]))
-    u, v = pi.prim_uv.x, pi.prim_uv.y
-    w = 1.0 - u - v
-
-    def point(p):
-        return p[0] * w + p[1] * u + p[2] * v
 
     def normal(p):
         return dr.normalize(dr.cross(p[1] - p[0], p[2] - p[0]))
 
     si = mi.SurfaceInteraction3f(si)
-    si.p = dr.select(on, si.p + (point(at_time) - point(at_mid)), si.p)
+    si.p = dr.select(on, si.p + (_barycentric(pi, at_time) - _barycentric(pi, at_mid)), si.p)
     n_mid, n_time = normal(at_mid), normal(at_time)
     turned = on & dr.any(n_mid != n_time) & dr.all(dr.isfinite(n_time))
     # The rotation taking n_mid to n_time (Rodrigues, with the unnormalised axis).
@@ -78,3 +69,39 @@ def at_ray_time(si, pi, ray, group, first_face: mi.UInt32, time: mi.Float, activ
     si.dp_dv = dr.select(turned, rotated(si.dp_dv), si.dp_dv)
     si.wi = dr.select(turned, si.to_local(-ray.d), si.wi)
     return si
+
+
+def shutter_points(pi, group, first_face: mi.UInt32, active):
+    """Where the hits of ``pi`` on the keyed ``group``'s meshes are at the shutter's
+    open and close (the same barycentric point on the triangle of the first and the
+    last key): ``(p_open, p_close, on)``, ``on`` the lanes with such a hit."""
+    on, face = _on_group(pi, first_face, active)
+    last = mi.UInt32(group.keyed.keys - 1)
+    first, final = [], []
+    for corner in range(3):
+        vertex = dr.gather(mi.UInt32, group.geometry.faces, 3 * face + corner, on)
+        first.append(mi.Point3f(*_key_point(group, mi.UInt32(0), vertex, on)))
+        final.append(mi.Point3f(*_key_point(group, last, vertex, on)))
+    return _barycentric(pi, first), _barycentric(pi, final), on
+
+
+def _on_group(pi, first_face: mi.UInt32, active):
+    """The lanes whose hit is on a mesh of the keyed group (outside any instance), and
+    the hit's face in the group."""
+    base = dr.gather(mi.UInt32, first_face, pi.shape_index, active & pi.is_valid())
+    outside_instances = dr.reinterpret_array(mi.UInt32, pi.instance) == 0
+    on = active & pi.is_valid() & (base != 0xFFFFFFFF) & outside_instances
+    return on, base + pi.prim_index
+
+
+def _key_point(group, key, vertex, on) -> list:
+    """The x, y, z of ``vertex`` of the group at key ``key`` (UInt32 per lane)."""
+    first = key * dr.width(group.geometry.vertices) + 3 * vertex
+    return [dr.gather(mi.Float, group.key_points, first + c, on) for c in range(3)]
+
+
+def _barycentric(pi, p: list):
+    """The point of the triangle ``p`` (three Point3f) at ``pi``'s barycentric
+    coordinates, as Mitsuba weighs them (``(1 - u - v)·p0 + u·p1 + v·p2``)."""
+    u, v = pi.prim_uv.x, pi.prim_uv.y
+    return p[0] * (1.0 - u - v) + p[1] * u + p[2] * v

@@ -130,6 +130,13 @@ class SceneQueries:
         ``pi.compute_surface_interaction(ray, ray_flags, active)`` (Mitsuba's)."""
         return pi.compute_surface_interaction(ray, ray_flags, active)
 
+    def points_over_shutter(self, pi, si, active=True):
+        """Where each hit of ``pi`` (expanded as ``si``) is at the shutter's open and
+        close, and the shutter's length in the units of ``ray.time``: ``(p_open,
+        p_close, length)``. Here, where nothing moves inside a frame, the hit itself
+        twice (``length`` 1)."""
+        return si.p, si.p, 1.0
+
 
 class NativeAccel(SceneQueries):
     """The scene's own accelerator (Embree or OptiX) behind the same interface as

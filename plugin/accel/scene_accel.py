@@ -36,7 +36,7 @@ from hlbvh.accel.hits import NearestHit
 from hlbvh.accel.instance_group import InstanceGroup, group_of
 from hlbvh.accel.instance_shading import InstanceShading, is_instance
 from hlbvh.accel.mesh_group import MeshGroup, joined_sah_cost
-from hlbvh.accel.keyed_shading import at_ray_time
+from hlbvh.accel.keyed_shading import at_ray_time, shutter_points
 from hlbvh.accel.keys import motion_keys
 from hlbvh.accel.motion import MeshState, shape_states
 from hlbvh.accel.moving import MovingMeshes, query_ns, still_share
@@ -358,6 +358,16 @@ class SceneAccel(SceneQueries):
             si = at_ray_time(si, pi, ray, self._keyed, self._keyed_faces,
                              self._ray_time(ray), active)
         return si
+
+    def points_over_shutter(self, pi, si, active=True):
+        """Where each hit is at the shutter's open and close (a hit on a mesh with
+        motion keys: its barycentric point on the first and the last key's triangle;
+        any other: the hit itself), and the keys' shutter length (1 without keys)."""
+        if self._keyed is None:
+            return si.p, si.p, 1.0
+        p_open, p_close, on = shutter_points(pi, self._keyed, self._keyed_faces, active)
+        open_, close = self._keyed.shutter
+        return dr.select(on, p_open, si.p), dr.select(on, p_close, si.p), close - open_
 
     def _check_movable(self, i: int):
         """Refuse a change this accelerator cannot follow: a shape that cannot be traced
