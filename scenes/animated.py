@@ -164,6 +164,21 @@ class AnimatedScene(abc.ABC):
         """Total triangles of the scene as loaded (the sum of :meth:`triangle_counts`)."""
         return sum(self.triangle_counts().values())
 
+    def frame_at(self, time: float) -> dict:
+        """The geometry at ``time`` in frames, between two frames too (a shutter's keys),
+        clamped to the animation's first and last frame. By default a mesh's positions
+        are interpolated linearly between the frames around ``time`` (mesh sequences
+        between their files); a mesh whose triangles the frames give (its topology may
+        change), an instance and the camera take the nearer frame's. A scene that knows
+        its motion between frames may override it."""
+        time = min(max(float(time), 0.0), float(self.frame_count - 1))
+        i = min(int(time), self.frame_count - 1)
+        f = time - i
+        if f == 0.0:
+            return self.frame(i)
+        before, after = self.frame(i), self.frame(i + 1)
+        return {key: _between(geometry, after.get(key), f) for key, geometry in before.items()}
+
     def _check_frame_index(self, i) -> int:
         """``i`` as an int, after checking it names a frame of this scene."""
         if isinstance(i, bool) or not isinstance(i, numbers.Integral):
@@ -173,6 +188,18 @@ class AnimatedScene(abc.ABC):
                 f"frame {i} of scene {self.name!r}: expected 0 <= frame < {self.frame_count}"
             )
         return int(i)
+
+
+def _between(before, after, f: float):
+    """A shape's geometry a fraction ``f`` of the way from ``before`` to ``after``
+    (:meth:`AnimatedScene.frame_at`)."""
+    interpolated = (isinstance(before, FrameGeometry) and isinstance(after, FrameGeometry)
+                    and before.positions is not None and after.positions is not None
+                    and before.faces is None and after.faces is None
+                    and before.vertex_count == after.vertex_count)
+    if interpolated:
+        return FrameGeometry(positions=before.positions * (1.0 - f) + after.positions * f)
+    return before if f < 0.5 or after is None else after
 
 
 def apply_frame(

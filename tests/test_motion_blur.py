@@ -137,3 +137,20 @@ def test06_motion_vectors_give_a_translating_quad_its_speed_in_pixels():
     np.testing.assert_allclose(motion_x[on_quad], expected, rtol=0.01)
     np.testing.assert_allclose(motion_y[on_quad], 0.0, atol=1e-3)
     assert np.all(motion_x[shape == 1] == 0.0)
+
+
+def test07_an_animation_gives_its_meshes_between_frames():
+    """``frame_at``: a procedural mesh halfway between two frames is their mean (the
+    default's linear interpolation), a whole frame is that frame, and times outside
+    the animation are its first or last frame."""
+    from hlbvh import scenes
+
+    animation = scenes.get("cloth", triangles=2000, frames=4)
+    (key,) = animation.animated_ids()
+    at = {t: np.asarray(animation.frame_at(t)[key].positions) for t in (1.5, 2.0, -1.0, 9.0)}
+    one, two = (np.asarray(animation.frame(i)[key].positions) for i in (1, 2))
+    np.testing.assert_allclose(at[1.5], 0.5 * (one + two), rtol=0, atol=1e-6)
+    assert not np.allclose(at[1.5], one)
+    np.testing.assert_array_equal(at[2.0], two)
+    np.testing.assert_array_equal(at[-1.0], np.asarray(animation.frame(0)[key].positions))
+    np.testing.assert_array_equal(at[9.0], np.asarray(animation.frame(3)[key].positions))
