@@ -236,6 +236,16 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             frame[SENSOR_ID] = self.camera_at(self.time_code(i))
         return frame
 
+    def frame_at(self, time: float) -> dict[str, FrameGeometry | FrameSensor]:
+        """:meth:`AnimatedScene.frame_at` (``time`` in frames, clamped to the
+        animation), with a moving camera at that very time code (:meth:`camera_at`, USD
+        interpolating its samples) rather than at the nearer frame."""
+        frame = super().frame_at(time)
+        if SENSOR_ID in frame:
+            frames = min(max(float(time), 0.0), float(self.frame_count - 1))
+            frame[SENSOR_ID] = self.camera_at(self._start + frames)
+        return frame
+
     @usd_quiet
     def world_triangles(self, i: int) -> dict[str, np.ndarray]:
         """Every mesh's triangles at frame ``i`` as ``(F, 3, 3)`` float64 world-space

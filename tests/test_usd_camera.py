@@ -136,10 +136,12 @@ def test02_the_camera_at_a_fractional_time_code_interpolates_its_keys(stages):
         2 * math.degrees(math.atan(a / 2 / focal))
         for a in (gf.horizontalAperture, gf.verticalAperture)))
     assert at.clip == pytest.approx(tuple(np.mean(CLIPPING[1:], axis=0)))
-    # Frames give it at their time codes, under the sensor's id
-    for i in range(3):
-        sensor = animation.frame(i)["camera"]
-        np.testing.assert_array_equal(sensor.to_world, animation.camera_at(i).to_world)
+    # Frames give it at their time codes, under the sensor's id, and between frames
+    # (a shutter's times) at the time code itself, not the nearer frame's
+    for time in (0, 1, 2, 1.5, 0.25):
+        sensor = animation.frame_at(time)["camera"]
+        np.testing.assert_array_equal(sensor.to_world, animation.camera_at(time).to_world)
+        assert sensor.fov == animation.camera_at(time).fov
     still = UsdScene(stages["still"], warn=lambda line: None)
     assert not still.camera_moves() and "camera" not in still.frame(1)
 
