@@ -199,3 +199,9 @@ def test05_apply_frame_names_a_bad_sensor_entry(stages):
         max(good.fov[0], 2 * math.degrees(math.atan(
             math.tan(math.radians(good.fov[1]) / 2) * 8 / 6))), rel=1e-6)
     assert (params["camera.near_clip"], params["camera.far_clip"]) == pytest.approx(good.clip)
+    # A lens value the sensor has no parameter for is one line, not left out
+    orthographic = mi.load_dict({"type": "scene", "camera": {"type": "orthographic"},
+                                 "ball": {"type": "sphere"}})
+    with pytest.raises(ValueError, match=r"frame sensor 'camera': the sensor "
+                                         r"\(OrthographicCamera\) has no parameter 'x_fov'"):
+        scenes.apply_frame(orthographic, None, {"camera": good})
