@@ -21,13 +21,14 @@ if _mi.variant() is None:
 
 from hlbvh.kernels.build import build  # noqa: E402
 from hlbvh.kernels.bvh import BVH, BuildConfig, BuildStats  # noqa: E402
-from hlbvh.accel import (NativeAccel, SceneAccel, ShapeParameters, clear_motion_keys,  # noqa: E402
-                         make_accel, set_motion_keys, traverse)
+from hlbvh.accel import (NativeAccel, SceneAccel, ShapeParameters,  # noqa: E402
+                         clear_camera_keys, clear_motion_keys, make_accel, set_camera_keys,
+                         set_motion_keys, traverse)
 from hlbvh.integrators import register  # noqa: E402
 
 register()
 
 __all__ = ["build", "BVH", "BuildConfig", "BuildStats", "SceneAccel", "NativeAccel",
            "make_accel", "register", "traverse", "ShapeParameters", "set_motion_keys",
-           "clear_motion_keys"]
+           "clear_motion_keys", "set_camera_keys", "clear_camera_keys"]
 __version__ = "0.1.0"

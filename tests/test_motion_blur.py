@@ -154,3 +154,49 @@ def test07_an_animation_gives_its_meshes_between_frames():
     np.testing.assert_array_equal(at[2.0], two)
     np.testing.assert_array_equal(at[-1.0], np.asarray(animation.frame(0)[key].positions))
     np.testing.assert_array_equal(at[9.0], np.asarray(animation.frame(3)[key].positions))
+
+
+def _looking(x):
+    return T().look_at([x, 0, 3], [x, 0, 0], [0, 1, 0])
+
+
+def test08_a_moving_camera_blurs_as_natives_sub_frame_accumulation():
+    """A camera sliding 0.5 sideways over the shutter (hlbvh.set_camera_keys), the
+    scene still: the blurred image equals native's accumulation of 16 sub-frames from
+    the camera's stratified poses within block-mean noise; the still camera does not."""
+    ours = _scene({"type": "hlbvh_path", "max_depth": 3}, shutter=(0.0, 1.0))
+    sensor = ours.sensors()[0]
+    params = mi.traverse(ours)  # the sensor's own pose: the mid-shutter one
+    params["sensor.to_world"] = _looking(0.25)
+    params.update()
+    hlbvh.set_camera_keys(sensor, [_looking(0.0), _looking(0.5)], (0.0, 1.0))
+    blurred = _blocks(np.array(mi.render(ours, seed=1)))
+
+    def accumulated(seed, sub_frames=16):
+        reference = _scene({"type": "path", "max_depth": 3})
+        ref_params = mi.traverse(reference)
+        total = 0
+        for j in range(sub_frames):
+            ref_params["sensor.to_world"] = _looking(0.5 * (j + 0.5) / sub_frames)
+            ref_params.update()
+            total = total + np.array(mi.render(reference, seed=seed + j, spp=4))
+        return _blocks(total / sub_frames)
+
+    reference, other = accumulated(100), accumulated(500)
+    noise = np.std(reference - other)
+    assert np.abs(blurred - reference).max() < 5 * noise
+    hlbvh.clear_camera_keys(sensor)
+    still = _blocks(np.array(mi.render(ours, seed=1)))
+    assert np.abs(still - reference).max() > 10 * noise
+
+
+@pytest.mark.parametrize("poses, shutter, message", [
+    ([_looking(0.0), _looking(0.5)], (0.5, 0.5), r"sensor 'sensor': shutter \(0.5, 0.5\)"),
+    ([_looking(0.0)], (0.0, 1.0), "at least two keys"),
+    ([_looking(0.0), _looking(0.5).scale(2.0)], (0.0, 1.0), "camera key 1 is not rigid"),
+    ([_looking(0.0), np.full((4, 4), np.nan)], (0.0, 1.0), "camera key 1 is not a finite"),
+])
+def test09_bad_camera_keys_are_one_line_naming_the_sensor(poses, shutter, message):
+    scene = _scene({"type": "hlbvh_path"})
+    with pytest.raises(ValueError, match=message):
+        hlbvh.set_camera_keys(scene.sensors()[0], poses, shutter)

@@ -1,6 +1,6 @@
 """Motion keys: a moving mesh's vertex positions at ``S + 1`` evenly spaced times over
 the shutter, given per frame, so that our structures trace each ray at its own time
-(motion blur of deforming meshes).
+(motion blur of deforming meshes), and a camera's poses over the shutter.
 
 Mitsuba's sensors draw a time per camera ray inside ``[shutter_open, shutter_close]``
 and every bounce keeps it (``ray.time``), but no Mitsuba shape moves with it.
@@ -8,7 +8,9 @@ and every bounce keeps it (``ray.time``), but no Mitsuba shape moves with it.
 the mesh's own positions at the middle of the shutter (what Mitsuba's structures,
 emitter sampling and shading start from) and keeps the keys, tied to the vertex buffer
 it wrote. A later write of the mesh's positions without keys ends them, so keys given
-for one frame never blur the next.
+for one frame never blur the next. :func:`set_camera_keys` gives a sensor its poses at
+the keys: our integrators move each camera ray from the sensor's pose to the one at the
+ray's time (:func:`camera_ray`).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import math
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from hlbvh.kernels.keyed import checked_keys, mid_shutter
 
@@ -98,3 +101,130 @@ def motion_keys(mesh) -> MotionKeys | None:
 def clear_motion_keys(mesh) -> None:
     """Forget ``mesh``'s keys (its next frame renders unblurred)."""
     _KEYS.pop(id(mesh), None)
+
+
+@dataclass(frozen=True)
+class CameraKeys:
+    """A sensor's poses at evenly spaced times over the shutter.
+
+    Attributes:
+        rotations: Quaternion4f of the ``S + 1`` poses' rotations (one entry a key).
+        translations: Vector3f of their translations.
+        shutter: ``(open, close)`` in the units of ``ray.time``.
+        base: the sensor's ``to_world`` when the keys were given (its rays start from
+            it), as a tuple of its affine entries; another pose ends the keys.
+        to_base: the inverse of that pose.
+    """
+
+    rotations: object
+    translations: object
+    shutter: tuple
+    base: tuple
+    to_base: object
+
+
+#: ``id(sensor) -> CameraKeys`` (see :func:`camera_keys`).
+_CAMERAS: dict = {}
+
+
+def set_camera_keys(sensor, to_worlds, shutter) -> None:
+    """Give ``sensor`` its poses at ``len(to_worlds)`` evenly spaced times over
+    ``shutter`` for the frame about to be rendered; its own ``to_world`` stays the pose
+    its rays start from (our integrators move each camera ray to the pose at its time,
+    rotations interpolated along the shortest arc, translations linearly).
+
+    Args:
+        sensor: the scene's ``mi.Sensor``.
+        to_worlds: at least two rigid camera-to-world transforms (4x4 arrays or
+            ``mi.ScalarTransform4f``), one per key.
+        shutter: ``(open, close)`` in the units of ``ray.time``, ``close > open``.
+    Raises:
+        ValueError: a bad shutter, fewer than two poses, a pose that is not finite or
+            not rigid, naming the sensor and the key.
+    """
+    name = sensor.id() or "<unnamed sensor>"
+    open_, close = (float(v) for v in shutter)
+    if not (math.isfinite(open_) and math.isfinite(close) and close > open_):
+        raise ValueError(f"sensor {name!r}: shutter ({open_}, {close}): expected finite "
+                         "open < close (a closed shutter needs no keys)")
+    matrices = [np.asarray(m.matrix if hasattr(m, "matrix") else m, np.float64)
+                for m in to_worlds]
+    if len(matrices) < 2:
+        raise ValueError(f"sensor {name!r}: {len(matrices)} camera pose(s): expected at "
+                         "least two keys")
+    rotations, translations = [], []
+    for k, m in enumerate(matrices):
+        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            raise ValueError(f"sensor {name!r}: camera key {k} is not a finite 4x4 transform")
+        r = m[:3, :3]
+        if not np.allclose(r @ r.T, np.eye(3), atol=1e-4) or np.linalg.det(r) <= 0:
+            raise ValueError(f"sensor {name!r}: camera key {k} is not rigid (a rotation "
+                             "and a translation)")
+        rotations.append(dr.scalar.Quaternion4f(dr.matrix_to_quat(dr.scalar.Matrix3f(r))))
+        translations.append(m[:3, 3])
+    for k in range(1, len(rotations)):  # the shortest arc between neighbouring keys
+        if dr.dot(rotations[k - 1], rotations[k]) < 0:
+            rotations[k] = -rotations[k]
+    base = sensor.world_transform()
+    quat = [mi.Float([float(q[c]) for q in rotations]) for c in range(4)]
+    _CAMERAS[id(sensor)] = CameraKeys(
+        mi.Quaternion4f(*quat), mi.Vector3f(*[mi.Float([float(t[c]) for t in translations])
+                                              for c in range(3)]),
+        (open_, close), _pose(base), base.inverse())
+
+
+def camera_keys(sensor) -> CameraKeys | None:
+    """The keys :func:`set_camera_keys` gave ``sensor``, while its ``to_world`` is still
+    the one it had then (None otherwise, and the keys are dropped)."""
+    keys = _CAMERAS.get(id(sensor))
+    if keys is None:
+        return None
+    if keys.base != _pose(sensor.world_transform()):
+        del _CAMERAS[id(sensor)]
+        return None
+    return keys
+
+
+def clear_camera_keys(sensor) -> None:
+    """Forget ``sensor``'s keys (its next frame renders from its own pose only)."""
+    _CAMERAS.pop(id(sensor), None)
+
+
+def camera_ray(scene, ray):
+    """``ray`` (a camera ray of ``scene``'s first sensor) moved from the sensor's pose
+    to its pose at the ray's time, where the sensor has keys (:func:`set_camera_keys`);
+    ``ray`` itself otherwise."""
+    if not scene.sensors():
+        return ray
+    keys = camera_keys(scene.sensors()[0])
+    if keys is None:
+        return ray
+    open_, close = keys.shutter
+    segments = dr.width(keys.translations) - 1
+    x = dr.clip((ray.time - open_) * (1.0 / (close - open_)), 0.0, 1.0) * segments
+    k = dr.minimum(mi.UInt32(dr.floor(x)), segments - 1)
+    f = x - mi.Float(k)
+    q = dr.slerp(dr.gather(mi.Quaternion4f, keys.rotations, k),
+                 dr.gather(mi.Quaternion4f, keys.rotations, k + 1), f)
+    t = dr.lerp(dr.gather(mi.Vector3f, keys.translations, k),
+                dr.gather(mi.Vector3f, keys.translations, k + 1), f)
+    # the ray in the camera's frame, then out through the pose at its time
+    o, d = keys.to_base @ ray.o, keys.to_base @ ray.d
+    moved = type(ray)(ray)  # a RayDifferential3f stays one (its differentials unmoved)
+    moved.o = mi.Point3f(_rotated(q, mi.Vector3f(o)) + t)
+    moved.d = _rotated(q, mi.Vector3f(d))
+    return moved
+
+
+def _rotated(q, v) -> mi.Vector3f:
+    """``v`` rotated by the unit quaternion ``q``: ``v + 2w(u x v) + 2 u x (u x v)``
+    with ``u`` its vector part, ``w`` its scalar part."""
+    u = mi.Vector3f(q.x, q.y, q.z)
+    c = dr.cross(u, v)
+    return v + 2.0 * (q.w * c + dr.cross(u, c))
+
+
+def _pose(transform) -> tuple:
+    """A transform's first three rows (a JIT transform's, width one) as host floats."""
+    m = transform.matrix
+    return tuple(float(dr.slice(m[r][c], 0)) for r in range(3) for c in range(4))

@@ -6,6 +6,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from hlbvh.accel.keys import camera_ray
 from .common import AccelIntegrator
 
 #: Output channels, in the order they follow the film's colour (and alpha) channels.
@@ -73,7 +74,7 @@ class AOVIntegrator(AccelIntegrator):
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         accel = self.sample_accel(scene)
-        ray = mi.Ray3f(ray)
+        ray = mi.Ray3f(camera_ray(scene, ray))
         pi = accel.ray_intersect_preliminary(ray, True, active)
         si = accel.surface_interaction(pi, ray, mi.RayFlags.All, active)
         hit = mi.Bool(active) & pi.is_valid()

@@ -7,6 +7,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from hlbvh.accel.keys import camera_ray
 from .common import AccelIntegrator, mis_weight, skip_area_emitters, visible_emitter_sample
 
 
@@ -88,6 +89,7 @@ class DirectIntegrator(AccelIntegrator):
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         accel = self.sample_accel(scene)
+        ray = camera_ray(scene, ray)
         active = mi.Bool(active)
         si = accel.ray_intersect(ray, mi.RayFlags.All, True, active)
         result = mi.Spectrum(0.0)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from hlbvh.accel.keys import camera_ray
 from .common import (AccelIntegrator, depth_properties, mis_weight, skip_area_emitters,
                      spec_fma, visible_emitter_sample)
 
@@ -87,7 +88,7 @@ class PathIntegrator(AccelIntegrator):
 
         # --------------------- Configure loop state ----------------------
 
-        ray = mi.Ray3f(ray)                          # Current ray
+        ray = mi.Ray3f(camera_ray(scene, ray))       # Current ray
         throughput = mi.Spectrum(1.0)                # Path throughput weight
         result = mi.Spectrum(0.0)                    # Radiance accumulator
         eta = mi.Float(1.0)                          # Product of relative IOR changes

@@ -7,6 +7,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from hlbvh.accel.keys import camera_ray
 from .common import AccelIntegrator, mis_weight, skip_area_emitters
 
 _ad = mi.ad.integrators.common  # Mitsuba's differentiable-integrator base classes
@@ -410,6 +411,7 @@ class PRBIntegrator(_ad.RBIntegrator):
         derivative in forward mode). Returns (radiance or its derivative, valid,
         no AOVs, the primal radiance)."""
         accel = self.accel(scene)
+        ray = camera_ray(scene, ray)
         primal = mode == dr.ADMode.Primal
         bsdf_ctx = mi.BSDFContext()
 

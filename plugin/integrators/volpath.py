@@ -6,6 +6,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from hlbvh.accel.keys import camera_ray
 from .common import AccelIntegrator, depth_properties, mis_weight, skip_area_emitters
 
 
@@ -162,7 +163,7 @@ class VolpathIntegrator(AccelIntegrator):
     @dr.syntax
     def sample(self, scene, sampler, ray, medium=None, active=True):
         accel = self.sample_accel(scene)
-        ray = mi.Ray3f(ray)  # ray differentials are not used
+        ray = mi.Ray3f(camera_ray(scene, ray))  # ray differentials are not used
         active = mi.Bool(active)
         valid_ray = mi.Bool(not self.hide_emitters and scene.environment() is not None)
         eta = mi.Float(1.0)
