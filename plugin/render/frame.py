@@ -13,11 +13,13 @@ import mitsuba as mi
 
 from hlbvh import scenes
 from hlbvh.accel.instance_shading import is_instance
+from hlbvh.accel.keys import set_camera_keys, set_motion_keys
 from hlbvh.accel.parameters import traverse
 from hlbvh.accel.policy import UpdatePolicy
 from hlbvh.accel.scene_geometry import ShapeError, scene_shapes
 from hlbvh.errors import UserError
 from hlbvh.render.settings import RenderSettings
+from hlbvh.scenes.animated import FrameSensor
 from hlbvh.timing import clock_ms, timed
 
 #: Columns of ``stats.csv``, and keys of every row of ``stats.json``.
@@ -76,8 +78,9 @@ class FrameRenderer:
             raise ValueError(
                 f"integrator {description['type']}: {_mitsuba_message(error)}"
             ) from None
-        self.scene = mi.load_dict(animation.scene_dict(
-            resolution=settings.resolution, spp=settings.spp, integrator=description))
+        self.scene = mi.load_dict(_with_shutter(animation.scene_dict(
+            resolution=settings.resolution, spp=settings.spp, integrator=description),
+            settings.shutter))
         self.params = (traverse(self.scene) if settings.accel == "hlbvh"
                        else mi.traverse(self.scene))
         self.integrator = _ours(self.scene, self.params)
@@ -115,7 +118,11 @@ class FrameRenderer:
         # description, so every render of frame i (resumed, on a worker) sees its pose
         start = clock_ms()
         parameters = _TimedUpdate(self.params)
-        scenes.apply_frame(self.scene, parameters, self.animation.frame(i))
+        accumulated = self.settings.shutter_open and self.settings.accel == "native"
+        if not accumulated:  # (native's sub-frames each write their own geometry)
+            scenes.apply_frame(self.scene, parameters, self.animation.frame(i))
+        if self.settings.shutter_open and self.settings.accel == "hlbvh":
+            self._key_motion(i)
         geometry_ms = clock_ms() - start - parameters.update_ms
 
         # ---- Our accelerator follows ----
@@ -127,9 +134,12 @@ class FrameRenderer:
         # ---- Render ----
         seed = self.settings.seed + i
         start = clock_ms()
-        with self.integrator.updated():  # updated above: the render need not look again
-            image = mi.render(self.scene, seed=seed, spp=0 if spp is None else spp)
-            dr.eval(image)
+        if accumulated:
+            image = self._accumulated(i, seed, spp, parameters)
+        else:
+            with self.integrator.updated():  # updated above: the render need not look again
+                image = mi.render(self.scene, seed=seed, spp=0 if spp is None else spp)
+        dr.eval(image)
         render_ms = clock_ms() - start
 
         row = {
@@ -140,6 +150,42 @@ class FrameRenderer:
             "moving_accel": moving_accel,
         }
         return image, row
+
+    def _key_motion(self, i: int):
+        """Give every animated mesh its positions, and a moving camera its poses, at the
+        shutter's keys around frame ``i`` (:meth:`~hlbvh.scenes.AnimatedScene.frame_at`;
+        ``settings.motion_keys`` intervals), so that our integrators trace each ray at
+        its time."""
+        open_, close = self.settings.shutter
+        count = self.settings.motion_keys
+        times = [i + open_ + k * (close - open_) / count for k in range(count + 1)]
+        frames = [self.animation.frame_at(t) for t in times]
+        for shape in self.scene.shapes():
+            given = [frame.get(shape.id()) for frame in frames]
+            if all(isinstance(g, scenes.FrameGeometry) and g.positions is not None
+                   and g.faces is None for g in given):
+                set_motion_keys(shape, [mi.Float(g.positions) for g in given], (open_, close))
+        for sensor in self.scene.sensors():
+            given = [frame.get(sensor.id()) for frame in frames]
+            if all(isinstance(g, FrameSensor) for g in given):
+                set_camera_keys(sensor, [g.to_world for g in given], (open_, close))
+
+    def _accumulated(self, i: int, seed: int, spp: int | None, parameters) -> mi.TensorXf:
+        """Native's image of frame ``i`` with the shutter open: the mean of
+        ``settings.sub_frames`` renders of the geometry at stratified times inside the
+        shutter (each at the frame's samples over the sub-frames, its own seed), each a
+        rebuild of Mitsuba's accelerator: the same estimator as a blurred render in
+        expectation, the only one Mitsuba has."""
+        open_, close = self.settings.shutter
+        count = self.settings.sub_frames
+        each = max((spp or int(self.scene.sensors()[0].sampler().sample_count())) // count, 1)
+        total = None
+        for j in range(count):
+            scenes.apply_frame(self.scene, parameters, self.animation.frame_at(
+                i + open_ + (j + 0.5) * (close - open_) / count))
+            image = mi.render(self.scene, seed=seed * count + j, spp=each)
+            total = image if total is None else total + image
+        return total * (1.0 / count)
 
     def _update_accel(self, spp: int) -> tuple[float, float | None, str, str]:
         """Bring our accelerator up to date with the frame, for a render at ``spp`` (0:
@@ -166,6 +212,22 @@ class FrameRenderer:
         aovs = list(self.scene.integrator().aov_names())  # a wrapper's, if any
         colour = image.shape[2] - len(aovs)
         return ["R", "G", "B", "A"][:colour] + aovs
+
+
+#: Mitsuba's sensor plugins, whose shutter a scene description's sensor entry sets.
+SENSOR_TYPES = ("perspective", "thinlens", "orthographic", "telecentric", "radiancemeter",
+                "irradiancemeter", "distant", "batch")
+
+
+def _with_shutter(description: dict, shutter: tuple) -> dict:
+    """The scene description with every sensor's ``shutter_open``/``shutter_close``
+    set to ``shutter`` (frame-relative, in frames: a ray's time is then a frame offset
+    inside the shutter), where the shutter is open."""
+    if shutter[1] > shutter[0]:
+        for entry in description.values():
+            if isinstance(entry, dict) and entry.get("type") in SENSOR_TYPES:
+                entry["shutter_open"], entry["shutter_close"] = shutter
+    return description
 
 
 def _ours(scene: mi.Scene, params) -> mi.Integrator:

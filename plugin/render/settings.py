@@ -9,6 +9,7 @@ import numpy as np
 
 from hlbvh.accel.policy import ACCELS, BUILD_OPTIONS, UpdatePolicy
 from hlbvh.errors import UserError
+from hlbvh.integrators.common import MAX_INTEGER_PROPERTY
 from hlbvh.kernels.bvh import BuildConfig
 
 #: ``--integrator`` choices and the registered integrators they name.
@@ -43,6 +44,13 @@ SCENE_MAX_DEPTH = -1
 #: Largest seed of a frame: Mitsuba's samplers take 32-bit seeds.
 MAX_SEED = 2**32 - 1
 
+#: Most intervals between a moving mesh's keys over the shutter: each key holds the
+#: moving meshes' whole tree again.
+MAX_MOTION_KEYS = 64
+
+#: Most sub-frames native renders per frame with an open shutter (each a rebuild).
+MAX_SUB_FRAMES = 1024
+
 
 @dataclass(frozen=True)
 class RenderSettings:
@@ -53,7 +61,8 @@ class RenderSettings:
         spp: samples per pixel; ``None`` keeps the scene's.
         integrator: ``"path"`` (``hlbvh_path``), ``"direct"`` (``hlbvh_direct``),
             ``"volpath"`` (``hlbvh_volpath``) or ``"aov"`` (``hlbvh_aov``).
-        max_depth: longest path of ``"path"`` and ``"volpath"`` (-1: unbounded).
+        max_depth: longest path of ``"path"`` and ``"volpath"`` (-1: unbounded; at most
+            2^31 - 1, Mitsuba's largest integer property).
         accel: ``"hlbvh"`` or ``"native"``.
         build_options: options of :func:`hlbvh.build` (``builder``, ``leaf_size``, ...),
             validated for both accelerators.
@@ -73,6 +82,15 @@ class RenderSettings:
             they are; numbers, booleans and strings.
         wrapper: a Mitsuba integrator around it (``{"type": one of
             WRAPPER_INTEGRATORS, property: value}``, a scene's own), or None.
+        shutter: ``(open, close)`` in frames, relative to each frame (``(-0.25,
+            0.25)``: a quarter frame either side); ``(0, 0)``, the default, is closed
+            (each frame an instant). Open, our accelerator traces every ray at its time
+            through the moving meshes' keys; native renders the mean of
+            ``sub_frames`` sub-frames at stratified times (a rebuild each).
+        motion_keys: ``S``, the intervals between the keys of a moving mesh over an
+            open shutter (``S + 1`` keys: a build and ``S + 1`` refits a frame).
+        sub_frames: native's sub-frames per frame with an open shutter (each at the
+            frame's samples over ``sub_frames``).
     Raises:
         ValueError: naming the setting, for any value outside the above.
     """
@@ -89,6 +107,9 @@ class RenderSettings:
     moving_accel: str | None = None
     properties: dict = field(default_factory=dict)
     wrapper: dict | None = None
+    shutter: tuple[float, float] = (0.0, 0.0)
+    motion_keys: int = 1
+    sub_frames: int = 16
 
     def __post_init__(self):
         if self.resolution is not None and (
@@ -99,8 +120,9 @@ class RenderSettings:
             raise ValueError(f"spp={self.spp!r}: expected an int >= 1")
         if self.integrator not in INTEGRATORS:
             raise ValueError(f"integrator={self.integrator!r}: expected one of {tuple(INTEGRATORS)}")
-        if not (_is_int(self.max_depth) and self.max_depth >= -1):
-            raise ValueError(f"max_depth={self.max_depth!r}: expected -1 (unbounded) or an int >= 0")
+        if not (_is_int(self.max_depth) and -1 <= self.max_depth <= MAX_INTEGER_PROPERTY):
+            raise ValueError(f"max_depth={self.max_depth!r}: expected -1 (unbounded) or an "
+                             f"int in 0..{MAX_INTEGER_PROPERTY}")
         if self.accel not in ACCELS:
             raise ValueError(f"accel={self.accel!r}: expected one of {ACCELS}")
         self.config  # the builder's options, checked where hlbvh.build checks them
@@ -109,12 +131,27 @@ class RenderSettings:
             raise ValueError(f"seed={self.seed!r}: expected an int in 0..{MAX_SEED}")
         for name, value in self.properties.items():
             _check_property(f"integrator property {name}", value)
+        open_, close = (float(v) for v in self.shutter)
+        if not (np.isfinite(open_) and np.isfinite(close) and open_ <= close):
+            raise ValueError(f"shutter={tuple(self.shutter)!r}: expected finite open <= close "
+                             "(frames relative to each frame, e.g. (-0.25, 0.25))")
+        if not (_is_int(self.motion_keys) and 1 <= self.motion_keys <= MAX_MOTION_KEYS):
+            raise ValueError(f"motion_keys={self.motion_keys!r}: expected an int in "
+                             f"1..{MAX_MOTION_KEYS}")
+        if not (_is_int(self.sub_frames) and 1 <= self.sub_frames <= MAX_SUB_FRAMES):
+            raise ValueError(f"sub_frames={self.sub_frames!r}: expected an int in "
+                             f"1..{MAX_SUB_FRAMES}")
         if self.wrapper is not None:
             if self.wrapper.get("type") not in WRAPPER_INTEGRATORS:
                 raise ValueError(f"wrapper={self.wrapper!r}: expected a type among "
                                  f"{WRAPPER_INTEGRATORS}")
             for name, value in self.wrapper.items():
                 _check_property(f"wrapper property {name}", value)
+
+    @property
+    def shutter_open(self) -> bool:
+        """Whether the shutter stays open for a while (motion blur)."""
+        return self.shutter[1] > self.shutter[0]
 
     @property
     def config(self) -> BuildConfig:
@@ -151,6 +188,11 @@ class RenderSettings:
         record["resolution"] = None if self.resolution is None else list(self.resolution)
         if self.wrapper is None:
             del record["wrapper"]
+        if self.shutter_open:
+            record["shutter"] = list(self.shutter)
+        else:  # folders recorded before shutters existed still resume
+            for name in ("shutter", "motion_keys", "sub_frames"):
+                del record[name]
         return record
 
 
@@ -197,3 +239,10 @@ def check_seed(seed: int, frames) -> None:
                         f"{MAX_SEED} (seeds are 32-bit); use --seed {max(MAX_SEED - last, 0)} "
                         f"or less")
 
+
+def frames_text(frames: range) -> str:
+    """A frame range as the command line's summaries say it: its first and last frame
+    (``"0..23"``), and the step where it skips frames (``"0..90 in steps of 10"``, of
+    ``--frames 0:100:10``)."""
+    text = f"{frames[0]}..{frames[-1]}"
+    return text if frames.step == 1 else f"{text} in steps of {frames.step}"
