@@ -129,11 +129,23 @@ def parse(spec: str) -> tuple[str, dict]:
     for item in filter(None, (part.strip() for part in rest.split(","))) if rest else ():
         key, equals, text = item.partition("=")
         key = key.strip()
+        if key in _FLAGGED:
+            raise ValueError(f"scene {spec!r}: {key} is not a scene option; "
+                             f"{_FLAGGED[key]}")
         if not equals or key not in defaults:
+            expected = (f"expected key=value with key one of {sorted(defaults)}" if defaults
+                        else f"{name!r} takes no options")
             raise ValueError(f"scene {spec!r}: {item!r} is not an option of {name!r}; "
-                             f"expected key=value with key one of {sorted(defaults) or 'none'}")
+                             f"{expected}")
         options[key] = _typed(spec, key, text.strip(), defaults[key])
     return name, options
+
+
+#: What a procedural scene takes as a command-line flag, not as a NAME:KEY=VALUE option,
+#: and what the line refusing KEY=VALUE says instead.
+_FLAGGED = {"triangles": "give it as --triangles", "frames": "give it as --frames",
+            "seed": "the scene's geometry is the same for every run (--seed seeds the "
+                    "renders)"}
 
 
 def scene_options(name: str) -> dict:

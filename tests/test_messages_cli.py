@@ -1,8 +1,10 @@
-"""Inputs past a limit are one line and exit status 2 (issue 33, items 5 and 9): a path
-name longer than the file system takes (``--out`` or the scene, render and compare),
-``sweep --spp-curve`` past what a frame can hold, ``bench build --sizes`` past what a
-Dr.Jit array holds, and a frame too large for the scene's own resolution, said without
-blaming a flag the user did not pass."""
+"""Inputs past a limit are one line and exit status 2: a path name longer than the file
+system takes (``--out`` or the scene, render and compare), ``sweep --spp-curve`` past
+what a frame can hold, ``bench build --sizes`` past what a Dr.Jit array holds, a frame
+too large for the scene's own resolution, said without blaming a flag the user did not
+pass; integers past 32 bits (``--spp``, ``--max-depth``, ``--triangles``, an
+integrator's depths, refused as Mitsuba's ``path`` refuses them), a machine's memory
+running out, and a flag given as a scene option."""
 
 import pytest
 
@@ -103,3 +105,84 @@ def test_a_bad_integrator_property_in_a_scene_file_says_its_cause(tmp_path, caps
     assert status == 2 and len(err) == 1 and err[0].startswith(
         f"hlbvh render: scene {str(xml)!r}: Mitsuba cannot load it: "), err
     assert err[0].endswith(said) and "Traceback" not in err[0], err
+
+
+@pytest.mark.parametrize("flag, value, expected", [
+    ("--spp", "4294967296", "1..4294967295"),  # Mitsuba's sampler counts in 32 bits
+    ("--max-depth", "4294967296", "-1..2147483647"),  # Mitsuba's integer properties
+    ("--max-depth", "2147483648", "-1..2147483647"),
+    ("--triangles", "10000000000", "1..1431655765"),  # bench --sizes' bound
+])
+def test01_integers_past_32_bits_are_one_line_naming_the_flag(tmp_path, capsys, flag, value,
+                                                              expected):
+    """Each ended in a traceback deep in Mitsuba's loader, the integrator or numpy."""
+    status, _, err = run_cli(capsys, "render", "cloth", "--frames", "0:1", "--resolution",
+                             "8", "--quiet", flag, value, "--out", tmp_path / "out")
+    assert status == 2 and err == [
+        f"hlbvh render: {flag} {value!r}: expected an integer in {expected}"], err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("props", [
+    {"max_depth": 2**31}, {"max_depth": 2**32}, {"max_depth": 2**32 - 1},
+    {"rr_depth": 2**40}, {"rr_depth": 2**31}, {"max_depth": -2}, {"rr_depth": 0},
+    {"max_depth": 2.5}, {"max_depth": True},
+])
+@pytest.mark.parametrize("kind", ["hlbvh_path", "hlbvh_volpath"])
+def test02_depths_mitsuba_s_path_refuses_are_refused_naming_them(kind, props):
+    """Mitsuba's ``path`` refuses each (its integer properties are 32-bit signed); ours
+    took max_depth 2^31 and 2^32 and rr_depth 2^40, and traced them as other depths."""
+    import mitsuba as mi
+    with pytest.raises(RuntimeError):
+        mi.load_dict({"type": "path", **props})
+    (name, value), = props.items()
+    with pytest.raises(RuntimeError, match=f"ValueError: {name}={value!r}: expected "):
+        mi.load_dict({"type": kind, **props})
+
+
+@pytest.mark.parametrize("kind", ["path", "hlbvh_path", "hlbvh_volpath"])
+def test03_the_largest_depths_mitsuba_s_path_takes_load(kind):
+    import mitsuba as mi
+    mi.load_dict({"type": kind, "max_depth": 2**31 - 1, "rr_depth": 2**31 - 1})
+
+
+def test04_a_scene_file_s_depth_past_32_bits_is_one_line(tmp_path, capsys):
+    """hlbvh_path with max_depth 2^31 in a scene file: rendered (as another depth)."""
+    from cli_helpers import write_twist_scene
+    xml, frames = write_twist_scene(tmp_path)
+    xml.write_text(xml.read_text().replace(
+        '<integrator type="path"><integer name="max_depth" value="8"/>',
+        '<integrator type="hlbvh_path"><integer name="max_depth" value="2147483648"/>'))
+    status, _, err = run_cli(capsys, "render", xml, "--frames-dir", frames, "--quiet",
+                             "--out", tmp_path / "out")
+    assert status == 2 and len(err) == 1 and "max_depth=2147483648" in err[0], err
+    assert "2147483647" in err[0] and "Traceback" not in err[0], err
+
+
+def test05_running_out_of_memory_is_one_line(tmp_path, capsys, monkeypatch):
+    """A scene too large for the machine's memory (numpy's allocation refused, as for
+    ``--triangles 1431655765`` on a machine of 12 GB): one line, exit status 2."""
+    from hlbvh.cli import render
+
+    def too_large(spec):
+        raise MemoryError("Unable to allocate 5.33 GiB for an array with shape "
+                          "(32768, 21847) and data type float64")
+
+    monkeypatch.setattr(render, "open_animation", too_large)
+    status, _, err = run_cli(capsys, "render", "cloth", "--quiet", "--out", tmp_path / "out")
+    assert status == 2 and err == [
+        "hlbvh render: out of memory (Unable to allocate 5.33 GiB for an array with shape "
+        "(32768, 21847) and data type float64); ask for less (--triangles, --resolution, "
+        "--spp) or use a machine with more memory"], err
+
+
+@pytest.mark.parametrize("scene, said", [
+    ("cloth:frames=4", "frames is not a scene option; give it as --frames"),
+    ("cloth:triangles=9", "triangles is not a scene option; give it as --triangles"),
+    ("cloth:bogus=1", "'bogus=1' is not an option of 'cloth'; 'cloth' takes no options"),
+    ("flock:frames=4", "frames is not a scene option; give it as --frames"),
+])
+def test06_a_flag_given_as_a_scene_option_names_the_flag(tmp_path, capsys, scene, said):
+    """``cloth:frames=4`` ended "...key one of none"."""
+    status, _, err = run_cli(capsys, "render", scene, "--quiet", "--out", tmp_path / "out")
+    assert status == 2 and err == [f"hlbvh render: scene {scene!r}: {said}"], err

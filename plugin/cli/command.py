@@ -31,11 +31,28 @@ def _doctor(args) -> int:
     print(f"variants   {', '.join(mi.variants())}")
     found = ", ".join(f"{p} (LLVM {m})" for m, p in environment.candidates())
     print(f"libLLVMs   {found or 'none found'}")
+    print(f"usd-core   {_usd_core()}")
     # A real kernel: LLVM 15 only fails here, not at import.
     x = dr.arange(mi.Float, 1024)
     ok = float(dr.sum(dr.minimum(x, 3.5))[0]) == 3.5 * 1020 + 0 + 1 + 2 + 3
     print(f"kernel     {'ok' if ok else 'WRONG RESULT'}")
     return 0 if ok else 1
+
+
+def _usd_core() -> str:
+    """The installed usd-core (pxr), which USD stages need: its version and pxr's, or
+    how to install it."""
+    from importlib import metadata
+
+    try:
+        from pxr import Usd
+    except ImportError:
+        return "not installed (pip install usd-core)"
+    try:
+        package = metadata.version("usd-core")
+    except metadata.PackageNotFoundError:  # pxr from another build (a DCC's, from source)
+        package = "not from pip"
+    return f"{package} (pxr {'.'.join(map(str, Usd.GetVersion()))})"
 
 
 # Each verb lives in its own module with ``configure(parser)`` and ``run(args) -> int``;
@@ -44,7 +61,7 @@ _VERBS = {
     "render": ("hlbvh.cli.render", "render an animation to EXR/PNG with per-frame statistics"),
     "compare": ("hlbvh.comparison.compare", "native vs hlbvh, frame by frame, with a report"),
     "sweep": ("hlbvh.comparison.sweep", "the speed/accuracy trade of builder settings"),
-    "bench": ("hlbvh.comparison.bench", "build, trace and frame benchmarks against native"),
+    "bench": ("hlbvh.comparison.bench", "build, trace, frame and prb benchmarks against native"),
 }
 
 
@@ -53,9 +70,12 @@ def _parser() -> argparse.ArgumentParser:
 
     ap = argparse.ArgumentParser(prog="hlbvh", description=__doc__)
     sub = ap.add_subparsers(dest="command", required=True)
-    sub.add_parser("doctor", help="report Dr.Jit, Mitsuba, the libLLVM in use, variants")
+    doctor = "report Dr.Jit, Mitsuba, the libLLVM in use, variants, usd-core"
+    sub.add_parser("doctor", help=doctor, description=doctor[0].upper() + doctor[1:])
     for verb, (module, help_text) in _VERBS.items():
-        p = sub.add_parser(verb, help=help_text)
+        # the description a verb's configure() does not replace
+        p = sub.add_parser(verb, help=help_text,
+                           description=help_text[0].upper() + help_text[1:])
         try:
             importlib.import_module(module).configure(p)
         except ModuleNotFoundError as e:
@@ -99,6 +119,13 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f"hlbvh {args.command}: interrupted", file=sys.stderr)
         return 130
+    except MemoryError as error:
+        # numpy's "Unable to allocate 5.33 GiB for an array with shape ..." (a scene's
+        # geometry too large for this machine): one line, as for every size the
+        # options bound
+        print(f"hlbvh {args.command}: out of memory ({error}); ask for less (--triangles, "
+              f"--resolution, --spp) or use a machine with more memory", file=sys.stderr)
+        return 2
     except Exception as error:
         # Dr.Jit re-raises a Ctrl-C that arrives inside a traced loop or a custom
         # operation as a RuntimeError caused by the KeyboardInterrupt.

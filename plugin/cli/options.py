@@ -15,7 +15,9 @@ from hlbvh import scenes
 from hlbvh.accel.policy import (ACCELS, BUILD_OPTIONS, MOVING_ACCELS, STATICS, UPDATES,
                                  UpdatePolicy)
 from hlbvh.errors import UserError, int_flag
+from hlbvh.integrators.common import MAX_INTEGER_PROPERTY
 from hlbvh.kernels.bvh import BuildConfig
+from hlbvh.render.frame import MAX_SAMPLES
 from hlbvh.render.settings import (DEFAULT_MAX_DEPTH, DEPTH_INTEGRATORS, INTEGRATORS,
                                    MAX_SEED, SCENE_INTEGRATORS, WRAPPER_INTEGRATORS,
                                    RenderSettings,
@@ -48,7 +50,8 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
     add("--topology", help="of the meshes of --frames-dir: fixed (default: only positions "
                            "change), changing (every frame brings its faces), or per shape "
                            "ID=changing,ID=fixed")
-    add("--frames", help="A:B (frames A .. B-1) or N (the first N); default: "
+    add("--frames", help="A:B (frames A .. B-1), A:B:STEP (every STEP-th of them, A::STEP "
+                         "to the last) or N (the first N); default: "
                          + (frames or "every frame of the scene"))
     add("--resolution", help="W (W×W) or WxH; default: the scene's")
     add("--spp", help="samples per pixel; default: " + ("the scene's" if spp is None else str(spp)))
@@ -149,13 +152,14 @@ def render_settings(args, *, spp: int | None = None, integrator: str = "path",
     static = getattr(args, "static", None)
     moving_accel = getattr(args, "moving_accel", None)
     if spp is None and args.spp is not None:
-        spp = int_flag("--spp", args.spp, least=1)
+        spp = int_flag("--spp", args.spp, least=1, most=MAX_SAMPLES)
     return RenderSettings(
         resolution=None if args.resolution is None else parse_resolution(args.resolution),
         spp=spp,
         integrator=integrator,
         max_depth=(DEFAULT_MAX_DEPTH if args.max_depth is None
-                   else int_flag("--max-depth", args.max_depth, least=-1)),
+                   else int_flag("--max-depth", args.max_depth, least=-1,
+                                     most=MAX_INTEGER_PROPERTY)),
         accel=accel,
         build_options=build_options,
         update=None if update is None else choice("--update", update, UPDATES),

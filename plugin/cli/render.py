@@ -11,9 +11,12 @@ Usage::
 rigid, soup, world, flock; ``--triangles`` sets its size, ``NAME:KEY=VALUE,...`` its
 own options, e.g. ``flock:birds=200``) or a Mitsuba XML file whose animated meshes
 are read from ``--frames-dir`` (see :class:`hlbvh.scenes.SequenceScene`).
-``--frames A:B`` renders frames ``A .. B-1``, ``--frames N`` the first ``N``; the
-default is every frame of the scene (60 for procedural scenes, whose motion goes on
-past that: any ``B`` is allowed there). ``--resolution W`` means ``W×W``.
+``--frames A:B`` renders frames ``A .. B-1``, ``--frames A:B:STEP`` every ``STEP``-th
+of them (a preview of a long shot; ``A::STEP`` to the last frame), ``--frames N`` the
+first ``N``; the default is every frame of the scene (60 for procedural scenes, whose
+motion goes on past that: any ``B`` is allowed there). A range the text alone shows
+to be wrong (empty, a step below 1) is refused before the scene is opened.
+``--resolution W`` means ``W×W``.
 
 Each frame
 ----------
@@ -82,7 +85,8 @@ import numpy as np
 from hlbvh.cli.options import add_scene_options, out_flag, scene_render_settings
 from hlbvh.errors import UserError, int_flag
 from hlbvh.render.animation import render_animation
-from hlbvh.render.source import SceneSpec, open_animation
+from hlbvh.render.settings import frames_text
+from hlbvh.render.source import SceneSpec, open_animation, usd_stage
 
 
 def configure(parser) -> None:
@@ -131,12 +135,22 @@ def run(args) -> int:
             animation, whole.absolute(), frames, out, settings, source, cluster=args.cluster,
             scheduler=args.scheduler, chunk_size=chunk, progress=not args.quiet)
     ours = [row for row in rows if row["frame"] in frames]
-    print(f"{out}: frames {frames.start}..{frames.stop - 1} of {animation.name} with "
+    print(f"{out}: frames {frames_text(frames)} of {_scene_name(args.scene, animation)} with "
           f"{settings.accel}: {len(rendered)} rendered, {len(frames) - len(rendered)} "
           f"already complete; "
           f"median build {_median(ours, 'build_ms'):.1f} ms, render "
           f"{_median(ours, 'render_ms'):.1f} ms; statistics in {out / 'stats.csv'}")
     return 0
+
+
+def _scene_name(scene: str, animation) -> str:
+    """What the summary calls the scene: a USD stage's or an XML scene's file name
+    (the animation's own name is only its kind, ``usd`` or ``sequence``), else the
+    procedural scene's name."""
+    stage = usd_stage(scene, True)
+    if stage is not None:
+        return stage[0].name
+    return Path(scene).name if Path(scene).suffix.lower() == ".xml" else animation.name
 
 
 def _median(rows: list[dict], key: str) -> float:

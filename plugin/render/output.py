@@ -16,6 +16,7 @@ import socket
 import sys
 from pathlib import Path
 
+from hlbvh.accel.policy import UpdatePolicy
 from hlbvh.render import images
 from hlbvh.errors import UserError
 from hlbvh.render.frame import STATS_FIELDS, FrameRenderer
@@ -61,7 +62,8 @@ class Statistics:
                             if settings.get(k) != stored_settings.get(k))
             changes = ", ".join(
                 f"{k}: the scene file or a file it names was edited" if k == "scene_sha256"
-                else f"{k}: {stored_settings.get(k)!r} -> {settings.get(k)!r}" for k in differ)
+                else f"{k}: {_setting_text(stored_settings, k)} -> {_setting_text(settings, k)}"
+                for k in differ)
             raise UserError(
                 f"{directory} holds frames rendered with other settings ({changes}); "
                 f"choose another --out, or remove the directory to start over"
@@ -108,6 +110,17 @@ class Statistics:
         writer.writerows(ordered)
         with images.atomic_output(self.directory / "stats.csv") as temporary:
             temporary.write_text(table.getvalue())
+
+
+def _setting_text(settings: dict, key: str) -> str:
+    """Recorded setting ``key`` as a refusal names it: its value, or ``unset`` where the
+    record leaves it to a default (``None``, or not recorded), with the accelerator's
+    default where it has one (``update``, ``moving_accel``)."""
+    value = settings.get(key)
+    if value is not None:
+        return repr(value)
+    default = getattr(UpdatePolicy, key, None)
+    return "unset" if default is None else f"unset (the default, {default!r})"
 
 
 def recorded_settings(source: dict | None, settings, renderer: FrameRenderer) -> dict:
