@@ -1,7 +1,8 @@
 """``hlbvh render`` and ``hlbvh compare`` with valid values of the builder options,
 ``--max-depth``, ``--update`` and ``--seed``: each reaches the build (the tree hlbvh.build
 returned, spied on where the accelerator calls it, and the statistics' SAH cost) or the
-render (the statistics' decisions and seeds, the image)."""
+render (the statistics' decisions and seeds, the image); what ``hlbvh doctor`` and the
+verbs' ``--help`` say."""
 
 from __future__ import annotations
 
@@ -178,3 +179,30 @@ def test_a_flag_for_a_property_the_scene_leaves_unset_overrides_nothing(tmp_path
     status, _, err = run_cli(capsys, *argv, "--update", "refit", "--out", tmp_path / "set")
     assert status == 0 and len(err) == 1
     assert "--update refit (the scene's update: 'rebuild')" in err[0]
+
+
+def test06_doctor_reports_usd_core(capsys, monkeypatch):
+    """Its version where it is installed, how to install it where it is not (USD
+    stages need it)."""
+    from importlib import metadata
+    Usd = pytest.importorskip("pxr.Usd")
+    status, out, _ = run_cli(capsys, "doctor")
+    version = ".".join(map(str, Usd.GetVersion()))
+    assert status == 0
+    assert f"usd-core   {metadata.version('usd-core')} (pxr {version})" in out.splitlines()
+    monkeypatch.setitem(__import__("sys").modules, "pxr", None)  # import pxr fails
+    status, out, _ = run_cli(capsys, "doctor")
+    assert status == 0
+    assert "usd-core   not installed (pip install usd-core)" in out.splitlines()
+
+
+@pytest.mark.parametrize("verb, description", [
+    ("doctor", "Report Dr.Jit, Mitsuba, the libLLVM in use, variants, usd-core"),
+    ("bench", "Build, trace, frame and prb benchmarks against native"),
+])
+def test07_verbs_help_has_a_description(capsys, verb, description):
+    with pytest.raises(SystemExit):
+        run_cli(capsys, verb, "--help")
+    out = capsys.readouterr().out
+    assert description in out.split("\n\n")[1], out
+

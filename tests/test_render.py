@@ -226,7 +226,8 @@ def test06_console_script_exits_2_without_traceback():
     done = subprocess.run([str(script), "render", "cloth", "--frames", "x"],
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 2
-    assert done.stderr.strip() == "hlbvh render: --frames 'x': expected A:B (frames A .. B-1) or a count N"
+    assert done.stderr.strip() == ("hlbvh render: --frames 'x': expected A:B (frames A .. "
+                                   "B-1), A:B:STEP (every STEP-th of them) or a count N")
 
 
 def test07_aov_frames_hold_named_channels_equal_to_native(tmp_path, capsys):
@@ -282,3 +283,73 @@ def test09_timing_returns_the_result_and_a_non_negative_time():
     assert result == 3 and wall >= 0 and cpu >= 0
     first = timing.clock_ms()
     assert timing.clock_ms() >= first
+
+
+def test10_a_stepped_range_renders_every_step_th_frame_and_resumes(tmp_path, capsys):
+    """``--frames 0:5:2`` renders 0, 2, 4 and says so; ``0:5`` then renders the two
+    left between them."""
+    out = tmp_path / "out"
+    status, summary, _ = render(capsys, "cloth", "--frames", "0:5:2", "--accel", "native",
+                                "--out", out, *tiny(spp=1))
+    assert status == 0 and f"{out}: frames 0..4 in steps of 2 of cloth with native: 3 " \
+        "rendered, 0 already complete" in summary, summary
+    assert [row["frame"] for row in stats(out)[0]["frames"]] == [0, 2, 4]
+    assert not frame_files(out, 1)[0].exists()
+    status, summary, _ = render(capsys, "cloth", "--frames", "0:5", "--accel", "native",
+                                "--out", out, *tiny(spp=1))
+    assert status == 0 and "frames 0..4 of cloth with native: 2 rendered, 3 already " \
+        "complete" in summary, summary
+
+
+@pytest.mark.parametrize("frames, said", [
+    ("5:3", "the range is empty (expected A < B)"),
+    ("3:3", "the range is empty (expected A < B)"),
+    ("0:9:0", "expected a STEP >= 1"),
+])
+def test11_a_range_the_text_refuses_is_refused_before_the_scene_is_made(
+        tmp_path, capsys, monkeypatch, frames, said):
+    """The scene (a procedural one built twice, a stage read whole) is not made for a
+    range that its text shows to be wrong."""
+    from hlbvh import scenes
+    made = []
+    real = scenes.get
+    monkeypatch.setattr(scenes, "get", lambda *a, **k: made.append(a) or real(*a, **k))
+    status, _, err = render(capsys, "cloth", "--frames", frames, "--out", tmp_path / "out",
+                            *tiny())
+    assert status == 2 and err == [f"hlbvh render: --frames {frames!r}: {said}"], err
+    assert made == []
+
+
+def test12_a_resume_refusal_names_a_default_not_none(tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["cloth", "--frames", "0:1", "--accel", "native", "--out", out, *tiny(spp=1)]
+    assert render(capsys, *argv, "--moving-accel", "hlbvh")[0] == 0
+    status, _, err = render(capsys, *argv)
+    assert status == 2 and len(err) == 1, err
+    assert "(moving_accel: 'hlbvh' -> unset (the default, 'auto'))" in err[0], err
+
+
+def test13_the_summary_names_the_stage_s_file(tmp_path, capsys):
+    """Not ``of usd``: a user renders many stages."""
+    pytest.importorskip("pxr")
+    from pxr import Gf, UsdGeom, UsdLux, Usd
+    path = tmp_path / "quad_shot.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(3)
+    mesh = UsdGeom.Mesh.Define(stage, "/Q")
+    points = mesh.CreatePointsAttr()
+    for t in range(4):
+        points.Set([(0, 0, 0), (1, 0, 0), (1, 1 + 0.1 * t, 0), (0, 1, 0)], t)
+    mesh.CreateFaceVertexCountsAttr([4])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    mesh.CreateSubdivisionSchemeAttr("none")
+    UsdGeom.Camera.Define(stage, "/Cam").AddTranslateOp().Set(Gf.Vec3d(0.5, 0.5, 4))
+    UsdLux.DomeLight.Define(stage, "/Sky")
+    stage.GetRootLayer().Save()
+    out = tmp_path / "out"
+    status, summary, _ = render(capsys, path, "--frames", "0:4:3", "--resolution", "8",
+                                "--spp", "1", "--quiet", "--out", out)
+    assert status == 0 and f"{out}: frames 0..3 in steps of 3 of quad_shot.usda with " \
+        "hlbvh: 2 rendered" in summary, summary
+
