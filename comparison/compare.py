@@ -102,7 +102,8 @@ from hlbvh.cli.options import (add_scene_options, out_flag, render_settings,
                                with_scene_integrator)
 from hlbvh.render.output import frame_name, output_directory
 from hlbvh.render.animation import render_animation
-from hlbvh.render.settings import MAX_SEED, RenderSettings, check_seed
+from hlbvh.render.settings import (MAX_SEED, RenderSettings, check_seed, frames_argument,
+                                   frames_text)
 
 #: Largest absolute per-channel difference of a pixel counted as within tolerance in
 #: the report's figure (not the verdict): the absolute part of
@@ -203,7 +204,7 @@ def compare_animation(animation, frames, out_dir, settings: RenderSettings,
         for key, quantity, native in (("frame_ms", "frame time (build + render)", "native"),
                                       ("build_ms", "build time", "native rebuild"))
     ]
-    recorded = {**(source or {}), **settings.as_dict(), "frames": f"{frames[0]}:{frames[-1] + 1}",
+    recorded = {**(source or {}), **settings.as_dict(), "frames": frames_argument(frames),
                 "tolerance": tolerance, "difference_scale": scale, "variant": mi.variant(),
                 "mitsuba": mi.__version__, "drjit": dr.__version__}
     for key in ("accel", "integrator"):
@@ -355,7 +356,7 @@ def run(args) -> int:
     out = output_directory(out_flag(args.out, Path("out/compare") / Path(args.scene).stem))
     result = compare_animation(animation, frames, out, settings, source, tolerance,
                                progress=not args.quiet)
-    print(f"{result['files']['html']}: frames {frames.start}..{frames.stop - 1} of "
+    print(f"{result['files']['html']}: frames {frames_text(frames)} of "
           f"{animation.name}, native vs hlbvh. {verdict(result['rows'])}")
     return 0 if all(row["noise"]["passed"] for row in result["rows"]) else 1
 

@@ -76,7 +76,7 @@ from hlbvh.cli.options import (add_scene_options, out_flag, render_settings,
 from hlbvh.errors import int_flag
 from hlbvh.render.source import SceneSpec, open_animation
 from hlbvh.render.output import output_directory
-from hlbvh.render.settings import RenderSettings, check_seed
+from hlbvh.render.settings import RenderSettings, check_seed, frames_argument
 from hlbvh.timing import timed
 
 #: Samples per pixel of the frame-time curve unless ``--spp-curve`` says otherwise.
@@ -367,7 +367,7 @@ def run(args) -> int:
     out = output_directory(out_flag(args.out, Path("out/sweep") / Path(args.scene).stem))
     rows = sweep(animation, frames, settings, base, spp, curve, progress=not args.quiet)
     recorded = {"scene_name": animation.name, **source, **_recorded(base),
-                "frames": f"{frames.start}:{frames.stop}", "spp_curve": sorted({*curve, spp}),
+                "frames": frames_argument(frames), "spp_curve": sorted({*curve, spp}),
                 "tolerance": TOLERANCE, "variant": mi.variant(), "mitsuba": mi.__version__,
                 "drjit": dr.__version__, "cpu": cpu_model(), "cores": os.cpu_count()}
     result = write_sweep(out, rows, recorded, spp, curve)

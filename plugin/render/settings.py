@@ -240,6 +240,13 @@ def check_seed(seed: int, frames) -> None:
                         f"or less")
 
 
+def frames_argument(frames: range) -> str:
+    """The ``--frames`` text of a frame range: ``"A:B"``, or ``"A:B:STEP"`` where it skips
+    frames (what a record or a cluster's worker is given)."""
+    step = "" if frames.step == 1 else f":{frames.step}"
+    return f"{frames.start}:{frames.stop}{step}"
+
+
 def frames_text(frames: range) -> str:
     """A frame range as the command line's summaries say it: its first and last frame
     (``"0..23"``), and the step where it skips frames (``"0..90 in steps of 10"``, of

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from hlbvh import scenes
 from hlbvh.errors import UserError, int_flag
+from hlbvh.render.settings import frames_argument
 from hlbvh.scenes.animated import MAX_TRIANGLES
 from hlbvh.scenes.sequence import TOPOLOGIES
 
@@ -40,8 +41,7 @@ class SceneSpec:
         ``--no-default-light`` ride on a :class:`hlbvh.cli.options.SceneArgument`),
         ``frames`` as the ``--frames`` text or a range."""
         if isinstance(frames, range):
-            step = "" if frames.step == 1 else f":{frames.step}"
-            frames = f"{frames.start}:{frames.stop}{step}"
+            frames = frames_argument(frames)
         return cls(str(scene), None if frames_dir is None else str(frames_dir),
                    None if triangles is None else str(triangles), frames, topology,
                    getattr(scene, "camera", None), getattr(scene, "default_light", True))
