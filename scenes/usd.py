@@ -77,7 +77,8 @@ from .usd_prims import (DEFAULT_INTEGRATOR, DEFAULT_SPP, Sdf, UNSUPPORTED, Usd, 
                         _unresolved_arcs, _visibility_varies)
 from .usd_skinning import bake_skinning
 from .usd_said import grouped_arcs, nothing_renderable, usd_quiet
-from .usd_time import frame_range, sample_times as _sample_times, transform_attributes
+from .usd_time import (MAX_FRAMES, frame_range, sample_times as _sample_times,
+                       transform_attributes)
 
 
 #: A rigid mesh of at least this many triangles is an instance (its transform moved every
@@ -104,7 +105,11 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             (:data:`hlbvh.scenes.usd_lights.DEFAULT_LIGHTS`; said either way).
         frames: the frames that will be read (``None``: all): UsdSkel skinning is
             baked over their time codes (:meth:`time_span`) only, and :meth:`frame` of
-            a frame outside them is refused when the stage is skinned.
+            a frame outside them is refused when the stage is skinned. A range that
+            reaches past the stage's last frame is refused as soon as the stage's time
+            range is read, before any mesh is (a ``stop`` past
+            :data:`~.usd_time.MAX_FRAMES`, more frames than any stage holds, reads to
+            the last frame: ``range(A, sys.maxsize)`` for ``--frames A:``).
 
     Raises:
         ValueError: naming the file: it does not exist, USD cannot open it, its time
@@ -125,6 +130,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             raise ValueError(f"{self._where}: no such file")
         self.stage = _open(self._path, self._where)
         self._start, self.frame_count = frame_range(self.stage, self._where)
+        self._check_frames(frames)
         self.frames_per_second = float(self.stage.GetTimeCodesPerSecond())
         self._span = self.time_span(frames)
         self._skinned, said = bake_skinning(self.stage, *self._span, self._where)
@@ -162,6 +168,20 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
     def time_code(self, i: int) -> float:
         """The time code of frame ``i``: ``startTimeCode + i``."""
         return self._start + self._check_frame_index(i)
+
+    def _check_frames(self, frames: range | None) -> None:
+        """Refuse ``frames`` that reach past the stage's last frame (see the class's
+        ``frames``)."""
+        if frames is None:
+            return
+        to_last = frames.stop > MAX_FRAMES
+        stop = self.frame_count if to_last else frames.stop
+        if not frames.start < stop <= self.frame_count:
+            last = self._start + self.frame_count - 1
+            asked = f"{frames.start}:{'' if to_last else frames.stop}"
+            raise ValueError(f"{self._where} has frames 0:{self.frame_count} (time codes "
+                             f"{self._start:g}..{last:g}, startTimeCode..endTimeCode); frames "
+                             f"{asked} reach past them")
 
     def time_span(self, frames: range | None = None) -> tuple[float, float]:
         """``(first, last)``: the time codes that reading ``frames`` (``None``: every

@@ -353,3 +353,31 @@ def test13_the_summary_names_the_stage_s_file(tmp_path, capsys):
     assert status == 0 and f"{out}: frames 0..3 in steps of 3 of quad_shot.usda with " \
         "hlbvh: 2 rendered" in summary, summary
 
+
+
+@pytest.mark.parametrize("frames", ["0:9", "5:", "2:7:2"])
+def test14_a_stage_s_range_is_refused_before_its_meshes_are_read(tmp_path, capsys,
+                                                                  monkeypatch, frames):
+    """As soon as the stage's time range is read: a large stage's meshes (and their
+    skinning, baked over the frames asked) took seconds before the refusal."""
+    pytest.importorskip("pxr")
+    from pxr import Usd, UsdGeom
+    from hlbvh.scenes.usd import UsdScene
+    path = tmp_path / "short.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    stage.SetStartTimeCode(1)
+    stage.SetEndTimeCode(5)
+    mesh = UsdGeom.Mesh.Define(stage, "/Q")
+    mesh.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (1, 1, 0)])
+    mesh.CreateFaceVertexCountsAttr([3])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2])
+    stage.GetRootLayer().Save()
+    read = []
+    monkeypatch.setattr(UsdScene, "_collect", lambda self: read.append(1))
+    status, _, err = render(capsys, path, "--frames", frames, "--out", tmp_path / "out",
+                            "--resolution", "8", "--quiet")
+    asked = frames.rpartition(":")[0] if frames.count(":") == 2 else frames
+    assert status == 2 and err == [
+        f"hlbvh render: stage {str(path)!r} has frames 0:5 (time codes 1..5, "
+        f"startTimeCode..endTimeCode); frames {asked} reach past them"], err
+    assert read == []

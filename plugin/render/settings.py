@@ -252,4 +252,4 @@ def frames_text(frames: range) -> str:
     (``"0..23"``), and the step where it skips frames (``"0..90 in steps of 10"``, of
     ``--frames 0:100:10``)."""
     text = f"{frames[0]}..{frames[-1]}"
-    return text if frames.step == 1 else f"{text} in steps of {frames.step}"
+    return text if frames.step == 1 or len(frames) == 1 else f"{text} in steps of {frames.step}"

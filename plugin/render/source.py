@@ -100,18 +100,14 @@ def open_animation(spec: SceneSpec) -> tuple:
         source = {"scene": str(scene), "triangles": animation.triangles}
     elif stage is not None:
         held: list[str] = []  # the stage's warnings, said once the frames are valid
+        # refused by UsdScene as soon as it has read the stage's time range, when they
+        # reach past it (a stop past any stage's frames: to the last)
         asked = range(start, sys.maxsize if stop is None else stop)
         animation, source = _open_usd(stage, scene, frames_dir, triangles, topology, camera,
                                       held.append, asked)
         stop = animation.frame_count if stop is None else stop
-        if stop > animation.frame_count:
-            last = animation.frame_count - 1
-            raise UserError(f"--frames {frames}: {scene!r} has frames 0:{animation.frame_count} "
-                            f"(time codes {animation.time_code(0):g}..{animation.time_code(last):g},"
-                            f" startTimeCode..endTimeCode)")
-        if start < stop:
-            for line in held:
-                print(f"hlbvh: {line}", file=sys.stderr)
+        for line in held:
+            print(f"hlbvh: {line}", file=sys.stderr)
         animation.warn_with(None)
     else:
         path = Path(scene)
