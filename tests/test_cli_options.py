@@ -118,12 +118,14 @@ def test04_seed_and_max_depth_reach_the_render(tmp_path, capsys):
     """``--seed S``: frame i is rendered with seed S + i (the statistics say so, and the
     image differs from seed 0's but equals a render of the same frame at that seed);
     ``--max-depth``: a longer path gathers more light."""
-    render(capsys, tmp_path / "seed0", frames="1:2")
-    rows = render(capsys, tmp_path / "seed5", "--seed", "5", frames="1:2")
+    # one structure traces the moving meshes in every run (under auto the choice by
+    # measured cost may differ between runs, and so may the last bits of a frame)
+    render(capsys, tmp_path / "seed0", *OURS, frames="1:2")
+    rows = render(capsys, tmp_path / "seed5", "--seed", "5", *OURS, frames="1:2")
     assert [row["seed"] for row in rows] == [6]
     seed0, seed5 = image(tmp_path / "seed0", 1), image(tmp_path / "seed5", 1)
     assert not np.array_equal(seed0, seed5)
-    again = render(capsys, tmp_path / "seed5b", "--seed", "5", frames="0:2")
+    again = render(capsys, tmp_path / "seed5b", "--seed", "5", *OURS, frames="0:2")
     assert [row["seed"] for row in again] == [5, 6]
     np.testing.assert_array_equal(image(tmp_path / "seed5b", 1), seed5)
 
