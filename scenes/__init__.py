@@ -130,7 +130,7 @@ def parse(spec: str) -> tuple[str, dict]:
         key, equals, text = item.partition("=")
         key = key.strip()
         if key in _FLAGGED:
-            raise ValueError(f"scene {spec!r}: {key} is not a scene option; "
+            raise ValueError(f"scene {spec!r}: {item!r} is not a scene option; "
                              f"{_FLAGGED[key]}")
         if not equals or key not in defaults:
             expected = (f"expected key=value with key one of {sorted(defaults)}" if defaults

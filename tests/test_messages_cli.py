@@ -177,10 +177,10 @@ def test05_running_out_of_memory_is_one_line(tmp_path, capsys, monkeypatch):
 
 
 @pytest.mark.parametrize("scene, said", [
-    ("cloth:frames=4", "frames is not a scene option; give it as --frames"),
-    ("cloth:triangles=9", "triangles is not a scene option; give it as --triangles"),
+    ("cloth:frames=4", "'frames=4' is not a scene option; give it as --frames"),
+    ("cloth:triangles=9", "'triangles=9' is not a scene option; give it as --triangles"),
     ("cloth:bogus=1", "'bogus=1' is not an option of 'cloth'; 'cloth' takes no options"),
-    ("flock:frames=4", "frames is not a scene option; give it as --frames"),
+    ("flock:frames=4", "'frames=4' is not a scene option; give it as --frames"),
 ])
 def test06_a_flag_given_as_a_scene_option_names_the_flag(tmp_path, capsys, scene, said):
     """``cloth:frames=4`` ended "...key one of none"."""
