@@ -23,6 +23,7 @@ compare resumes, and a directory holding frames of other settings is refused):
                     C++ ``path``): the reference
 ``hlbvh/``          ``hlbvh_path`` with ``accel="hlbvh"``: ours, same seed per frame
 ``hits-native/``    ``hlbvh_aov`` at 1 spp, native: the first shape and primitive per pixel
+                    (at the frame's instant, also with ``--shutter``)
 ``hits-hlbvh/``     ``hlbvh_aov`` at 1 spp, ours (the very same camera rays)
 ``native-noise/``   ``native/`` rendered again with another seed (:func:`noise_seed`),
                     only for the frames where ours is not bit-identical to native's: the
@@ -160,7 +161,8 @@ def compare_animation(animation, frames, out_dir, settings: RenderSettings,
                          integrator="path" if settings.integrator == "aov" else settings.integrator)
         rows, _ = render_animation(animation, frames, out / accel, colour, source, progress)
         stats[accel] = {row["frame"]: row for row in rows}
-        hits = replace(settings, accel=accel, integrator="aov", spp=1)
+        # (at each frame's instant: the first hit of a blurred pixel has no one answer)
+        hits = replace(settings, accel=accel, integrator="aov", spp=1, shutter=(0.0, 0.0))
         render_animation(animation, frames, out / f"hits-{accel}", hits, source, progress)
 
     # ---- Metrics per frame, judged against native's noise ----
@@ -180,6 +182,9 @@ def compare_animation(animation, frames, out_dir, settings: RenderSettings,
                                image_metrics(native, ours, tolerance), judged, hits))
         # Two black images are equal whatever the accelerators did: said by the verdict.
         rows[-1]["black"] = not (native.any() or ours.any())
+        rows[-1]["shutter"] = (dict(open=settings.shutter[0], close=settings.shutter[1],
+                                    sub_frames=settings.sub_frames)
+                               if settings.shutter_open else None)
 
     # ---- Difference maps, one scale for every frame; an older run's others removed ----
     scale = max((row["image"]["max_abs_diff"] for row in rows), default=0.0) or 1.0
@@ -309,15 +314,23 @@ def verdict(rows: list[dict]) -> str:
     overhead = {accel: statistics.median(row["motion_overhead"][accel] for row in rows)
                 for accel in ACCELS}
     moving = sorted({row["moving_accel"] for row in rows if row.get("moving_accel")})
-    return (
-        f"A frame (build + render, median of {len(rows)}) takes {ours:.1f} ms with hlbvh "
-        f"and {native:.1f} ms with native: hlbvh is {faster}. Motion overhead (a frame "
+    shutter = rows[0].get("shutter")
+    costs = (
+        f"Motion blur over {shutter['open']:g}..{shutter['close']:g} of a frame: hlbvh "
+        f"traces each ray at its time through the moving meshes' keys, native renders the "
+        f"mean of {shutter['sub_frames']} sub-frames (a rebuild each, its only way). "
+        if shutter else
+        f"Motion overhead (a frame "
         f"over native's render of it without a rebuild; 1.0 is a still frame): hlbvh "
         f"{overhead['hlbvh']:.2f}, native {overhead['native']:.2f}"
         f"{' (moving meshes traced by ' + ', '.join(moving) + ')' if moving else ''}. "
         f"Median build speedup "
         f"{statistics.median(r['build_speedup'] for r in rows):.2f}x (Mitsuba's rebuild / "
-        f"ours). Images: {images}. Pixels bit-identical to native's: "
+        f"ours). ")
+    return (
+        f"A frame (build + render, median of {len(rows)}) takes {ours:.1f} ms with hlbvh "
+        f"and {native:.1f} ms with native: hlbvh is {faster}. {costs}"
+        f"Images: {images}. Pixels bit-identical to native's: "
         f"{min(identical):.1f}-{max(identical):.1f}% a frame; largest pixel difference "
         f"{max(m['max_abs_diff'] for m in image):.3g}. Camera rays hit the same primitive "
         f"first on at least {100 * min(r['hits']['fraction_agree'] for r in rows):.3f}% "

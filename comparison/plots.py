@@ -60,7 +60,8 @@ def plot_per_frame(
     figure, axes = _figure(title)
     ratio = np.median(native) / np.median(ours) if np.median(ours) > 0 else math.inf
     axes.plot(frames_, native, label=native_label, **_NATIVE_STYLE)
-    speed = f"{ratio:.3g}x faster" if ratio >= 1 else f"{1 / ratio:.3g}x slower"
+    speed = (f"{ratio:.3g}x faster" if ratio >= 1 else
+             f"{1 / ratio:.3g}x slower" if ratio > 0 else "native's is zero")
     axes.plot(frames_, ours, marker="o", label=f"hlbvh (median {speed})")
     axes.set_xlabel("frame")
     axes.xaxis.set_major_locator(MaxNLocator(integer=True))

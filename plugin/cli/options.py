@@ -6,6 +6,7 @@ one line."""
 from __future__ import annotations
 
 import argparse
+import math
 import re
 import sys
 from dataclasses import replace
@@ -19,7 +20,8 @@ from hlbvh.integrators.common import MAX_INTEGER_PROPERTY
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.render.frame import MAX_SAMPLES
 from hlbvh.render.settings import (DEFAULT_MAX_DEPTH, DEPTH_INTEGRATORS, INTEGRATORS,
-                                   MAX_SEED, SCENE_INTEGRATORS, WRAPPER_INTEGRATORS,
+                                   MAX_MOTION_KEYS, MAX_SEED, MAX_SUB_FRAMES,
+                                   SCENE_INTEGRATORS, WRAPPER_INTEGRATORS,
                                    RenderSettings,
                                    scene_integrator_fields)
 
@@ -71,6 +73,15 @@ def add_scene_options(parser, out: str, *, builder_options: bool = True,
                                    "the cheapest by measured cost), hlbvh (our BVH), native "
                                    "(a Mitsuba sub-scene of them, rebuilt) or scene "
                                    "(Mitsuba's whole scene, rebuilt)")
+    add("--shutter", help="motion blur: how long the shutter stays open, in frames, "
+                          "centred on each frame (0.5: a 180-degree shutter, -0.25..0.25), "
+                          "or =OPEN:CLOSE relative to the frame (--shutter=-0.25:0.25); our "
+                          "BVH traces each ray at its time, native averages sub-frames; 0 "
+                          "(default): each frame an instant")
+    add("--motion-keys", help="with --shutter: intervals between a moving mesh's keys over "
+                              f"the shutter (default 1: two keys; at most {MAX_MOTION_KEYS})")
+    add("--sub-frames", help="with --shutter: native's sub-frames per frame, each a rebuild "
+                             f"(default 16; at most {MAX_SUB_FRAMES})")
     add("--seed", default="0", help="frame i is rendered with seed SEED + i (default 0)")
     add("--out", help=f"output directory (default {out})")
     add("--quiet", action="store_true", help="no progress bars")
@@ -167,7 +178,39 @@ def render_settings(args, *, spp: int | None = None, integrator: str = "path",
         static=UpdatePolicy.static if static is None else choice("--static", static, STATICS),
         moving_accel=(None if moving_accel is None
                       else choice("--moving-accel", moving_accel, MOVING_ACCELS)),
+        **shutter_settings(args),
     )
+
+
+def shutter_settings(args) -> dict:
+    """``--shutter``, ``--motion-keys`` and ``--sub-frames`` as RenderSettings fields
+    (those not given left to the settings' defaults); the last two need the first."""
+    fields = {}
+    shutter = getattr(args, "shutter", None)
+    if shutter is not None:
+        parts = shutter.split(":")
+        try:
+            values = [float(p) for p in parts]
+        except ValueError:
+            values = []
+        if len(values) == 1:  # a length, centred on the frame
+            values = [-values[0] / 2, values[0] / 2]
+        if len(values) != 2 or not (math.isfinite(values[0]) and math.isfinite(values[1])
+                                    and values[0] <= values[1]):
+            raise UserError(f"--shutter {shutter!r}: expected a length in frames >= 0 "
+                            "(0.5) or OPEN:CLOSE, finite frames relative to each frame with "
+                            "OPEN <= CLOSE (--shutter=-0.25:0.25)")
+        open_, close = values
+        fields["shutter"] = (open_, close)
+    for flag, name, most in (("--motion-keys", "motion_keys", MAX_MOTION_KEYS),
+                             ("--sub-frames", "sub_frames", MAX_SUB_FRAMES)):
+        text = getattr(args, name, None)
+        if text is not None:
+            if shutter is None:
+                raise UserError(f"{flag} {text}: it sets the keys of an open shutter; give "
+                                "--shutter OPEN:CLOSE too")
+            fields[name] = int_flag(flag, text, least=1, most=most)
+    return fields
 
 
 def scene_render_settings(args, animation, scene: str) -> tuple[RenderSettings, str | None]:
@@ -272,12 +315,15 @@ def seed_flag(text: str) -> int:
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
-    """``"W"`` -> ``(W, W)``; ``"WxH"`` -> ``(W, H)``."""
+    """``"W"`` -> ``(W, W)``; ``"WxH"`` -> ``(W, H)``, each side in 1 ..
+    :data:`hlbvh.render.frame.MAX_SAMPLES` (Mitsuba's film takes no larger side; the
+    frame's pixels times its samples are checked against the same bound later)."""
     match = re.fullmatch(r"\s*(\d+)\s*(?:[xX×]\s*(\d+)\s*)?", text)
-    if not match or int(match.group(1)) < 1 or (match.group(2) and int(match.group(2)) < 1):
-        raise UserError(f"--resolution {text!r}: expected W or WxH, positive integers")
-    width = int(match.group(1))
-    return width, int(match.group(2)) if match.group(2) else width
+    sides = [] if not match else [int(side) for side in match.groups() if side]
+    if not sides or not all(1 <= side <= MAX_SAMPLES for side in sides):
+        raise UserError(f"--resolution {text!r}: expected W or WxH, integers in "
+                        f"1..{MAX_SAMPLES}")
+    return sides[0], sides[-1]
 
 
 def choice(flag: str, text: str, choices) -> str:

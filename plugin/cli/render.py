@@ -136,11 +136,23 @@ def run(args) -> int:
             scheduler=args.scheduler, chunk_size=chunk, progress=not args.quiet)
     ours = [row for row in rows if row["frame"] in frames]
     print(f"{out}: frames {frames_text(frames)} of {_scene_name(args.scene, animation)} with "
-          f"{settings.accel}: {len(rendered)} rendered, {len(frames) - len(rendered)} "
-          f"already complete; "
+          f"{settings.accel}{_shutter_text(settings)}: {len(rendered)} rendered, "
+          f"{len(frames) - len(rendered)} already complete; "
           f"median build {_median(ours, 'build_ms'):.1f} ms, render "
           f"{_median(ours, 'render_ms'):.1f} ms; statistics in {out / 'stats.csv'}")
     return 0
+
+
+def _shutter_text(settings) -> str:
+    """What the summary says of an open shutter: its frames, and what traced the
+    moving meshes through it."""
+    if not settings.shutter_open:
+        return ""
+    open_, close = settings.shutter
+    how = ("moving meshes traced by our BVH at each ray's time; Mitsuba's structures "
+           "have one pose" if settings.accel == "hlbvh" else
+           f"each frame the mean of {settings.sub_frames} sub-frames, a rebuild each")
+    return f", shutter {open_:g}..{close:g} of a frame ({how})"
 
 
 def _scene_name(scene: str, animation) -> str:
