@@ -186,3 +186,18 @@ def test06_a_flag_given_as_a_scene_option_names_the_flag(tmp_path, capsys, scene
     """``cloth:frames=4`` ended "...key one of none"."""
     status, _, err = run_cli(capsys, "render", scene, "--quiet", "--out", tmp_path / "out")
     assert status == 2 and err == [f"hlbvh render: scene {scene!r}: {said}"], err
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["--resolution", "4294967296"],  # Mitsuba's film refused it in a traceback
+     "--resolution '4294967296': expected W or WxH, integers in 1..4294967295"),
+    (["--frames", "99999999999999999999999"],  # the line said "use --seed 0 or less"
+     "--frames: frame 99999999999999999999998 is past 4294967295, the last frame a seed "
+     "numbers (frame i renders with seed --seed + i; seeds are 32-bit)"),
+])
+def test07_a_film_side_or_a_frame_past_32_bits_is_one_line(tmp_path, capsys, argv, said):
+    status, _, err = run_cli(capsys, "render", "cloth", "--triangles", "200", "--spp", "1",
+                             "--quiet", *argv, "--out", tmp_path / "out")
+    assert status == 2 and err == [f"hlbvh render: {said}"], err
+    assert not list((tmp_path / "out").glob("frame_*"))
+

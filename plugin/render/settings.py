@@ -231,13 +231,16 @@ def check_seed(seed: int, frames) -> None:
     :data:`MAX_SEED`, before any frame is rendered.
 
     Raises:
-        UserError: naming ``--seed`` and the largest one that fits ``frames``.
+        UserError: naming ``--seed`` and the largest one that fits ``frames``, or
+            ``--frames`` where its last frame is past :data:`MAX_SEED` (no seed fits).
     """
     last = frames[-1]
+    if last > MAX_SEED:
+        raise UserError(f"--frames: frame {last} is past {MAX_SEED}, the last frame a seed "
+                        f"numbers (frame i renders with seed --seed + i; seeds are 32-bit)")
     if seed + last > MAX_SEED:
         raise UserError(f"--seed {seed}: frame {last} would get seed {seed + last}, past "
-                        f"{MAX_SEED} (seeds are 32-bit); use --seed {max(MAX_SEED - last, 0)} "
-                        f"or less")
+                        f"{MAX_SEED} (seeds are 32-bit); use --seed {MAX_SEED - last} or less")
 
 
 def frames_argument(frames: range) -> str:
