@@ -109,7 +109,7 @@ from hlbvh.render.settings import (MAX_SEED, RenderSettings, check_seed, frames_
 #: Largest absolute per-channel difference of a pixel counted as within tolerance in
 #: the report's figure (not the verdict): the absolute part of
 #: tests/test_integrators.py::test11's tolerance, several times the worst pixel
-#: difference seen there (docs/decisions.md).
+#: difference seen there (docs/decisions.md#compare-tolerance).
 TOLERANCE = 5e-4
 
 #: The bottom of the difference maps' logarithmic scale: about one float32 step at 1

@@ -5,7 +5,7 @@ gather kernel and one scatter kernel per level, so no kernel ever waits on anoth
 (no atomics, no in-kernel synchronisation). Leaves take the union of their triangles'
 boxes; an internal node the union of its two children's. (One bottom-up pass in which
 the second child to arrive at a node carries on, as Karras 2012 and Apetrei 2014 do,
-was measured slower here; see docs/decisions.md.)
+was measured slower here; see docs/decisions.md#bounds-per-level.)
 """
 
 from __future__ import annotations

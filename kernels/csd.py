@@ -26,7 +26,7 @@ keys. Whether a voxel needs its fine sort is read off the runs before decoding t
 a run holding a descent, or a run starting below where the voxel's previous run ended.
 
 What the run bookkeeping costs against a plain sort, from last frame's order and
-without it, is in docs/decisions.md.
+without it, is in docs/decisions.md#csd-sort.
 
 Whether last frame's order is worth starting from at all is estimated first
 (:func:`seed_pays`) from a sample of neighbouring pairs in that order: where the sample
@@ -49,11 +49,11 @@ from .arrays import namespace_of, plain
 
 # Most bits per pass of the LSD radix sort. CPU: 15 sorts 30-bit keys in two passes
 # and 60-bit ones in four, and a 12-bit coarse key still in one (a pass of 15 bits
-# costs little more than one of 10 at 1M keys, see docs/decisions.md); GPU: Dr.Jit's
+# costs little more than one of 10 at 1M keys, see docs/decisions.md#radix-width); GPU: Dr.Jit's
 # own choice in dr.argsort (8, shared memory is smaller).
 _RADIX_BITS = {dr.JitBackend.LLVM: 15, dr.JitBackend.CUDA: 8}
 # Below this many keys, keys wider than one pass are sorted 10 bits a pass on the CPU:
-# a pass's 2^15 buckets cost more than a third pass (docs/decisions.md).
+# a pass's 2^15 buckets cost more than a third pass (docs/decisions.md#radix-width).
 _WIDE_RADIX_FROM = 1 << 18
 
 

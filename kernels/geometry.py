@@ -96,7 +96,7 @@ def warn_if_out_of_range(lo, hi, stacklevel: int = 3):
       kernels flush values below 2**-126 (1.2e-38) to zero, and the ray/triangle test
       multiplies coordinate differences, so triangle sizes and hit distances near that
       lose precision, then hits. The margin of 2**20 leaves room for triangles down to
-      a millionth of the scene's size (where hits are lost: docs/decisions.md).
+      a millionth of the scene's size (where hits are lost: docs/decisions.md#tiny-scenes).
     - A coordinate or an extent beyond :data:`LARGEST_COORDINATE` (2**125, about
       4.3e37): sums and differences of coordinates overflow float32 (max 3.4e38) and
       the reciprocal of an extent beyond 2**126 is subnormal, which the kernels flush to

@@ -58,7 +58,7 @@ def point_bounds(points):
     if dr.width(points) == 0:
         raise ValueError("point_bounds: points is empty; pass at least one point")
     # Float min/max reductions propagate NaN and run several times slower than integer
-    # ones on the CPU (docs/decisions.md), so reduce the floats'
+    # ones on the CPU (docs/decisions.md#centroid-bounds), so reduce the floats'
     # bit patterns, mapped to Int32 values that order like the floats.
     ns = namespace_of(points)
     ordered = ns.Array3i(*(_ordered_bits(ns, points[k]) for k in range(3)))
@@ -184,7 +184,7 @@ def choose_key(prim_lo, prim_hi, lo, hi, quantization: str = "cube") -> tuple[in
     against a 60-bit cell (cells 2^20 times smaller than the scene: a 1e-3 object with
     100k triangles on a ground 1e4 wide), ``"rank"`` quantisation with 60-bit keys:
     the object then gets the cells it needs wherever it is (what that gains, and why rank
-    keys are not chosen otherwise: docs/decisions.md).
+    keys are not chosen otherwise: docs/decisions.md#rank-keys).
 
     Args:
         prim_lo, prim_hi: Array3f[N], each primitive's bounding box.
@@ -224,7 +224,7 @@ def choose_morton_bits(prim_lo, prim_hi, lo, hi) -> int:
     when at least 1% of the primitives are small. A share, not the median or the mean:
     a small detailed object on a huge, finely tessellated ground holds few of the
     primitives but all of the collisions, and the median and mean extent are those of
-    the ground (measured in docs/decisions.md; ``tests/test_morton.py`` checks such
+    the ground (measured in docs/decisions.md#key-width; ``tests/test_morton.py`` checks such
     scenes). Thin slivers fanning around one point (a UV sphere's poles) collide
     without being small; a criterion on extents cannot see them. All centroids equal
     (zero extent) gives 30: finer cells would not separate them either.

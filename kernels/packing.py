@@ -142,7 +142,7 @@ def _wide_rows(bvh, first, ref, wide):
     (one coherent pass over the nodes), so a wide node reads each of its binary and
     grandchildren with one packet gather: node numbers are far apart in a large tree,
     and six box coordinates in six arrays were six cache misses a child (measured in
-    docs/decisions.md)."""
+    docs/decisions.md#packing)."""
     ns = namespace_of(first)
     UInt32, Float = ns.UInt32, ns.Float
     n = dr.width(first)

@@ -108,7 +108,7 @@ def _write_packed(bvh, place, plan, points, slot_faces, key=None):
     :func:`~hlbvh.kernels.packing.packed_records` or :func:`~hlbvh.kernels.layout.joined`
     that asks for ``place``. (Used by a refit:
     for a new build, whose placement and plan are made anew, this measured no faster
-    than the binary bounds and a pack; see docs/decisions.md.)
+    than the binary bounds and a pack; see docs/decisions.md#refit.)
 
     Args:
         bvh: a tree as the builder returned it (its shape only is read).

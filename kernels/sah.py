@@ -54,7 +54,7 @@ __all__ = ["MAX_BINS", "NODE_LANES_MAX_ITEMS", "SahTree", "binned_sah"]
 #: Inputs of at most this many items (the HLBVH top level's clusters, small meshes) are
 #: split one lane per node (:mod:`~hlbvh.kernels.sah_node_lanes`), larger ones one lane
 #: per item (:mod:`~hlbvh.kernels.sah_item_lanes`). Same trees; where the two cross is
-#: measured in docs/decisions.md.
+#: measured in docs/decisions.md#sah-top-level.
 NODE_LANES_MAX_ITEMS = 1 << 16
 
 

@@ -28,7 +28,7 @@ triangle (1 slot)      ``TRI_P[0..2]``: p0, p1, p2 in the face's order, all NaN 
 A *reference* names a child: a wide node by its first slot (bit 31 clear); a leaf by
 ``LEAF_BIT | first_slot << 4 | (count - 1)`` (at most ``MAX_LEAF_SIZE`` triangles, and
 the slots below ``MAX_SLOTS``), so a leaf needs no record of its own.
-(Child boxes are kept in full float32: docs/decisions.md has what quantising them cost.)
+(Child boxes are kept in full float32: docs/decisions.md#wide-bvh4 has what quantising them cost.)
 """
 
 from __future__ import annotations

@@ -70,7 +70,8 @@ from .two_level import NO_INSTANCE, RETURN_REF, TwoLevel, enter_instance, select
 STACK_SIZE = (WIDTH - 1) * MAX_DEPTH // 2
 #: Of these, the top entries held in loop registers (the rest in local memory). At
 #: least the WIDTH - 1 that one node pushes: the push moves older entries out to local
-#: memory, never the new ones, so fewer registers would drop a child (docs/decisions.md).
+#: memory, never the new ones, so fewer registers would drop a child
+#: (docs/decisions.md#stack-registers).
 REGISTERS = 4
 assert REGISTERS >= WIDTH - 1
 #: The compare-exchange pairs that sort a wide node's ``WIDTH`` (four) child entries.

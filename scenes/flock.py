@@ -33,7 +33,8 @@ class Flock(ProceduralScene):
     accelerator that follows transforms rebuilds only its top level.
 
     Mitsuba's own renderer expands hits inside instances at a compile cost that grows
-    with the number of instances (docs/decisions.md): render the full flock with
+    with the number of instances (docs/decisions.md#instance-hit-expansion):
+    render the full flock with
     ``accel="hlbvh"``; native references need a few hundred birds at most.
 
     Args:

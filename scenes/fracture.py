@@ -76,7 +76,8 @@ class Fracture(ProceduralScene):
     ``to_world``: the same motion, the same triangles, no vertex rewritten. The shards
     share no geometry, so instancing saves the per-frame vertex writes and rebuild but
     not memory, and the expansion of hits grows with the number of groups (Mitsuba's
-    per instance, ours per group mesh; docs/decisions.md): the one-mesh model stays the
+    per instance, ours per group mesh; docs/decisions.md#fracture-one-mesh):
+    the one-mesh model stays the
     default.
 
     Args:

@@ -5,7 +5,8 @@ Mitsuba expands a hit (``pi.compute_surface_interaction``) with a call through t
 hit's shape or instance pointer. On the JIT backends such a call is recorded once for
 every shape the variant knows, and an instance's own expansion holds a second call of
 that kind through its group's shapes, so the kernel that expands hits grows with the
-number of instances: its compilation takes about 40 ms an instance (docs/decisions.md),
+number of instances: its compilation takes about 40 ms an instance
+(docs/decisions.md#instance-hit-expansion),
 and a scene of 10k instances does not fit in 24 GB. Here a hit inside an instance is
 expanded as Mitsuba's ``Instance`` does it (the ray taken into object space, the group
 shape's own expansion, the result taken back to world space) with the instance's

@@ -83,7 +83,8 @@ class UpdatePolicy:
             every mesh is ours: only ``"auto"`` and ``"hlbvh"`` are accepted.
 
     The defaults' measurements (frame times of each policy, the static tree's builder
-    and leaf size) are in docs/decisions.md.
+    and leaf size) are in docs/decisions.md#update-policy and
+    docs/decisions.md#static-leaf-size.
     """
 
     update: str = "auto"

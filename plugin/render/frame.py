@@ -31,13 +31,14 @@ STATS_FIELDS = ("frame", "accel", "triangles", "seed", "geometry_ms", "mitsuba_u
 MAX_SAMPLES = 2**32 - 1
 
 #: Most instances a native render is let to take: Mitsuba compiles its expansion of
-#: hits for every instance, with a call through each group inside (docs/decisions.md:
+#: hits for every instance, with a call through each group inside
+#: (docs/decisions.md#instance-hit-expansion:
 #: 17 s of compilation at 400 instances, more than 24 GB at 10k).
 MOST_NATIVE_INSTANCES = 1000
 
 #: Memory a frame takes per pixel and per sample, in bytes: about twice the peak of
 #: ``mi.render`` on the LLVM backend (film, wavefront and the developed image;
-#: docs/decisions.md), so a frame refused here would not have fit.
+#: docs/decisions.md#frame-memory), so a frame refused here would not have fit.
 BYTES_PER_PIXEL, BYTES_PER_SAMPLE = 64, 32
 
 
