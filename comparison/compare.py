@@ -282,11 +282,54 @@ def _frame_row(i: int, native: dict, ours: dict, image: dict, judged: dict,
     }
 
 
+#: What may trace the moving meshes on hlbvh's frames (the rows' ``moving_accel``), as
+#: the verdict names it.
+_STRUCTURES = {
+    "hlbvh": "our HLBVH",
+    "native": "a Mitsuba sub-scene of the moving meshes (the native group)",
+    "scene": "the whole scene (Mitsuba's own accelerator, rebuilt)",
+}
+
+#: What hlbvh's frames traced by one of Mitsuba's structures compare: said of every
+#: frame, and of that structure's frames among others.
+_MITSUBA_MEANS = {
+    "native": ("this does not compare our BVH on the moving meshes",
+               "the native group's frames do not compare our BVH on the moving meshes"),
+    "scene": ("this compares Mitsuba with itself",
+              "the whole scene's frames compare Mitsuba with itself"),
+}
+
+
+def traced_by(rows: list[dict]) -> str:
+    """The verdict's sentence on what traced the moving meshes on hlbvh's frames (chosen
+    per render by measured cost, or forced by ``--moving-accel``) and what the
+    comparison then compares: where one of Mitsuba's structures traced them, native
+    against native, and ``--moving-accel hlbvh`` is the comparison of our BVH. Empty
+    for rows that do not say."""
+    counts = {name: sum(row.get("moving_accel") == name for row in rows)
+              for name in _STRUCTURES}
+    used = [name for name in _STRUCTURES if counts[name]]
+    if not used:
+        return ""
+    if len(used) == 1:
+        said = (f"{_STRUCTURES[used[0]][0].upper()}{_STRUCTURES[used[0]][1:]} traced the "
+                f"moving meshes on every frame of hlbvh's")
+    else:
+        said = "What traced the moving meshes on hlbvh's frames: " + ", ".join(
+            f"{_STRUCTURES[name]} on {counts[name]} of {len(rows)}" for name in used)
+    mitsuba = [_MITSUBA_MEANS[name][len(used) > 1] for name in used if name != "hlbvh"]
+    if not mitsuba:
+        return f"{said}. "
+    return (f"{said}: {'; '.join(mitsuba)}; --moving-accel hlbvh forces our BVH, the "
+            f"comparison of hlbvh itself. ")
+
+
 def verdict(rows: list[dict]) -> str:
     """The paragraph the report opens with: frame time of each accelerator (median over
     the frames), the median build speedup, whether ours is within Monte Carlo noise of
     native's on every frame (or both black on every frame, which tells nothing) with the
-    largest block ``|z|`` against the limit, the frames beyond it and where; then the
+    largest block ``|z|`` against the limit, the frames beyond it and where, and what
+    traced the moving meshes on hlbvh's frames (:func:`traced_by`); then the
     figures: bit-identical pixels, the largest pixel difference, how often the camera
     rays hit the same primitive first."""
     judged = [row["noise"] for row in rows]
@@ -313,7 +356,6 @@ def verdict(rows: list[dict]) -> str:
     identical = [100 * m["fraction_identical"] for m in image]
     overhead = {accel: statistics.median(row["motion_overhead"][accel] for row in rows)
                 for accel in ACCELS}
-    moving = sorted({row["moving_accel"] for row in rows if row.get("moving_accel")})
     shutter = rows[0].get("shutter")
     costs = (
         f"Motion blur over {shutter['open']:g}..{shutter['close']:g} of a frame: hlbvh "
@@ -322,14 +364,13 @@ def verdict(rows: list[dict]) -> str:
         if shutter else
         f"Motion overhead (a frame "
         f"over native's render of it without a rebuild; 1.0 is a still frame): hlbvh "
-        f"{overhead['hlbvh']:.2f}, native {overhead['native']:.2f}"
-        f"{' (moving meshes traced by ' + ', '.join(moving) + ')' if moving else ''}. "
+        f"{overhead['hlbvh']:.2f}, native {overhead['native']:.2f}. "
         f"Median build speedup "
         f"{statistics.median(r['build_speedup'] for r in rows):.2f}x (Mitsuba's rebuild / "
         f"ours). ")
     return (
         f"A frame (build + render, median of {len(rows)}) takes {ours:.1f} ms with hlbvh "
-        f"and {native:.1f} ms with native: hlbvh is {faster}. {costs}"
+        f"and {native:.1f} ms with native: hlbvh is {faster}. {traced_by(rows)}{costs}"
         f"Images: {images}. Pixels bit-identical to native's: "
         f"{min(identical):.1f}-{max(identical):.1f}% a frame; largest pixel difference "
         f"{max(m['max_abs_diff'] for m in image):.3g}. Camera rays hit the same primitive "
