@@ -136,7 +136,7 @@ class FrameRenderer:
         seed = self.settings.seed + i
         start = clock_ms()
         if accumulated:
-            image = self._accumulated(i, seed, spp, parameters)
+            image = self.accumulated(i, seed, spp, parameters)
         else:
             with self.integrator.updated():  # updated above: the render need not look again
                 image = mi.render(self.scene, seed=seed, spp=0 if spp is None else spp)
@@ -171,12 +171,14 @@ class FrameRenderer:
             if all(isinstance(g, FrameSensor) for g in given):
                 set_camera_keys(sensor, [g.to_world for g in given], (open_, close))
 
-    def _accumulated(self, i: int, seed: int, spp: int | None, parameters) -> mi.TensorXf:
-        """Native's image of frame ``i`` with the shutter open: the mean of
+    def accumulated(self, i: int, seed: int, spp: int | None, parameters=None) -> mi.TensorXf:
+        """Frame ``i`` with the shutter open as sub-frames: the mean of
         ``settings.sub_frames`` renders of the geometry at stratified times inside the
-        shutter (each at the frame's samples over the sub-frames, its own seed), each a
-        rebuild of Mitsuba's accelerator: the same estimator as a blurred render in
-        expectation, the only one Mitsuba has."""
+        shutter (each at the frame's samples over the sub-frames, its own seed), each an
+        update of the accelerator (native's: a rebuild, the only way Mitsuba has; ours:
+        what the benchmark compares our blurred frame with). The same estimator as a
+        blurred render in expectation."""
+        parameters = self.params if parameters is None else parameters
         open_, close = self.settings.shutter
         count = self.settings.sub_frames
         each = max((spp or int(self.scene.sensors()[0].sampler().sample_count())) // count, 1)
