@@ -1,34 +1,10 @@
-"""The BVH the builders produce and the traversal reads, with its configuration and
-statistics.
+"""What a user of the kernels touches: :class:`BuildConfig` (the options of
+:func:`hlbvh.build`), :class:`BuildStats` (what a build measured) and :class:`BVH`, the
+tree record (:class:`hlbvh.kernels.tree.Tree`, whose docstring gives the node layout)
+with the conveniences that hand it to the stages: ``refit`` and the two ray queries.
 
-Node layout (binary tree, flat structure-of-arrays, ``N`` nodes, root at index 0):
-
-==================  ==========  ==========================================================
-field               type        meaning
-==================  ==========  ==========================================================
-``node_min``        Array3f[N]  lower corner of the node's box
-``node_max``        Array3f[N]  upper corner of the node's box
-``node_first``      UInt32[N]   internal node: index of its left child; the right child is
-                                always ``node_first + 1`` (siblings are adjacent).
-                                leaf: index of its first primitive slot
-``node_count``      UInt32[N]   0 for an internal node; for a leaf the number of
-                                primitives (slots ``node_first .. node_first+count-1``)
-``prim_ids``        UInt32[F]   slot -> index of the triangle in the input ``faces``
-``tri_p0/p1/p2``    Array3f[F]  the triangle's vertices, stored in slot order so a leaf
-                                reads contiguous memory
-==================  ==========  ==========================================================
-
-``levels`` lists, root first, the internal nodes of each depth (one UInt32 array per
-depth); bottom-up passes (bounds, refit) walk it backwards without any synchronisation
-inside a kernel. Every array is of the backend of the input vertices.
-
-``built_topology`` is :meth:`BVH.topology_key` as the builder returned the tree (None for
-a tree made by hand): while the key still matches, the tree is the builder's own, whose
-invariants the tests check on every builder, and the packer
-(:func:`hlbvh.kernels.packing.packed_records`) skips validating it on every frame.
-
-``cache`` (:class:`BVHCache`) holds what the packer and the refit keep between calls,
-each entry keyed by the arrays it was made from, so a stale one is never used.
+This module sits above the stages it calls (refit, traversal) and below the builders
+that return its :class:`BVH`; no stage imports it.
 """
 
 from __future__ import annotations
@@ -38,10 +14,12 @@ import numbers
 from dataclasses import dataclass, field
 from typing import Any
 
-from .arrays import Array3f, UInt32
+from .morton import QUANTIZATIONS
+from .refit import refit
+from .traversal import intersect, occluded
+from .tree import Tree
 
 BUILDERS = ("hlbvh", "lbvh", "sah")
-QUANTIZATIONS = ("cube", "axis", "rank")
 
 
 @dataclass
@@ -188,92 +166,23 @@ class BuildStats:
         return dataclasses.asdict(self)
 
 
-@dataclass
-class BVHCache:
-    """What the stages keep on a :class:`BVH` between calls. Every entry is a pair
-    ``(key, value)`` (or None), the key naming the Dr.Jit variables (and the place) it
-    was made for: a stage uses an entry only while its key still matches.
-
-    Attributes:
-        traversal_records: ``(arrays and place, (records, root))``: the packed slots
-            (:func:`hlbvh.kernels.packing.packed_records`).
-        pack_plan: ``(topology and slot base, Placement)``: where each node and triangle
-            goes (:func:`hlbvh.kernels.placement.placement`); a refit keeps it.
-        last_pack: ``(slot_base, face_base, front)`` of the last pack meant for tracing:
-            where a fused refit writes its slots.
-        ready_records: ``(arrays and place, records)``: slots a fused refit wrote
-            (:func:`hlbvh.kernels.refit.refit_packed`), handed over to the next pack
-            for that place.
-        refit_plan: ``(pack plan key, RefitPlan)``: where the fused refit reads each
-            box from.
-        refit_faces: ``(faces and order, (Array3u[F], largest index))``: each slot's
-            face's vertex indices (:func:`hlbvh.kernels.refit.refit`).
-    """
-
-    traversal_records: tuple | None = None
-    pack_plan: tuple | None = None
-    last_pack: tuple | None = None
-    ready_records: tuple | None = None
-    refit_plan: tuple | None = None
-    refit_faces: tuple | None = None
-
-
-@dataclass
-class BVH:
-    """A built hierarchy over a triangle mesh (layout in the module docstring): a plain
-    record of arrays, what the builder writes and traversal reads. The methods are
-    conveniences that hand the record to the stage that does the work (imported when
-    called, so this module imports no stage)."""
-
-    node_min: Array3f
-    node_max: Array3f
-    node_first: UInt32
-    node_count: UInt32
-    prim_ids: UInt32
-    tri_p0: Array3f
-    tri_p1: Array3f
-    tri_p2: Array3f
-    faces: UInt32
-    levels: list[UInt32]
-    config: BuildConfig
-    stats: BuildStats
-    built_topology: tuple | None = None
-    cache: BVHCache = field(default_factory=BVHCache, repr=False, compare=False)
-
-    def topology_key(self) -> tuple:
-        """The Dr.Jit variables of the arrays that give the tree its shape (``node_first``,
-        ``node_count``, ``prim_ids``, ``levels``): assigning any of them changes it. (A
-        refit assigns only boxes and triangles.)"""
-        return (self.node_first.index, self.node_count.index, self.prim_ids.index,
-                tuple(level.index for level in self.levels))
-
-    @property
-    def size(self) -> int:
-        """Number of nodes."""
-        return len(self.node_count)
-
-    @property
-    def prim_count(self) -> int:
-        return len(self.prim_ids)
+class BVH(Tree):
+    """A built hierarchy (:class:`~hlbvh.kernels.tree.Tree`, the record every stage
+    takes) with the conveniences a user calls on it, each handing the record to the
+    stage that does the work. :func:`hlbvh.build` returns one."""
 
     def refit(self, vertices) -> "BVH":
         """:func:`hlbvh.kernels.refit.refit`: new boxes for new vertex positions (same
         faces, same tree), in place; returns self."""
-        from .refit import refit
-
         return refit(self, vertices)
 
     def intersect(self, ray, active=True):
         """:func:`hlbvh.kernels.traversal.intersect`: closest hit of ``ray`` (anything
         with ``o``, ``d``, ``maxt``) as a ``mi.PreliminaryIntersection3f`` with
         ``prim_index`` the input face index and the shape fields null."""
-        from .traversal import intersect
-
         return intersect(self, ray, active)
 
     def occluded(self, ray, active=True):
         """:func:`hlbvh.kernels.traversal.occluded`: whether anything lies on ``ray`` in
         (0, maxt), a Bool per ray."""
-        from .traversal import occluded
-
         return occluded(self, ray, active)

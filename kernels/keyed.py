@@ -56,11 +56,12 @@ from typing import Any, Sequence
 import drjit as dr
 
 from .arrays import Float, UInt32, namespace_of
-from .bvh import BVH
+from .build import build
 from .geometry import as_faces, as_points
-from .packing import packed_records
-from .refit import _slot_faces, refit, refit_packed
+from .packing import pack_state, packed_records
+from .refit import RefitState, refit, refit_packed, slot_faces
 from .slots import NODE_REF, SLOT, TRI_FACE, TRI_P
+from .tree import Tree
 
 #: A keyed tree's floats are addressed with 32-bit indices.
 MAX_FLOATS = 2**32 - 1
@@ -75,7 +76,8 @@ assert list(_TRI_VERTEX_FIELDS) == list(range(9)) and TRI_FACE == 9
 @dataclass
 class KeyedTree:
     """A tree's packed slots at ``keys`` evenly spaced times (what :func:`keyed_tree`
-    returns; traversal takes it with a ``time`` per ray).
+    returns; traversal takes it with a ``time`` per ray, through :meth:`keys_at`: a
+    :class:`hlbvh.kernels.traversal.TimedTree`).
 
     Attributes:
         records: Float, ``SLOT`` floats per slot and key: slot ``s`` of key ``k`` at
@@ -91,12 +93,16 @@ class KeyedTree:
     root: int
     keys: int
     slots: int
-    bvh: BVH
+    bvh: Tree
 
     @property
     def segments(self) -> int:
         """``S``: the intervals between keys."""
         return self.keys - 1
+
+    def keys_at(self, time: Float) -> "RayKeys":
+        """What rays at ``time`` read (:func:`ray_keys`)."""
+        return ray_keys(self, time)
 
 
 @dataclass
@@ -117,6 +123,28 @@ class RayKeys:
     f: Any
     g: Any
     known: Any
+
+    def slot(self, records: Float, base: UInt32, n: int) -> list:
+        """The 32 floats of slot ``base`` at each ray's keys ``k`` and ``k + 1`` (two
+        packet gathers of adjacent 64-byte lines), not yet interpolated."""
+        ns = namespace_of(records)
+        at = base * self.stride + self.k
+        return [*dr.gather(ns.ArrayXf, records, at, shape=(SLOT, n)),
+                *dr.gather(ns.ArrayXf, records, at + 1, shape=(SLOT, n))]
+
+    def triangle(self, rec: list) -> list:
+        """The triangle record at the ray's time from :meth:`slot`'s 32 floats: the
+        vertices interpolated, the rest key ``k``'s."""
+        return [lerp(rec[i], rec[SLOT + i], self.f, self.g) if i in _TRI_VERTEX_FIELDS
+                else rec[i] for i in range(SLOT)]
+
+    def node(self, first: list, second: list) -> list:
+        """A wide node's 32 floats at the ray's time, from :meth:`slot`'s reads of its
+        two slots: the child boxes interpolated, the references key ``k``'s."""
+        rec = first[:SLOT] + second[:SLOT]
+        nxt = first[SLOT:] + second[SLOT:]
+        return [lerp(rec[i], nxt[i], self.f, self.g) if i < _NODE_BOX_FIELDS else rec[i]
+                for i in range(2 * SLOT)]
 
 
 # ---------------------------------------------------------------------------------------
@@ -168,7 +196,7 @@ def checked_keys(keys, faces, top: int | None = None) -> list:
     return points
 
 
-def keyed_tree(bvh: BVH, keys) -> KeyedTree:
+def keyed_tree(bvh: Tree, keys) -> KeyedTree:
     """The slots of ``bvh``'s topology at every key: a refit per key (fused with its
     packing for a builder's tree), each key's slots copied to their places in the keyed
     layout. ``bvh`` is left as it was (refit on a copy that shares its caches' plans).
@@ -187,30 +215,31 @@ def keyed_tree(bvh: BVH, keys) -> KeyedTree:
     return _keyed(bvh, checked_keys(keys, bvh.faces))
 
 
-def _keyed(bvh: BVH, points: list) -> KeyedTree:
+def _keyed(bvh: Tree, points: list) -> KeyedTree:
     """:func:`keyed_tree` of checked keys (flat Float arrays)."""
     count = len(points)
     ns = namespace_of(bvh.node_count)
     UInt32_, Float_ = ns.UInt32, ns.Float
     work = _working_copy(bvh)
-    if work.cache.last_pack != (0, 0, 0):  # last packed elsewhere (joined): pack here
-        work.cache.traversal_records = None
-    _, root = packed_records(work)  # the slots' place (kept on bvh when it was traced)
-    total = work.cache.pack_plan[1].total
+    packed = pack_state(work)
+    if packed.last != (0, 0, 0):  # last packed elsewhere (joined): pack here
+        packed.records = None
+    _, root = packed_records(work)  # the slots' place (kept for bvh when it was traced)
+    total = packed.plan[1].total
     if SLOT * count * total + SLOT > MAX_FLOATS:
         raise ValueError(f"keys: {count} keys of {total} slots need {SLOT * count * total} "
                          f"floats; a keyed tree holds at most {MAX_FLOATS}")
     records = dr.empty(Float_, SLOT * count * total)
-    record_of = work.cache.pack_plan[1].record_of  # each triangle slot's slot
+    record_of = packed.plan[1].record_of  # each triangle slot's slot
     place = dr.arange(UInt32_, total)
     flat_somewhere = dr.zeros(ns.Bool, bvh.prim_count)
     flat_everywhere = dr.ones(ns.Bool, bvh.prim_count)
-    slot_faces = _slot_faces(work)[0]
+    faces = slot_faces(work)[0]
     for k, p in enumerate(points):
         key = dr.opaque(UInt32_, k)
         # A builder's tree: the fused refit writes the key's slots in place. Another
         # (made by hand): refit through its binary levels, packed, the slots copied.
-        if not refit_packed(work, p, slot_faces, (records, count, k)):
+        if not refit_packed(work, p, faces, (records, count, k)):
             refit(work, p)
             rows = dr.gather(ns.ArrayXf, packed_records(work)[0], place, shape=(SLOT, total))
             dr.scatter(records, rows, place * count + key)
@@ -220,14 +249,12 @@ def _keyed(bvh: BVH, points: list) -> KeyedTree:
         flat_everywhere &= flat
         dr.eval(records, flat_somewhere, flat_everywhere)
     _unflatten(records, count, points, bvh, record_of, flat_somewhere & ~flat_everywhere)
-    # The plans the refits made depend on the topology only (each keyed by it): kept on
+    # The plans the refits made depend on the topology only (each keyed by it): kept for
     # bvh, so that the next frame's keys refit without making them again (the
     # placement only where bvh was last packed at slot 0, as here).
-    kept = ("refit_plan", "refit_faces")
-    if bvh.cache.last_pack in (None, (0, 0, 0)):
-        kept += ("pack_plan",)
-    for plan in kept:
-        setattr(bvh.cache, plan, getattr(work.cache, plan))
+    bvh.kept[RefitState] = work.kept_state(RefitState)
+    if pack_state(bvh).last in (None, (0, 0, 0)):
+        pack_state(bvh).plan = packed.plan
     return KeyedTree(records=records, root=root, keys=count, slots=total, bvh=bvh)
 
 
@@ -240,8 +267,6 @@ def build_keyed(keys, faces, **options) -> KeyedTree:
         faces: flat UInt32 (3·F) or Array3u (F).
         options: ``hlbvh.build``'s (``builder``, ``leaf_size``, ...).
     """
-    from .build import build
-
     points = checked_keys(keys, as_faces(faces))
     return _keyed(build(mid_shutter(points), faces, **options), points)
 
@@ -258,12 +283,13 @@ def mid_shutter(points: list) -> Float:
     return lerp(points[s // 2], points[s // 2 + 1], half, half)
 
 
-def _working_copy(bvh: BVH) -> BVH:
-    """``bvh`` with its own arrays, statistics and cache entries (the entries' values
+def _working_copy(bvh: Tree) -> Tree:
+    """``bvh`` with its own arrays, statistics and stage states (the states' entries
     shared: what a refit replaces is replaced on the copy only)."""
     stats = copy.copy(bvh.stats)
     stats.stage_ms = dict(bvh.stats.stage_ms)
-    return dataclasses.replace(bvh, stats=stats, cache=copy.copy(bvh.cache))
+    kept = {kind: copy.copy(state) for kind, state in bvh.kept.items()}
+    return dataclasses.replace(bvh, stats=stats, kept=kept)
 
 
 def _unflatten(records, count, points, bvh, record_of, partly_flat):
@@ -313,28 +339,3 @@ def ray_keys(keyed: KeyedTree, time: Float) -> RayKeys:
     k = dr.minimum(ns.UInt32(dr.floor(x)), s - 1)
     f = ns.Float64(x - ns.Float(k))  # exact: x and k within a factor two (or k = 0)
     return RayKeys(stride=keyed.keys, k=k, f=f, g=1.0 - f, known=known)
-
-
-def keyed_slot(records: Float, keys: RayKeys, base: UInt32, n: int) -> list:
-    """The 32 floats of slot ``base`` at each ray's keys ``k`` and ``k + 1`` (two
-    packet gathers of adjacent 64-byte lines), not yet interpolated."""
-    ns = namespace_of(records)
-    at = base * keys.stride + keys.k
-    return [*dr.gather(ns.ArrayXf, records, at, shape=(SLOT, n)),
-            *dr.gather(ns.ArrayXf, records, at + 1, shape=(SLOT, n))]
-
-
-def keyed_triangle(keys: RayKeys, rec: list) -> list:
-    """The triangle record at the ray's time from :func:`keyed_slot`'s 32 floats: the
-    vertices interpolated, the rest key ``k``'s."""
-    return [lerp(rec[i], rec[SLOT + i], keys.f, keys.g) if i in _TRI_VERTEX_FIELDS
-            else rec[i] for i in range(SLOT)]
-
-
-def keyed_node(keys: RayKeys, first: list, second: list) -> list:
-    """A wide node's 32 floats at the ray's time, from :func:`keyed_slot`'s reads of
-    its two slots: the child boxes interpolated, the references key ``k``'s."""
-    rec = first[:SLOT] + second[:SLOT]
-    nxt = first[SLOT:] + second[SLOT:]
-    return [lerp(rec[i], nxt[i], keys.f, keys.g) if i < _NODE_BOX_FIELDS else rec[i]
-            for i in range(2 * SLOT)]

@@ -2,7 +2,7 @@
 array of 16-float *slots*, which is what traversal reads; and several BVHs joined under
 one wide node (:func:`joined`), which is how a scene of several meshes is traced.
 
-The binary tree of ``hlbvh.kernels.bvh`` becomes a BVH4 by dropping every other level
+The binary tree of :mod:`hlbvh.kernels.tree` becomes a BVH4 by dropping every other level
 (the internal nodes at odd depths): a *wide node* is an internal node at even depth,
 and its 2-4 children are its binary children, each replaced by its own two children
 when it is internal. One traversal step then tests up to four boxes.
@@ -12,15 +12,13 @@ The parts, one concept a module:
 - :mod:`hlbvh.kernels.slots`: the slot format (fields, references, rows), the one
   place that encodes and decodes it;
 - :mod:`hlbvh.kernels.placement`: where each node and triangle goes, depth first;
-- :mod:`hlbvh.kernels.packing`: the slots written, and kept per place on the BVH
-  (``BVH.cache``);
+- :mod:`hlbvh.kernels.packing`: the slots written, and kept per place for the tree
+  (``PackState``);
 - :mod:`hlbvh.kernels.validation`: the checks a tree made by hand passes first;
 - :func:`hlbvh.kernels.refit.refit_packed`: a refit of a tree packed before, which
   writes its slots in the same passes as its boxes, where it was last packed; the next
-  :func:`packed_records` or :func:`joined` for that place takes them as they are.
-
-The names the parts define are importable from here as before (``layout.SLOT``,
-``layout.packed_records``, ``layout.check_tree``, ...).
+  :func:`~hlbvh.kernels.packing.packed_records` or :func:`joined` for that place takes
+  them as they are.
 """
 
 from __future__ import annotations
@@ -31,16 +29,9 @@ from typing import Any
 import drjit as dr
 
 from .arrays import concat, namespace_of
-from .bvh import BVH
-from .packing import check_tree, is_built, pack, packed_records
-from .slots import (EMPTY, LEAF_BIT, MAX_DEPTH, MAX_LEAF_SIZE, MAX_SLOTS, NODE_HI, NODE_LO,
-                    NODE_REF, NODE_SLOTS, SLOT, TRI_FACE, TRI_HI, TRI_LO, TRI_P, WIDTH,
-                    leaf_ref, node_ref, node_rows, open_ref)
-
-__all__ = ["EMPTY", "LEAF_BIT", "MAX_DEPTH", "MAX_LEAF_SIZE", "MAX_SLOTS", "NODE_HI",
-           "NODE_LO", "NODE_REF", "NODE_SLOTS", "SLOT", "TRI_FACE", "TRI_HI", "TRI_LO",
-           "TRI_P", "WIDTH", "Packed", "check_tree", "joined", "leaf_ref", "node_ref",
-           "open_ref", "packed_records"]
+from .packing import is_built, pack, packed_records
+from .slots import NODE_SLOTS, SLOT, WIDTH, node_ref, node_rows
+from .tree import Tree
 
 
 @dataclass
@@ -52,7 +43,7 @@ class Packed:
     root: int
 
 
-def joined(bvhs: list[BVH]) -> Packed:
+def joined(bvhs: list[Tree]) -> Packed:
     """One traversal over up to ``WIDTH`` BVHs: a wide node over their roots (slots 0-1),
     then each BVH's slots in turn, its face indices offset by the faces before it (so a
     hit's face index counts the BVHs' faces in the order given). One BVH is packed as
@@ -60,7 +51,8 @@ def joined(bvhs: list[BVH]) -> Packed:
     (each BVH's slots are cached for its place).
 
     Raises:
-        ValueError: no BVH, or more than ``WIDTH``; and as :func:`packed_records`.
+        ValueError: no BVH, or more than ``WIDTH``; and as
+            :func:`~hlbvh.kernels.packing.packed_records`.
     """
     if not 1 <= len(bvhs) <= WIDTH:
         raise ValueError(f"joined: {len(bvhs)} BVHs, expected 1 to {WIDTH}")

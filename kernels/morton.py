@@ -29,9 +29,10 @@ from __future__ import annotations
 import drjit as dr
 
 from .arrays import namespace_of, plain
-from .bvh import QUANTIZATIONS
 
 MORTON_BITS = (30, 60)
+#: How centroids are quantised to key cells (:func:`morton_codes`).
+QUANTIZATIONS = ("cube", "axis", "rank")
 
 # A primitive is "small" when its largest extent is below this fraction of a 30-bit
 # cell (see choose_morton_bits for the argument and the measurements).

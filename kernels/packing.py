@@ -1,6 +1,7 @@
-"""Packing a BVH into the slots traversal reads (:mod:`hlbvh.kernels.slots`), and what
-is kept between packs (``BVH.cache``): the slots of each place, the placement of the
-tree's shape (:mod:`hlbvh.kernels.placement`), and slots a fused refit already wrote.
+"""Packing a tree into the slots traversal reads (:mod:`hlbvh.kernels.slots`), and what
+is kept between packs (:class:`PackState`, the packer's entry in ``Tree.kept``): the
+slots of each place, the placement of the tree's shape (:mod:`hlbvh.kernels.placement`),
+and slots written elsewhere for a place (a fused refit's, :func:`hand_over`).
 
 A tree as the builder returned it (``bvh.built_topology`` matches its arrays) is packed
 from its own levels without validation; any other is validated first
@@ -9,17 +10,55 @@ from its own levels without validation; any other is validated first
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import drjit as dr
 
 from .arrays import namespace_of
-from .bvh import BVH
 from .placement import Placement, placement
 from .slots import SLOT, is_leaf, node_rows, triangle_rows
+from .tree import Tree
 
 
-def packed_records(bvh: BVH, slot_base: int = 0, face_base: int = 0):
+@dataclass
+class PackState:
+    """What the packer keeps for one tree between calls (``tree.kept_state(PackState)``,
+    :func:`pack_state`). Every entry but ``last`` is a pair ``(key, value)`` (or None),
+    the key naming the Dr.Jit variables (and the place) it was made for: an entry is
+    used only while its key still matches.
+
+    Attributes:
+        records: ``(arrays and place, (records, root))``: the packed slots
+            (:func:`packed_records`).
+        plan: ``((topology, slot base), Placement)``: where each node and triangle goes
+            (:func:`hlbvh.kernels.placement.placement`); a refit keeps it.
+        last: ``(slot_base, face_base, front)`` of the last pack meant for tracing:
+            where a fused refit writes its slots.
+        ready: ``(arrays and place, records)``: slots written elsewhere for that place
+            (:func:`hand_over`), taken as they are by the next pack there.
+    """
+
+    records: tuple | None = None
+    plan: tuple | None = None
+    last: tuple | None = None
+    ready: tuple | None = None
+
+
+def pack_state(tree: Tree) -> PackState:
+    """The packer's :class:`PackState` of ``tree`` (empty before its first pack)."""
+    return tree.kept_state(PackState)
+
+
+def hand_over(tree: Tree, place: tuple, records):
+    """Keep ``records``, the slots of ``tree`` as it is now written elsewhere for
+    ``place`` (``(slot_base, face_base, front)``: a fused refit writes them), for the
+    next pack at that place to take as they are."""
+    pack_state(tree).ready = ((arrays_key(tree),) + place, records)
+
+
+def packed_records(bvh: Tree, slot_base: int = 0, face_base: int = 0):
     """The packed slots of ``bvh`` (:mod:`hlbvh.kernels.slots`), built on first use
-    and cached on the BVH object (keyed by the Dr.Jit variables of its arrays, so a
+    and kept in its :class:`PackState` (keyed by the Dr.Jit variables of its arrays, so a
     refit, which assigns new arrays, repacks on the next call, from the placement kept
     for the tree's shape).
 
@@ -39,28 +78,29 @@ def packed_records(bvh: BVH, slot_base: int = 0, face_base: int = 0):
             or never, a slot in no leaf or in two).
     """
     key = arrays_key(bvh) + (slot_base, face_base)
-    kept = bvh.cache.traversal_records
+    state = pack_state(bvh)
+    kept = state.records
     if kept is not None and kept[0] == key:
         return kept[1]
     records = pack(bvh, slot_base, face_base, check=not is_built(bvh))
-    bvh.cache.traversal_records = (key, records)
+    state.records = (key, records)
     return records
 
 
-def arrays_key(bvh: BVH) -> tuple:
+def arrays_key(bvh: Tree) -> tuple:
     """The Dr.Jit variables of every array the slots are packed from."""
     arrays = (bvh.node_min, bvh.node_max, bvh.node_first, bvh.node_count, bvh.prim_ids,
               bvh.tri_p0, bvh.tri_p1, bvh.tri_p2)
     return tuple(c.index for a in arrays for c in (a if dr.depth_v(a) > 1 else (a,)))
 
 
-def is_built(bvh: BVH) -> bool:
+def is_built(bvh: Tree) -> bool:
     """Whether ``bvh`` is a tree as the builder returned it (``built_topology`` still
     matches its arrays)."""
     return bvh.built_topology is not None and bvh.built_topology == bvh.topology_key()
 
 
-def check_tree(bvh: BVH):
+def check_tree(bvh: Tree):
     """Validate ``bvh`` as :func:`packed_records` validates a tree made by hand, whoever
     made it (the tests call it on every builder's trees, whose packing skips it).
 
@@ -70,29 +110,29 @@ def check_tree(bvh: BVH):
     pack(bvh, 0, 0, check=True)
 
 
-def pack(bvh: BVH, slot_base: int, face_base: int, check: bool, front: int = 0):
+def pack(bvh: Tree, slot_base: int, face_base: int, check: bool, front: int = 0):
     """``(records, root)`` of ``bvh`` (see :func:`packed_records`), validated first when
     ``check``; the records start with ``front`` slots left for the caller to fill.
 
     Where each node and triangle goes depends on the tree's shape only, so it is kept on
-    the BVH (``cache.pack_plan``, keyed by :meth:`BVH.topology_key` and ``slot_base``): a refit,
+    the tree (``PackState.plan``, keyed by :meth:`Tree.topology_key` and ``slot_base``): a refit,
     which changes boxes and triangles only, is packed again without the per-level
     passes that place the nodes. A pack that validates (``check``) places anew."""
     if bvh.size == 0 or bvh.prim_count == 0:
         raise ValueError("BVH is empty: build it from at least one triangle")
     plan_key = (bvh.topology_key(), slot_base)
-    cache = bvh.cache
-    plan = cache.pack_plan
+    state = pack_state(bvh)
+    plan = state.plan
     if check or plan is None or plan[0] != plan_key:
-        plan = cache.pack_plan = (plan_key, placement(bvh, slot_base, check))
+        plan = state.plan = (plan_key, placement(bvh, slot_base, check))
     placed: Placement = plan[1]
     root = int(placed.ref[0])
     if not check:  # (a validation, e.g. check_tree, is not where the tree is traced)
-        cache.last_pack = (slot_base, face_base, front)  # where a refit writes its slots
-    ready = cache.ready_records
+        state.last = (slot_base, face_base, front)  # where a refit writes its slots
+    ready = state.ready
     place = (slot_base, face_base, front)
     if not check and ready is not None and ready[0] == (arrays_key(bvh),) + place:
-        cache.ready_records = None  # handed over: the caller may write into its front
+        state.ready = None  # handed over: the caller may write into its front
         return ready[1], root
     return _write_records(bvh, placed, face_base, front), root
 

@@ -3,7 +3,7 @@ the binary tree becomes a BVH4 by dropping every other level (the internal nodes
 depths), and the records are laid out depth first, a wide node, then its children's
 subtrees in child order, a leaf's triangles where the leaf stands. The placement
 depends on the tree's shape only, so the packer keeps it across refits
-(``BVH.cache.pack_plan``)."""
+(``PackState.plan``, :mod:`hlbvh.kernels.packing`)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ from typing import Any
 import drjit as dr
 
 from .arrays import concat, namespace_of
-from .bvh import BVH
 from .slots import MAX_DEPTH, MAX_SLOTS, NODE_SLOTS, leaf_ref, node_ref
+from .tree import Tree
 from .validation import check_layout, checked_levels, too_deep
 
 
@@ -37,7 +37,7 @@ class Placement:
     total: int
 
 
-def placement(bvh: BVH, slot_base: int, check: bool):
+def placement(bvh: Tree, slot_base: int, check: bool):
     """Where ``bvh``'s nodes and triangles go (validated first when ``check``), their
     references counting from slot ``slot_base``: a :class:`Placement`."""
     ns = namespace_of(bvh.node_count)

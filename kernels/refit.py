@@ -15,19 +15,35 @@ import drjit as dr
 
 from .arrays import Array3f, Array3u, Float, namespace_of
 from .bounds import node_bounds, sah_cost
-from .bvh import BVH
 from .geometry import (BOX_RECORD, box_records, checked_vertices, slot_triangles,
                        triangles_of)
-from .packing import arrays_key, is_built
+from .packing import hand_over, is_built, pack_state
 from .placement import Placement
 from .slots import SLOT, TRI_HI, TRI_LO, box_rows, node_rows, triangle_rows
+from .tree import Tree
 
 
-def refit(bvh: BVH, vertices: Float | Array3f) -> BVH:
+@dataclass
+class RefitState:
+    """What the refit keeps for one tree between calls (``tree.kept_state(RefitState)``),
+    each entry a pair ``(key, value)`` (or None) used only while its key still matches.
+
+    Attributes:
+        faces: ``(faces and order, (Array3u[F], largest index))``: each slot's face's
+            vertex indices (:func:`slot_faces`).
+        plan: ``(placement key, _RefitPlan)``: where the fused refit reads each box from
+            (:func:`refit_packed`).
+    """
+
+    faces: tuple | None = None
+    plan: tuple | None = None
+
+
+def refit(bvh: Tree, vertices: Float | Array3f) -> Tree:
     """Update ``bvh`` in place for new vertex positions.
 
     Args:
-        bvh: a :class:`hlbvh.kernels.bvh.BVH`.
+        bvh: a :class:`hlbvh.kernels.tree.Tree`.
         vertices: flat Float (3·V) or Array3f (V), the same V as the build's or more
             (the faces decide which are read).
     Returns:
@@ -35,7 +51,7 @@ def refit(bvh: BVH, vertices: Float | Array3f) -> BVH:
         ``stats.stage_ms['refit']`` updated.
     """
     t0 = time.perf_counter()
-    faces, top = _slot_faces(bvh)
+    faces, top = slot_faces(bvh)
     points = checked_vertices(vertices, bvh.faces, top)
     if not refit_packed(bvh, points, faces):
         tri, boxes = slot_triangles(triangles_of(points, faces))
@@ -49,25 +65,26 @@ def refit(bvh: BVH, vertices: Float | Array3f) -> BVH:
     return bvh
 
 
-def _slot_faces(bvh):
+def slot_faces(bvh: Tree):
     """``(Array3u[F], int)``: the vertex indices of each slot's face and the largest of
-    them, computed on the first refit and cached on ``bvh`` (``cache.refit_faces``, keyed by its
-    ``faces`` and ``prim_ids`` arrays), so that a refit reads three vertices a slot rather than its
+    them, computed on the first refit and kept for ``bvh`` (``RefitState.faces``, keyed by
+    its ``faces`` and ``prim_ids`` arrays), so that a refit reads three vertices a slot rather than its
     face first, and checks the vertex count without a pass over the faces."""
     key = (bvh.faces.index, bvh.prim_ids.index)
-    kept = bvh.cache.refit_faces
+    state = bvh.kept_state(RefitState)
+    kept = state.faces
     if kept is None or kept[0] != key:
         faces = dr.gather(namespace_of(bvh.faces).Array3u, bvh.faces, bvh.prim_ids)
         largest = dr.max(bvh.faces)
         dr.eval(faces, largest)
-        kept = bvh.cache.refit_faces = (key, (faces, int(largest[0])))
+        kept = state.faces = (key, (faces, int(largest[0])))
     return kept[1]
 
 
 # ---- The fused refit: boxes and slots in one pass over the wide levels ----
 
 
-def refit_packed(bvh: BVH, points: Float, slot_faces: Array3u, key: tuple | None = None) -> bool:
+def refit_packed(bvh: Tree, points: Float, slot_faces: Array3u, key: tuple | None = None) -> bool:
     """Refit ``bvh`` for new vertex ``points`` and write its slots in the same passes,
     where it was last packed (:func:`_write_packed`). The BVH's triangle arrays are left
     as lazy reads of ``points`` (computed only if read).
@@ -87,7 +104,8 @@ def refit_packed(bvh: BVH, points: Float, slot_faces: Array3u, key: tuple | None
     Returns:
         Whether it refit ``bvh`` (False: the caller refits through the binary tree).
     """
-    last, plan = bvh.cache.last_pack, bvh.cache.pack_plan
+    packed = pack_state(bvh)
+    last, plan = packed.last, packed.plan
     if last is None or plan is None or not is_built(bvh) or \
             plan[0] != (bvh.topology_key(), last[0]):
         return False
@@ -104,9 +122,9 @@ def _write_packed(bvh, place, plan, points, slot_faces, key=None):
     and one per wide level (deepest first). Boxes move as 8-float records, one packet
     gather each, not as six scalar gathers.
 
-    Sets ``bvh.node_min``/``node_max`` and keeps the slots for the next
+    Sets ``bvh.node_min``/``node_max`` and hands the slots over to the next
     :func:`~hlbvh.kernels.packing.packed_records` or :func:`~hlbvh.kernels.layout.joined`
-    that asks for ``place``. (Used by a refit:
+    that asks for ``place`` (:func:`~hlbvh.kernels.packing.hand_over`). (Used by a refit:
     for a new build, whose placement and plan are made anew, this measured no faster
     than the binary bounds and a pack; see docs/decisions.md#refit.)
 
@@ -114,12 +132,12 @@ def _write_packed(bvh, place, plan, points, slot_faces, key=None):
         bvh: a tree as the builder returned it (its shape only is read).
         place: ``(slot_base, face_base, front)`` as :func:`hlbvh.kernels.packing.pack`
             takes them.
-        plan: the tree's placement at ``slot_base`` (``bvh.cache.pack_plan``).
+        plan: the tree's placement at ``slot_base`` (``PackState.plan``).
         points: flat Float[3·V] vertex positions.
         slot_faces: Array3u[F], the vertex indices of each slot's face.
         key: as :func:`refit_packed`'s.
     """
-    slot_base, face_base, front = place
+    _, face_base, front = place
     total = plan[1].total
     ns = namespace_of(bvh.node_count)
     UInt32, Float, ArrayXf = ns.UInt32, ns.Float, ns.ArrayXf
@@ -163,7 +181,7 @@ def _write_packed(bvh, place, plan, points, slot_faces, key=None):
     bvh.node_min = dr.minimum(a_lo, b_lo)
     bvh.node_max = dr.maximum(a_hi, b_hi)
     dr.eval(bvh.node_min, bvh.node_max)
-    bvh.cache.ready_records = ((arrays_key(bvh), slot_base, face_base, front), records)
+    hand_over(bvh, place, records)
 
 
 def _leaf_triangles(records, points, slot_faces, prim_ids, face_base, first_slot,
@@ -229,8 +247,9 @@ class _RefitPlan:
 
 def _refit_plan(bvh, plan) -> _RefitPlan:
     """The :class:`_RefitPlan` of ``bvh`` for its placement ``plan``, made on the first
-    fused refit and kept with the placement."""
-    kept = bvh.cache.refit_plan
+    fused refit and kept while the placement is (``RefitState.plan``)."""
+    state = bvh.kept_state(RefitState)
+    kept = state.plan
     if kept is not None and kept[0] == plan[0]:
         return kept[1]
     ns = namespace_of(bvh.node_count)
@@ -270,6 +289,6 @@ def _refit_plan(bvh, plan) -> _RefitPlan:
         dr.scatter(odd, True, level)
     dr.eval(leaves, odd)
     result = _RefitPlan(leaves=leaves, wide_levels=levels, odd=odd)
-    bvh.cache.refit_plan = (plan[0], result)
+    state.plan = (plan[0], result)
     return result
 

@@ -37,32 +37,33 @@ if). A wide node pushes at most three entries and the packer refuses trees deepe
 ``layout.MAX_DEPTH`` binary levels, so ``STACK_SIZE`` entries always suffice; the
 packer also refuses cycles and shared subtrees, so every ray ends.
 
-**Keyed trees** (:class:`~hlbvh.kernels.keyed.KeyedTree`, deforming motion blur): the
-same loop, with each slot read at the ray's two neighbouring keys and interpolated at
-its time (child boxes, triangle vertices) before the same two tests. Which reads a
-query makes is chosen in Python when the kernel is traced, so the still kernel is
-unchanged.
+**Trees read at each ray's time** (:class:`TimedTree`: a
+:class:`~hlbvh.kernels.keyed.KeyedTree`, deforming motion blur): the same loop, with
+each slot read at the ray's two neighbouring keys and interpolated at its time (child
+boxes, triangle vertices) before the same two tests. The tree gives the per-ray reader
+(its ``keys_at``), so this module knows the interface, not the keyed module, which
+builds and refits trees and so sits above traversal. Which reads a query makes is
+chosen in Python when the kernel is traced, so the still kernel is unchanged.
 
 The slots are packed once per BVH (or per set of BVHs, :func:`layout.joined`) and
-cached on it: call :func:`packed_records` (or ``joined``) outside any symbolic loop if
+kept for it: call :func:`~hlbvh.kernels.packing.packed_records` (or ``joined``) outside any symbolic loop if
 the traversal is then traced inside one, since packing evaluates arrays.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import drjit as dr
 
 from .arrays import Bool, Float, high_half, low_half, namespace_of, pack_halves, plain
-from .bvh import BVH
-from .keyed import KeyedTree, RayKeys, keyed_node, keyed_slot, keyed_triangle, ray_keys
 from .layout import Packed
-from .packing import packed_records  # noqa: F401  (what traversal reads, built on first use)
-from .ray_tests import (BARYCENTRIC_MARGIN, TFAR_SCALE, Ray, ray_setup,  # noqa: F401
-                        select_max, select_min, slab_test, triangle_test)
+from .packing import packed_records
+from .ray_tests import (TFAR_SCALE, Ray, ray_setup, select_max, select_min, slab_test,
+                        triangle_test)
 from .slots import LEAF_BIT, MAX_DEPTH, SLOT, TRI_FACE, WIDTH, open_ref
+from .tree import Tree
 from .two_level import NO_INSTANCE, RETURN_REF, TwoLevel, enter_instance, select_ray
 
 #: Entries of the per-lane traversal stack: a wide node pushes at most three, one wide
@@ -81,26 +82,40 @@ _MISS = 0xFFFFFFFFFFFFFFFF  # the entry of a child the ray misses (sorts last)
 _MISS32 = 0xFFFFFFFF  # the same for any hit's 32-bit entries
 
 
+class TimedTree(Protocol):
+    """Slots read at each ray's time (:class:`~hlbvh.kernels.keyed.KeyedTree`): its
+    ``records`` and ``root``, and ``keys_at(time)``, the reader of the rays at ``time``
+    (Float in [0, 1] over the shutter), with ``known`` (Bool: the ray has a time),
+    ``stride`` (slots of one place), ``slot(records, base, n)`` (the raw reads of slots
+    ``base``), ``triangle(rec)`` and ``node(first, second)`` (a triangle record and a
+    wide node's 32 floats at the ray's time, from those reads)."""
+
+    records: Any
+    root: int
+
+    def keys_at(self, time: Float) -> Any: ...
+
+
 # ---------------------------------------------------------------------------------------
 # Public API
 # ---------------------------------------------------------------------------------------
 
 
-def closest_hit(bvh: BVH | Packed | KeyedTree, o: dr.ArrayBase, d: dr.ArrayBase,
+def closest_hit(bvh: Tree | Packed | TimedTree, o: dr.ArrayBase, d: dr.ArrayBase,
                 maxt: Float | float, active: Bool | bool = True, time: Float | float | None = None):
     """Nearest intersection of each ray with the BVH's triangles.
 
     Args:
-        bvh: an ``hlbvh.BVH``, or the :class:`~hlbvh.kernels.layout.Packed` slots of
-            several (:func:`~hlbvh.kernels.layout.joined`), or a
-            :class:`~hlbvh.kernels.keyed.KeyedTree` (a deforming mesh at S+1 times).
+        bvh: a tree (``hlbvh.BVH``), or the :class:`~hlbvh.kernels.layout.Packed` slots
+            of several (:func:`~hlbvh.kernels.layout.joined`), or a :class:`TimedTree`
+            (a :class:`~hlbvh.kernels.keyed.KeyedTree`: a deforming mesh at S+1 times).
         o: Array3f (or ``mi.Point3f``) ray origins, width R (or 1).
         d: Array3f (or ``mi.Vector3f``) ray directions, width R (or 1); need not be
             normalised (``t`` is in units of ``d``).
         maxt: Float (or Python float) largest accepted ``t``, width R or 1.
         active: Bool (or Python bool) mask; inactive rays miss.
         time: Float (or Python float) each ray's time in the shutter, normalised to
-            [0, 1] (the caller maps ``ray.time``); needed by a keyed tree, which is
+            [0, 1] (the caller maps ``ray.time``); needed by a timed tree, which is
             traced at that time (values outside [0, 1] are clamped, a NaN time misses);
             ignored by the others (still geometry is the same at every time).
     Returns:
@@ -112,14 +127,14 @@ def closest_hit(bvh: BVH | Packed | KeyedTree, o: dr.ArrayBase, d: dr.ArrayBase,
     return _trace(bvh, o, d, maxt, active, any_hit=False, time=time)
 
 
-def any_hit(bvh: BVH | Packed | KeyedTree, o: dr.ArrayBase, d: dr.ArrayBase,
+def any_hit(bvh: Tree | Packed | TimedTree, o: dr.ArrayBase, d: dr.ArrayBase,
             maxt: Float | float, active: Bool | bool = True, time: Float | float | None = None):
     """Whether each ray hits any triangle at ``0 < t <= maxt`` (stops at the first hit):
     a Bool of width R. Arguments as in :func:`closest_hit`."""
     return _trace(bvh, o, d, maxt, active, any_hit=True, time=time)
 
 
-def steps(bvh: BVH | Packed | KeyedTree, o: dr.ArrayBase, d: dr.ArrayBase,
+def steps(bvh: Tree | Packed | TimedTree, o: dr.ArrayBase, d: dr.ArrayBase,
           maxt: Float | float, active: Bool | bool = True, any_hit: bool = False,
           time: Float | float | None = None):
     """Loop iterations of each ray in :func:`closest_hit` (:func:`any_hit`), same arguments:
@@ -127,7 +142,7 @@ def steps(bvh: BVH | Packed | KeyedTree, o: dr.ArrayBase, d: dr.ArrayBase,
     return _trace(bvh, o, d, maxt, active, any_hit, count_steps=True, time=time)
 
 
-def intersect(bvh: BVH | Packed | KeyedTree, ray, active: Bool | bool = True,
+def intersect(bvh: Tree | Packed | TimedTree, ray, active: Bool | bool = True,
               time: Float | float | None = None):
     """Closest hit of ``ray`` (anything with ``o``, ``d``, ``maxt``) as a
     ``mi.PreliminaryIntersection3f``: ``valid``, ``t`` (``inf`` on a miss),
@@ -145,7 +160,7 @@ def intersect(bvh: BVH | Packed | KeyedTree, ray, active: Bool | bool = True,
     return pi
 
 
-def occluded(bvh: BVH | Packed | KeyedTree, ray, active: Bool | bool = True,
+def occluded(bvh: Tree | Packed | TimedTree, ray, active: Bool | bool = True,
              time: Float | float | None = None):
     """Whether anything lies on ``ray`` at ``0 < t <= ray.maxt``: a ``mi.Bool``
     (``time`` as in :func:`intersect`)."""
@@ -209,7 +224,7 @@ class _Query:
     two_level: Any = None  # TwoLevel: instances at the top level's leaf slots, or None
     world_o: Any = None  # Array3f: the world rays' origins (two levels)
     world_d: Any = None  # Array3f: their directions (two levels)
-    keys: RayKeys | None = None  # a keyed tree: which keys each ray reads, and weights
+    keys: Any = None  # a timed tree: what each ray reads (TimedTree.keys_at), or None
 
     @property
     def Entry(self):
@@ -226,19 +241,19 @@ class _Query:
         floats of the slot at the ray's two keys, interpolated by :meth:`triangle` or
         :meth:`node` once the lane knows which the slot is."""
         if self.keys is not None:
-            return keyed_slot(self.records, self.keys, base, self.n)
+            return self.keys.slot(self.records, base, self.n)
         ns = namespace_of(self.records)
         return dr.gather(ns.ArrayXf, self.records, base, shape=(SLOT, self.n))
 
     def triangle(self, rec):
         """The triangle record the watertight test reads, from what :meth:`slot` read."""
-        return rec if self.keys is None else keyed_triangle(self.keys, rec)
+        return rec if self.keys is None else self.keys.triangle(rec)
 
     def node(self, rec, cur):
         """The 32 floats of the wide node whose first slot (at ``cur``) :meth:`slot`
         read: its second slot is read here."""
         if self.keys is not None:
-            return keyed_node(self.keys, rec, self.slot(cur + 1))
+            return self.keys.node(rec, self.slot(cur + 1))
         return [*rec, *self.slot(cur + 1)]
 
     def face_at(self, slot):
@@ -487,8 +502,8 @@ def _step(query: _Query, world: Ray, stack: _Stack, s: _TraceState) -> _TraceSta
 def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False, time=None):
     if not dr.is_array_v(o) or not dr.is_array_v(d):
         raise TypeError("ray origin and direction must be Dr.Jit Array3f/Point3f/Vector3f")
-    keyed = bvh if isinstance(bvh, KeyedTree) else None
-    if keyed is not None and time is None:
+    keys_at = getattr(bvh, "keys_at", None)  # a TimedTree's
+    if keys_at is not None and time is None:
         raise ValueError("a keyed tree is traced at each ray's time: pass time= (Float in "
                          "[0, 1] over the shutter)")
     ns = namespace_of(o)
@@ -503,7 +518,7 @@ def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False, time=None):
         return (Float(), Float(), Float(), UInt32()) + \
             ((UInt32(),) if isinstance(bvh, TwoLevel) else ()) + (Bool(),)
     two_level = bvh if isinstance(bvh, TwoLevel) else None
-    if isinstance(bvh, (Packed, TwoLevel, KeyedTree)):
+    if keys_at is not None or isinstance(bvh, (Packed, TwoLevel)):
         records, root = bvh.records, bvh.root
     else:
         records, root = packed_records(bvh)
@@ -517,8 +532,8 @@ def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False, time=None):
     finite = dr.all(dr.isfinite(o)) & dr.all(dr.isfinite(d))
     alive = active & finite & dr.any(d != 0) & (maxt > 0)
     keys = None
-    if keyed is not None:  # (a Python-level choice: the still kernel is not touched)
-        keys = ray_keys(keyed, _broadcast(time, "Float", ns, n))
+    if keys_at is not None:  # (a Python-level choice: the still kernel is not touched)
+        keys = keys_at(_broadcast(time, "Float", ns, n))
         alive &= keys.known
     ray = ray_setup(o, d)
     query = _Query(records=records, n=n, any_hit=any_hit, no_t=dr.zeros(Float, n),

@@ -19,6 +19,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from reference import brute_force, median_split_bvh, random_soup, triangle_grid  # noqa: E402
 
 from hlbvh.kernels import layout, packing, traversal  # noqa: E402
+from hlbvh.kernels import slots as slot_format  # noqa: E402
 from hlbvh.kernels.arrays import namespace_of  # noqa: E402
 from hlbvh.kernels.bvh import BVH, BuildConfig, BuildStats  # noqa: E402
 from hlbvh.kernels.traversal import any_hit, closest_hit  # noqa: E402
@@ -424,7 +425,7 @@ def test12_traced_inside_a_symbolic_loop():
     rng = np.random.default_rng(23)
     vertices, faces = random_soup(300, seed=24)
     bvh = build(vertices, faces, "hlbvh")
-    traversal.packed_records(bvh)
+    packing.packed_records(bvh)
     o, d = random_rays(rng, 1000)
     origin, direction = mi.Point3f(o.T), mi.Vector3f(d.T)
 
@@ -502,12 +503,12 @@ def test14_too_deep_tree_is_refused_and_the_deepest_that_packs_traces():
     """A chain deeper than the traversal stack allows is refused when packed, whatever
     its statistics say (the packer measures the depth itself); the deepest chain that
     packs traces: rays from above hit the top square, rays from below the lowest."""
-    too_deep = layout.MAX_DEPTH + 10
+    too_deep = slot_format.MAX_DEPTH + 10
     for depth_in_stats in (too_deep - 1, 0):
         with pytest.raises(ValueError, match="depth"):
             trace(_caterpillar(too_deep, depth_in_stats=depth_in_stats), [[0.5, 0.5, 2]],
                   [[0, 0, -1]])
-    levels = layout.MAX_DEPTH
+    levels = slot_format.MAX_DEPTH
     bvh = _caterpillar(levels, depth_in_stats=0)
     top = (levels - 1) * 0.01
     o = np.array([[0.3, 0.6, 2.0], [0.3, 0.6, -1.0], [0.3, 0.6, 0.5 * 0.01]], np.float32)
@@ -659,24 +660,24 @@ def _walk_wide_tree(records, root):
     layout's documented fields: returns ``(children, reached)``, for every child of
     every wide node its box and the triangle slots of its subtree, and the triangle
     slots reached from the root in the order reached."""
-    rec = records.numpy().reshape(-1, layout.SLOT)
+    rec = records.numpy().reshape(-1, slot_format.SLOT)
     children, reached = [], []
 
     def subtree(ref):
-        if ref & layout.LEAF_BIT:
+        if ref & slot_format.LEAF_BIT:
             first = (ref & 0x7FFFFFFF) >> 4
             slots = list(range(first, first + (ref & 15) + 1))
             reached.extend(slots)
             return slots
-        node = rec[ref:ref + layout.NODE_SLOTS].ravel()
-        refs = node[layout.NODE_REF:layout.NODE_REF + layout.WIDTH].view(np.uint32)
-        assert 2 <= np.sum(refs != layout.EMPTY), "a wide node has 2-4 children"
+        node = rec[ref:ref + slot_format.NODE_SLOTS].ravel()
+        refs = node[slot_format.NODE_REF:slot_format.NODE_REF + slot_format.WIDTH].view(np.uint32)
+        assert 2 <= np.sum(refs != slot_format.EMPTY), "a wide node has 2-4 children"
         slots = []
         for k, child in enumerate(refs):
-            if child == layout.EMPTY:
+            if child == slot_format.EMPTY:
                 continue
-            lo = np.array([node[layout.NODE_LO[a] + k] for a in range(3)])
-            hi = np.array([node[layout.NODE_HI[a] + k] for a in range(3)])
+            lo = np.array([node[slot_format.NODE_LO[a] + k] for a in range(3)])
+            hi = np.array([node[slot_format.NODE_HI[a] + k] for a in range(3)])
             below = subtree(int(child))
             children.append((lo, hi, below))
             slots += below
@@ -701,22 +702,22 @@ def test20_wide_tree_invariants(builder, mesh):
         vertices = (vertices / 12).astype(np.float32)
         vertices[:, 2] = 0.3 * vertices[:, 0] + 0.2
     bvh = build(vertices, faces, builder, leaf_size=3)
-    records, root = traversal.packed_records(bvh)
+    records, root = packing.packed_records(bvh)
     children, reached = _walk_wide_tree(records, root)
     assert len(set(reached)) == len(reached) == len(faces), "each slot in exactly one leaf"
-    rec = records.numpy().reshape(-1, layout.SLOT)
-    face = rec[reached, layout.TRI_FACE].view(np.uint32)
+    rec = records.numpy().reshape(-1, slot_format.SLOT)
+    face = rec[reached, slot_format.TRI_FACE].view(np.uint32)
     np.testing.assert_array_equal(np.sort(face), np.arange(len(faces)))
-    for k, p in enumerate(layout.TRI_P):
+    for k, p in enumerate(slot_format.TRI_P):
         np.testing.assert_array_equal(rec[reached, p:p + 3], vertices[faces[face, k]])
     for lo, hi, slots in children:
         tri = rec[slots][:, :9].reshape(-1, 3)
         assert np.all(lo <= tri.min(axis=0)) and np.all(hi >= tri.max(axis=0)), (lo, hi)
-    if not root & layout.LEAF_BIT:
-        node = rec[root:root + layout.NODE_SLOTS].ravel()
-        first = int(node[layout.NODE_REF:layout.NODE_REF + 1].view(np.uint32)[0])
-        assert (first & 0x7FFFFFFF) >> (4 if first & layout.LEAF_BIT else 0) == \
-            root + layout.NODE_SLOTS
+    if not root & slot_format.LEAF_BIT:
+        node = rec[root:root + slot_format.NODE_SLOTS].ravel()
+        first = int(node[slot_format.NODE_REF:slot_format.NODE_REF + 1].view(np.uint32)[0])
+        assert (first & 0x7FFFFFFF) >> (4 if first & slot_format.LEAF_BIT else 0) == \
+            root + slot_format.NODE_SLOTS
     o, d = random_rays(rng, 2000)
     assert_matches_reference(trace(bvh, o, d), brute_force(vertices, faces, o, d),
                              vertices, faces, o, d)
@@ -728,10 +729,10 @@ def test20b_zero_area_triangles_pack_as_nan():
     vertices = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0]], np.float32)
     faces = np.array([[0, 1, 2], [0, 1, 3]], np.uint32)
     bvh = build(vertices, faces, "lbvh")
-    records, root = traversal.packed_records(bvh)
+    records, root = packing.packed_records(bvh)
     _, reached = _walk_wide_tree(records, root)
-    rec = records.numpy().reshape(-1, layout.SLOT)[reached]
-    flat = rec[:, layout.TRI_FACE].view(np.uint32) == 0
+    rec = records.numpy().reshape(-1, slot_format.SLOT)[reached]
+    flat = rec[:, slot_format.TRI_FACE].view(np.uint32) == 0
     assert np.all(np.isnan(rec[flat, :9])) and np.all(np.isfinite(rec[~flat, :9]))
 
 
@@ -745,17 +746,17 @@ def test20c_refit_repacks_as_a_fresh_pack(builder):
     moved = (vertices * 1.07 + 0.01).astype(np.float32)
     other = build(*random_soup(50, seed=41), "lbvh")
     bvh = build(vertices, faces, builder)
-    traversal.packed_records(bvh)
+    packing.packed_records(bvh)
     layout.joined([other, bvh])
     bvh.refit(mi.Float(np.ravel(moved)))
-    kept, kept_root = traversal.packed_records(bvh)
+    kept, kept_root = packing.packed_records(bvh)
     kept_joined = layout.joined([other, bvh])
-    bvh.cache.pack_plan = None  # place anew
+    packing.pack_state(bvh).plan = None  # place anew
     fresh, fresh_root = packing.pack(bvh, 0, 0, check=True)
     assert kept_root == fresh_root
     np.testing.assert_array_equal(kept.numpy().view(np.uint32), fresh.numpy().view(np.uint32))
-    bvh.cache.pack_plan = None
-    bvh.cache.traversal_records = None
+    packing.pack_state(bvh).plan = None
+    packing.pack_state(bvh).records = None
     fresh_joined = layout.joined([other, bvh])
     np.testing.assert_array_equal(kept_joined.records.numpy().view(np.uint32),
                                   fresh_joined.records.numpy().view(np.uint32))
@@ -767,14 +768,14 @@ def test20c_refit_repacks_as_a_fresh_pack(builder):
         count[0] = 1  # the root made a leaf: the other nodes are reached from nowhere
         bvh.node_count = type(bvh.node_count)(count)
         with pytest.raises(ValueError, match="corrupt|never|reached"):
-            layout.check_tree(bvh)
+            packing.check_tree(bvh)
 
 
 @pytest.mark.parametrize("builder", ["hlbvh", "lbvh", "sah"])
 @pytest.mark.parametrize("leaf_size", [1, 4, 7])
 @pytest.mark.parametrize("triangles", [3, 400])
 def test20d_fused_refit_equals_the_refit_of_the_binary_tree(builder, leaf_size, triangles):
-    """A packed tree is refit and repacked in one go (``layout.refit_packed``: triangle
+    """A packed tree is refit and repacked in one go (``refit.refit_packed``: triangle
     records, leaves, one pass per wide level); an unpacked twin is refit through the
     binary tree and packed after. Node boxes, triangles, SAH cost and slots are the same
     bit for bit, alone and joined behind another tree, over two refits; also for a tree
@@ -784,13 +785,13 @@ def test20d_fused_refit_equals_the_refit_of_the_binary_tree(builder, leaf_size, 
     other = build(*random_soup(60, seed=45), "lbvh")
     for joined in (False, True):
         fused = build(vertices, faces, builder, leaf_size)
-        layout.joined([other, fused]) if joined else traversal.packed_records(fused)
+        layout.joined([other, fused]) if joined else packing.packed_records(fused)
         for step in (1, 2):
             moved = mi.Float(np.ravel(vertices * (1 + 0.05 * step) + 0.02 * step).astype(np.float32))
             fused.refit(moved)
-            assert fused.cache.ready_records is not None  # the fused path ran
+            assert packing.pack_state(fused).ready is not None  # the fused path ran
             twin = build(vertices, faces, builder, leaf_size)
-            assert twin.cache.last_pack is None  # never packed: the binary path
+            assert packing.pack_state(twin).last is None  # never packed: the binary path
             twin.refit(moved)
             for name in ("node_min", "node_max", "tri_p0", "tri_p1", "tri_p2"):
                 np.testing.assert_array_equal(np.array(getattr(fused, name)),
@@ -799,7 +800,7 @@ def test20d_fused_refit_equals_the_refit_of_the_binary_tree(builder, leaf_size, 
             if joined:
                 ours, theirs = layout.joined([other, fused]).records, layout.joined([other, twin]).records
             else:
-                ours, theirs = traversal.packed_records(fused)[0], traversal.packed_records(twin)[0]
+                ours, theirs = packing.packed_records(fused)[0], packing.packed_records(twin)[0]
             np.testing.assert_array_equal(ours.numpy().view(np.uint32), theirs.numpy().view(np.uint32))
 
 
@@ -811,7 +812,7 @@ def test21_symbolic_even_when_loops_are_evaluated():
     rng = np.random.default_rng(27)
     vertices, faces = random_soup(300, seed=28)
     bvh = build(vertices, faces, "hlbvh")
-    traversal.packed_records(bvh)
+    packing.packed_records(bvh)
     o, d = random_rays(rng, 1000)
     with dr.scoped_set_flag(dr.JitFlag.SymbolicLoops, False), \
             dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
