@@ -6,12 +6,19 @@
 ``UsdPreviewSurface`` bound with ``UsdShade.MaterialBindingAPI``: diffuseColor,
 roughness, metallic to ``principled``; opacity below 1 through a ``mask``
 (``opacityThreshold`` makes it a cutout); emissiveColor to an ``area`` emitter on
-the mesh. A diffuseColor or emissiveColor read from a ``UsdUVTexture`` becomes a
-``bitmap`` over the mesh's texture coordinates (the ``UsdPrimvarReader_float2``'s
-primvar, ``st`` by default; per point, or faceVarying with the points split where
-their uv differ). An input read from a primvar reader (:data:`READERS`) takes that
-primvar as ``displayColor`` is read: one value, or per point or face a Mitsuba mesh
-attribute (``vertex_color``/``face_color`` for diffuseColor, ``vertex_roughness``,
+the mesh. A diffuseColor, emissiveColor, opacity or normal read from a
+``UsdUVTexture`` becomes a ``bitmap`` over the mesh's texture coordinates (the
+``UsdPrimvarReader_float2``'s primvar, ``st`` by default; per point, or faceVarying
+with the points split where their uv differ), through the ``UsdTransform2d`` shaders
+between them as the bitmap's ``to_uv``; the image rewritten where Mitsuba would read
+it otherwise than the input needs (scale and bias, a ``raw`` colour space, one
+channel for opacity, cut at ``opacityThreshold``). A textured opacity becomes the
+``mask``'s opacity; a textured normal a ``normalmap`` around the BSDF, in Mitsuba's
+shading frame: tangent along dP/ds, bitangent the normal cross the tangent, which is
+along +t where the st layout is not mirrored (UsdPreviewSurface's frame: tangent +s,
+bitangent +t; a mirrored uv island's green channel reads flipped). An input read
+from a primvar reader (:data:`READERS`) takes that primvar as ``displayColor`` is
+read: one value, or per point or face a Mitsuba mesh attribute (``vertex_color``/``face_color`` for diffuseColor, ``vertex_roughness``,
 ... for the others); emissiveColor, and opacity cut by ``opacityThreshold``, take
 its mean when it varies (said: Mitsuba's area emitter samples one radiance or a
 texture, not a mesh attribute, and a cutout is not an interpolated opacity). Other
@@ -21,14 +28,28 @@ Without a material the ``displayColor`` primvar gives a diffuse colour, else gre
 
 from __future__ import annotations
 
+import hashlib
+import math
+from pathlib import Path
+
+import mitsuba as mi
 import numpy as np
 
 from .usd_prims import (GREY, PREVIEW_DEFAULTS, UsdGeom, UsdShade, _array, _checked,
-                        _connected_shader, _input_value, _interface_value, _two_sided,
-                        _uv_texture)
+                        _connected_shader, _input_value, _interface_value, _local_asset,
+                        _two_sided, _unreadable_image, _written_once)
 
-#: UsdPreviewSurface inputs whose ``UsdUVTexture`` becomes a Mitsuba ``bitmap``.
-TEXTURED_INPUTS = ("diffuseColor", "emissiveColor")
+#: UsdPreviewSurface inputs whose ``UsdUVTexture`` becomes a Mitsuba ``bitmap``, and
+#: what each reads of the image (see :func:`_texture_image`).
+TEXTURED_INPUTS = {"diffuseColor": "color", "emissiveColor": "color",
+                   "opacity": "opacity", "normal": "normal"}
+
+#: UsdUVTexture's wrap modes as Mitsuba's bitmap's (``black`` clamps).
+_WRAPS = {"repeat": "repeat", "mirror": "mirror", "clamp": "clamp", "black": "clamp",
+          "useMetadata": "repeat"}
+
+#: st to Mitsuba's uv, ``(s, 1 - t)``, as a homogeneous 3x3 matrix (its own inverse).
+_ST_TO_UV = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0], [0.0, 0.0, 1.0]])
 
 #: UsdPreviewSurface inputs read from a primvar reader, and the reader each takes.
 READERS = {"diffuseColor": "UsdPrimvarReader_float3",
@@ -117,10 +138,11 @@ class _Materials:
         bitmaps read (``None``: none; ``textures=False``: no bitmaps, see
         :meth:`_unread_input`).
 
-        Inputs connected to a shader: diffuseColor and emissiveColor to a
-        ``UsdUVTexture`` read its file; an input of :data:`READERS` to its primvar
-        reader reads that primvar (:meth:`_reader_value`); others keep their authored
-        value (said, naming each).
+        Inputs connected to a shader: diffuseColor, emissiveColor, opacity and
+        normal to a ``UsdUVTexture`` read its file (:func:`_uv_texture`); an input
+        of :data:`READERS` to its primvar reader reads that primvar
+        (:meth:`_reader_value`); others keep their authored value (said, naming
+        each).
 
         Raises:
             ValueError: an input that is not finite, or a negative colour, naming the
@@ -152,14 +174,20 @@ class _Materials:
                 default if value is None else tuple(float(v) for v in value)
                 if isinstance(default, tuple) else float(value),
                 least=0 if isinstance(default, tuple) else None)
+        normal = shader.GetInput("normal")
+        if normal and normal.HasConnectedSource():
+            connected.append("normal")
+            values["normal"] = None  # flat unless its texture is read
         mapped, attributes, st = {}, {}, None
         dropped = []
         for name in connected:
             source = _connected_shader(shader.GetInput(name))
             kind = str(source.GetIdAttr().Get()) if source else ""
             if name in TEXTURED_INPUTS and kind == "UsdUVTexture":
-                bitmap, wanted, why = _uv_texture(source, time, self._where) if textures else \
-                    (None, None, "is not mapped")
+                bitmap, wanted, why = _uv_texture(
+                    source, _connected_output(shader.GetInput(name)), TEXTURED_INPUTS[name],
+                    time, self._where, values["opacityThreshold"] if name == "opacity"
+                    else 0.0) if textures else (None, None, "is not mapped")
                 if bitmap is None:
                     value = self._unread_input(material, name, values[name], source, why, time)
                 elif st not in (None, wanted):
@@ -193,6 +221,8 @@ class _Materials:
                 "roughness": mapped.get("roughness") or
                 min(max(values["roughness"], 0.0), 1.0),
                 "metallic": mapped.get("metallic") or min(max(values["metallic"], 0.0), 1.0)}
+        if "normal" in mapped:
+            bsdf = {"type": "normalmap", "normalmap": mapped["normal"], "bsdf": bsdf}
         if double_sided:
             bsdf = _two_sided(bsdf)
         opacity = min(max(values["opacity"], 0.0), 1.0)
@@ -240,9 +270,11 @@ class _Materials:
         says why; said once per material and input): the texture's ``fallback`` where
         authored; else black for emissiveColor (UsdUVTexture's own fallback: an
         unread texture does not make a mesh glow) and the input's authored value for
-        the others."""
+        the others (``None``, flat, for normal). Opacity takes the fallback's alpha."""
         fallback = texture.GetInput("fallback")
-        if fallback and fallback.HasAuthoredValue():
+        if fallback and fallback.HasAuthoredValue() and name == "opacity":
+            value = float(np.ravel(fallback.Get(time))[-1])
+        elif fallback and fallback.HasAuthoredValue() and name != "normal":
             value = tuple(float(v) for v in fallback.Get(time))[:3]
         elif name == "emissiveColor":
             value = (0.0, 0.0, 0.0)
@@ -251,7 +283,7 @@ class _Materials:
         if why != "is not mapped":
             self._warn_once(f"{self._where}: {material.GetPath()}: inputs:{name}'s texture "
                             f"{texture.GetPath()} {why}; {name} is "
-                            f"{tuple(round(c, 4) for c in value)}")
+                            f"{'flat' if value is None else _shown(value)}")
         return value
 
     def _primvar(self, prim, mesh, time, point_count: int, source_faces,
@@ -294,6 +326,13 @@ class _Materials:
         return mean
 
 
+def _connected_output(shader_input) -> str:
+    """The name of the shader output an input is connected to (``rgb``, ``a``, ...),
+    followed as :func:`_connected_shader` follows it."""
+    outputs = shader_input.GetValueProducingAttributes(shaderOutputsOnly=True)
+    return UsdShade.Output(outputs[0]).GetBaseName() if outputs else ""
+
+
 def _texture_of(value) -> tuple:
     """``(Mitsuba texture, mesh attributes)`` of a value :meth:`_Materials._primvar`
     gives: an ``rgb`` or a number and none, or a ``mesh_attribute`` and the attribute
@@ -310,3 +349,122 @@ def _shown(value) -> str:
     if isinstance(value, tuple):
         return str(tuple(round(c, 4) for c in value))
     return str(round(value, 4))
+
+
+def _st_transform(texture, time, where: str) -> tuple:
+    """``(3x3 matrix, primvar reader or None)``: the ``UsdTransform2d`` shaders a
+    ``UsdUVTexture``'s ``st`` is read through, composed as one homogeneous matrix on
+    st (each ``result = in * scale * rotate + translation``, the rotation
+    counter-clockwise in degrees, as UsdPreviewSurface's specification defines it;
+    identity without one), and the shader that feeds the innermost one's ``in``.
+
+    Raises:
+        ValueError: a scale, rotation or translation that is not finite, naming the
+            stage (``where``), the shader and the input.
+    """
+    matrix = np.eye(3)
+    shader, seen = _connected_shader(texture.GetInput("st")), set()
+    while shader is not None and shader.GetIdAttr().Get() == "UsdTransform2d" \
+            and shader.GetPath() not in seen:
+        seen.add(shader.GetPath())
+        inputs = {}
+        for key, default in (("scale", (1.0, 1.0)), ("rotation", 0.0),
+                             ("translation", (0.0, 0.0))):
+            value = _input_value(shader.GetInput(key), time)
+            inputs[key] = _checked(f"{where}: {shader.GetPath()}: inputs:{key}", np.ravel(
+                np.asarray(default if value is None else value, dtype=np.float64)))
+        angle = math.radians(float(inputs["rotation"][0]))
+        cos, sin = math.cos(angle), math.sin(angle)
+        (sx, sy), (tx, ty) = inputs["scale"][:2], inputs["translation"][:2]
+        matrix = matrix @ np.array([[cos * sx, -sin * sy, tx], [sin * sx, cos * sy, ty],
+                                    [0.0, 0.0, 1.0]])
+        shader = _connected_shader(shader.GetInput("in"))
+    return matrix, shader
+
+
+def _uv_texture(texture, output: str, reads: str, time, where: str,
+                threshold: float = 0.0) -> tuple:
+    """``(bitmap texture dict or None, st primvar name, why not)`` of a
+    ``UsdUVTexture`` shader read through its output ``output`` (``rgb``, ``r``, ...,
+    ``a``) by an input that ``reads`` ``"color"``, ``"opacity"`` or ``"normal"``: its
+    file as a Mitsuba ``bitmap`` over the primvar its ``st`` is read from (a
+    ``UsdPrimvarReader_float2``'s, ``st`` by default), the ``UsdTransform2d`` between
+    them as the bitmap's ``to_uv`` (on Mitsuba's uv, :data:`_ST_TO_UV`), the image
+    rewritten by :func:`_texture_image` unless Mitsuba reads it as the input needs it
+    (a colour without scale, bias or ``raw`` colour space). An opacity cut at
+    ``threshold`` (> 0) is looked up nearest-texel: the cut is made per texel, where
+    UsdPreviewSurface cuts the filtered value, which differ within a texel of the
+    edge. No bitmap when the file is not given, does not resolve, or is not an image
+    Mitsuba reads (``why not`` says which).
+
+    Raises:
+        ValueError: a scale, bias or st transform that is not finite, naming the stage
+            (``where``), the shader and the input.
+    """
+    asset = _input_value(texture.GetInput("file"), time)
+    if asset is None or not asset.path:
+        return None, None, "has no file"
+    if not asset.resolvedPath:
+        return None, None, f"{asset.path!r} does not resolve"
+    filename = _local_asset(asset.resolvedPath)
+    problem = "cannot be read from its package" if filename is None \
+        else _unreadable_image(filename)
+    if problem is not None:
+        return None, None, f"{asset.path!r} {problem}"
+    factors = []
+    for key, identity in (("scale", 1.0), ("bias", 0.0)):
+        value = _input_value(texture.GetInput(key), time)
+        value = (identity,) * 4 if value is None else tuple(float(v) for v in _checked(
+            f"{where}: {texture.GetPath()}: inputs:{key}", np.ravel(value)))
+        factors.append((value + (identity,) * 4)[:4])
+    space = str(_input_value(texture.GetInput("sourceColorSpace"), time) or "auto")
+    channel = "rgba".index(output) if output in ("r", "g", "b", "a") else 0
+    if reads != "color" or space == "raw" or factors != [(1.0,) * 4, (0.0,) * 4]:
+        filename = _texture_image(filename, reads, channel, *factors, space == "raw",
+                                  threshold)
+    matrix, reader = _st_transform(texture, time, where)
+    name = str((_input_value(reader.GetInput("varname"), time) if reader is not None
+                else None) or "st")
+    wrap = texture.GetInput("wrapS")
+    wrap = str(wrap.Get(time)) if wrap and wrap.Get(time) else "useMetadata"
+    bitmap = {"type": "bitmap", "filename": filename, "wrap_mode": _WRAPS.get(wrap, "repeat")}
+    if not np.array_equal(matrix, np.eye(3)):
+        bitmap["to_uv"] = mi.ScalarTransform3f(_ST_TO_UV @ matrix @ _ST_TO_UV)
+    if reads == "opacity" and threshold > 0:
+        bitmap["filter_type"] = "nearest"
+    return bitmap, name, None
+
+
+def _texture_image(filename: str, reads: str, channel: int, scale: tuple, bias: tuple,
+                   raw: bool, threshold: float) -> str:
+    """The image at ``filename`` as a ``UsdUVTexture`` outputs it to an input that
+    ``reads`` it, written once as an OpenEXR to ``hlbvh-textures/<SHA-256 of the
+    image's bytes and these arguments>/`` in the temporary folder (Mitsuba's bitmap
+    has no scale or bias of its own; :func:`_written_once`). The pixels are linear
+    RGBA (``raw``: the file's values as they are, the ``raw`` source colour space;
+    else decoded where the file is sRGB; alpha 1 where it has none) times ``scale``
+    plus ``bias`` (4 values each), then: ``"color"``: RGB, below 0 made 0 (no colour
+    holds it); ``"opacity"``: the one channel ``channel`` clamped to [0, 1], cut to 0
+    or 1 at ``threshold`` where it is above 0; ``"normal"``: the tangent-space normal
+    in [-1, 1] stored as ``(n + 1) / 2``, which Mitsuba's ``normalmap`` maps back."""
+    key = hashlib.sha256(Path(filename).read_bytes() + repr(
+        (reads, channel, scale, bias, raw, threshold)).encode())
+
+    def write(path: str) -> None:
+        bitmap = mi.Bitmap(filename)
+        if raw:
+            bitmap.set_srgb_gamma(False)
+        pixels = np.array(bitmap.convert(mi.Bitmap.PixelFormat.RGBA, mi.Struct.Type.Float32,
+                                         srgb_gamma=False)) * np.array(scale) + np.array(bias)
+        if reads == "color":
+            pixels = np.maximum(pixels[..., :3], 0.0)
+        elif reads == "opacity":
+            pixels = np.clip(pixels[..., channel:channel + 1], 0.0, 1.0)
+            if threshold > 0:
+                pixels = (pixels >= threshold).astype(np.float32)
+        else:
+            pixels = (pixels[..., :3] + 1.0) / 2.0
+        mi.Bitmap(np.ascontiguousarray(pixels, dtype=np.float32)).write(path)
+
+    return _written_once("hlbvh-textures", key.hexdigest(), f"{Path(filename).stem}.exr",
+                         write)

@@ -272,48 +272,6 @@ def _dome_pole(dome, kind: str, stage) -> np.ndarray:
         return np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # rotateX(90): +Y -> +Z
     return np.eye(3)
 
-#: UsdUVTexture's wrap modes as Mitsuba's bitmap's (``black`` clamps).
-_WRAPS = {"repeat": "repeat", "mirror": "mirror", "clamp": "clamp", "black": "clamp",
-          "useMetadata": "repeat"}
-
-def _uv_texture(texture, time, where: str) -> tuple:
-    """``(bitmap texture dict or None, st primvar name, why not)`` of a
-    ``UsdUVTexture`` shader: its file as a Mitsuba ``bitmap`` over the primvar its
-    ``st`` is read from (a ``UsdPrimvarReader_float2``'s, ``st`` by default), through
-    :func:`_scaled_image` when its ``scale`` or ``bias`` is not the identity; no bitmap
-    when the file is not given, does not resolve, or is not an image Mitsuba reads
-    (``why not`` says which).
-
-    Raises:
-        ValueError: a scale or bias that is not finite, naming the stage (``where``),
-            the shader and the input.
-    """
-    asset = _input_value(texture.GetInput("file"), time)
-    if asset is None or not asset.path:
-        return None, None, "has no file"
-    if not asset.resolvedPath:
-        return None, None, f"{asset.path!r} does not resolve"
-    filename = _local_asset(asset.resolvedPath)
-    problem = "cannot be read from its package" if filename is None \
-        else _unreadable_image(filename)
-    if problem is not None:
-        return None, None, f"{asset.path!r} {problem}"
-    factors = []
-    for key, identity in (("scale", 1.0), ("bias", 0.0)):
-        value = _input_value(texture.GetInput(key), time)
-        factors.append((identity,) * 3 if value is None else tuple(float(v) for v in _checked(
-            f"{where}: {texture.GetPath()}: inputs:{key}", np.ravel(value)[:3])))
-    scale, bias = factors
-    if scale != (1.0,) * 3 or bias != (0.0,) * 3:
-        filename = _scaled_image(filename, scale, bias)
-    reader = _connected_shader(texture.GetInput("st"))
-    name = str((_input_value(reader.GetInput("varname"), time) if reader is not None
-                else None) or "st")
-    wrap = texture.GetInput("wrapS")
-    wrap = str(wrap.Get(time)) if wrap and wrap.Get(time) else "useMetadata"
-    return {"type": "bitmap", "filename": filename,
-            "wrap_mode": _WRAPS.get(wrap, "repeat")}, name, None
-
 @functools.lru_cache(maxsize=256)
 def _image_problem(path: str, stamp: tuple) -> str | None:
     """Why Mitsuba cannot read the image at ``path`` (``stamp``: its size and
@@ -355,24 +313,6 @@ def _local_asset(resolved: str) -> str | None:
     inner = Ar.SplitPackageRelativePathInner(resolved)[1]
     return _written_once("hlbvh-usdz", hashlib.sha256(data).hexdigest(), Path(inner).name,
                          lambda path: Path(path).write_bytes(data))
-
-
-def _scaled_image(filename: str, scale: tuple, bias: tuple) -> str:
-    """The image at ``filename`` as a ``UsdUVTexture`` with ``scale`` and ``bias``
-    outputs it: its linear RGB times ``scale`` plus ``bias``, channel by channel (values
-    below 0, which no colour holds, become 0), written once as an OpenEXR to
-    ``hlbvh-textures/<SHA-256 of the image's bytes, scale and bias>/`` in the temporary
-    folder (Mitsuba's bitmap has no scale or bias of its own; :func:`_written_once`)."""
-    key = hashlib.sha256(Path(filename).read_bytes() + repr((scale, bias)).encode())
-
-    def write(path: str) -> None:
-        linear = mi.Bitmap(filename).convert(mi.Bitmap.PixelFormat.RGB,
-                                             mi.Struct.Type.Float32, srgb_gamma=False)
-        pixels = np.maximum(np.array(linear) * np.array(scale) + np.array(bias), 0.0)
-        mi.Bitmap(pixels.astype(np.float32)).write(path)
-
-    return _written_once("hlbvh-textures", key.hexdigest(), f"{Path(filename).stem}.exr",
-                         write)
 
 
 #: The most bytes each folder of rewritten files (``hlbvh-textures/``, ``hlbvh-usdz/`` in
