@@ -232,7 +232,7 @@ def test_a_texture_scale_that_is_not_finite_is_named(tmp_path):
     with pytest.raises(ValueError) as caught:
         UsdScene(path, warn=lambda line: None)
     assert str(caught.value) == (f"stage {str(path)!r}: /Looks/Look/Map: inputs:scale is "
-                                 f"(nan, 1, 1): expected finite values")
+                                 f"(nan, 1, 1, 1): expected finite values")
 
 
 def _read_through(stage, surface, name, kind, varname, values, interpolation, type_name):
