@@ -113,3 +113,17 @@ def test04_every_command_line_is_one_command_the_parser_takes(number, command):
         _parser().parse_args(words[1:])
     except SystemExit:
         pytest.fail(f"README.md:{number}: hlbvh's parser refuses {command!r}")
+
+
+def test05_only_marked_placeholders_are_given_values(monkeypatch):
+    """A marked ``NAME = ...  # ...`` line takes the test's value; an unmarked ``...``
+    (inside a dict, a bare ``x = ...``) and a marked name without a test value fail
+    the block, so no block leaves the reader a hole it does not name."""
+    monkeypatch.setitem(PLACEHOLDERS, "faces", "[0, 1, 2]")
+    given = with_placeholders("faces = ...  # your mesh's triangles\nprint(faces)\n", "block")
+    assert given == "faces = [0, 1, 2]\nprint(faces)\n"
+    for source, message in (("scene = {'type': 'scene', 'flag': ...}\n", "not marked"),
+                            ("faces = ...\n", "not marked"),
+                            ("rays = ...  # your camera's rays\n", "no test value")):
+        with pytest.raises(AssertionError, match=message):
+            with_placeholders(source, "block")
