@@ -260,3 +260,24 @@ def test11_the_command_line_takes_a_shutter(tmp_path, capsys):
                            (["--shutter", "1", "--motion-keys", "0"], "--motion-keys")):
         status, _, err = run_cli(capsys, "render", "cloth", *flags, "--out", tmp_path / "x")
         assert status == 2 and len(err) == 1 and message in err[0], err
+
+
+def test12_what_blur_does_not_support_is_one_line():
+    """An emitting mesh cannot take keys (emitter sampling would see it still), and
+    hlbvh_prb refuses derivatives through a blurred mesh; its primal render works."""
+    import drjit as dr
+
+    panel = mi.load_dict({"type": "scene", "panel": {
+        "type": "rectangle", "emitter": {"type": "area"}}}).shapes()[0]
+    with pytest.raises(ValueError, match="mesh 'panel' emits light"):
+        hlbvh.set_motion_keys(panel, [panel.vertex_positions_buffer()] * 2, (0.0, 1.0))
+    scene = _scene({"type": "hlbvh_prb", "max_depth": 3}, shutter=(0.0, 1.0), spp=2)
+    hlbvh.set_motion_keys(_mover(scene), [mi.Float(QUAD.ravel()), mi.Float((QUAD + SHIFT).ravel())],
+                          (0.0, 1.0))
+    assert np.array(mi.render(scene, seed=1)).mean() > 0
+    params = mi.traverse(scene)
+    dr.enable_grad(params["floor.bsdf.reflectance.value"])
+    params.update()
+    image = mi.render(scene, params, seed=1)
+    with pytest.raises(ValueError, match="hlbvh_prb: a moving mesh has motion keys"):
+        dr.backward(dr.sum(image, axis=None))

@@ -65,6 +65,11 @@ def set_motion_keys(mesh, keys, shutter) -> None:
             naming the mesh and the key.
     """
     name = mesh.id() or "<unnamed mesh>"
+    if mesh.emitter() is not None:
+        raise ValueError(f"mesh {name!r} emits light: emitter sampling would place it at "
+                         "its mid-shutter pose while our rays see it move; give its "
+                         "motion without keys (each frame an instant), or light the "
+                         "scene otherwise")
     open_, close = (float(v) for v in shutter)
     if not (math.isfinite(open_) and math.isfinite(close) and close > open_):
         raise ValueError(f"mesh {name!r}: shutter ({open_}, {close}): expected finite "

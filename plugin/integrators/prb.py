@@ -377,17 +377,29 @@ class PRBIntegrator(_ad.RBIntegrator):
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         self._bring_up_to_date(scene)
+        self._refuse_blur()
         return super().render_forward(scene, params, sensor, seed, spp)
 
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
         """Mitsuba's backward pass (a primal pass, then its replay), the primal pass's
         ray answers kept for the replay (:class:`_ReplayHits`) where they fit."""
         self._bring_up_to_date(scene)
+        self._refuse_blur()
         self._keep_hits, self._hits = True, None
         try:
             return super().render_backward(scene, params, grad_in, sensor, seed, spp)
         finally:
             self._keep_hits, self._hits = False, None
+
+    def _refuse_blur(self):
+        """Refuse derivatives through meshes with motion keys: their hits are shaded at
+        each ray's time from the keys, which carry no derivative to the mesh's
+        parameters (a primal render of them is fine)."""
+        accel = self._tracer.scene_accel
+        if accel is not None and accel.dynamic.keyed is not None:
+            raise ValueError("hlbvh_prb: a moving mesh has motion keys (an open shutter); "
+                             "derivatives through a blurred mesh are not supported: render "
+                             "its gradients with the shutter closed (no keys)")
 
     def _queries(self, primal: bool, n: int):
         """How a pass of ``n`` paths asks: the answers it keeps (a backward pass's
