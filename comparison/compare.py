@@ -404,7 +404,8 @@ def run(args) -> int:
     settings = render_settings(args)
     tolerance = _tolerance(args.tolerance)
     animation, source, frames = open_animation(SceneSpec.of(
-        args.scene, args.frames_dir, args.triangles, args.frames, args.topology))
+        args.scene, args.frames_dir, args.triangles, args.frames, args.topology,
+        settings.shutter))
     settings = with_scene_integrator(args, animation, settings, "compare")
     check_seed(settings.seed, frames)
     out = output_directory(out_flag(args.out, Path("out/compare") / Path(args.scene).stem))

@@ -36,9 +36,16 @@ Not supported
     Curves, points, volumes, implicit shapes (Sphere, Cube, ...), NURBS, references
     and payloads that do not resolve: one warning line each on stderr, with the prim's
     path. UsdSkel skinning is pxr's own (``UsdSkelBakeSkinning`` into the session layer,
-    in memory), over the time codes of the frames asked for only (:mod:`.usd_skinning`),
-    but over meshes whose points are time-sampled (already baked); where pxr cannot
-    bake it the rest points render (said).
+    in memory), over the time codes of the frames asked for only, widened by the
+    shutter (:mod:`.usd_skinning`), but over meshes whose points are time-sampled
+    (already baked); where pxr cannot bake it the rest points render (said).
+Inside a frame (motion blur)
+    :meth:`UsdScene.frame_at` gives each moving mesh its points as pxr evaluates them at
+    the fractional time code (interpolated samples, ``velocities`` and ``accelerations``
+    from the frame's sample), placed by its xformOps at that time code, the motion
+    scaled by its ``motion:blurScale``; instances keep their frame's pose (said when
+    they move and the shutter is open). ``motion:nonlinearSampleCount`` on a mesh with
+    ``accelerations`` is reported as the ``--motion-keys`` that follows it.
 No light
     A stage without UsdLux lights is said, and lit by a default sky and sun
     (``default_light=False``: not).
@@ -57,6 +64,7 @@ constants, the prim helpers) is in ``usd_prims``.
 from __future__ import annotations
 
 import hashlib
+import math
 import re
 from pathlib import Path
 
@@ -79,6 +87,19 @@ from .usd_skinning import bake_skinning
 from .usd_said import grouped_arcs, nothing_renderable, usd_quiet
 from .usd_time import (MAX_FRAMES, frame_range, sample_times as _sample_times,
                        transform_attributes)
+
+
+def _checked_shutter(shutter, where: str) -> tuple[float, float]:
+    """``shutter`` as ``(open, close)`` floats; a ValueError naming the stage unless
+    both are finite with open <= close."""
+    try:
+        open_, close = (float(value) for value in shutter)
+    except (TypeError, ValueError):
+        open_, close = math.nan, math.nan
+    if not (math.isfinite(open_) and math.isfinite(close) and open_ <= close):
+        raise ValueError(f"{where}: shutter {shutter!r}: expected (open, close) in frames, "
+                         f"finite with open <= close")
+    return open_, close
 
 
 #: A rigid mesh of at least this many triangles is an instance (its transform moved every
@@ -110,17 +131,23 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             range is read, before any mesh is (a ``stop`` past
             :data:`~.usd_time.MAX_FRAMES`, more frames than any stage holds, reads to
             the last frame: ``range(A, sys.maxsize)`` for ``--frames A:``).
+        shutter: ``(open, close)`` in frames relative to each frame, the times
+            :meth:`frame_at` will be asked for around the frames (``(0, 0)``: none): the
+            skinning is baked over them too, and with an open shutter what does not blur
+            is said (moving instances; a curve that wants more keys).
 
     Raises:
         ValueError: naming the file: it does not exist, USD cannot open it, its time
             range is reversed, nothing in it renders, the camera path names no camera,
-            a skinned mesh's joint weight is not finite.
+            a skinned mesh's joint weight is not finite, the shutter is not finite
+            with open <= close.
     """
 
     name = "usd"
 
     def __init__(self, path, camera: str | None = None, warn=None, instancing: bool = True,
-                 default_light: bool = True, frames: range | None = None):
+                 default_light: bool = True, frames: range | None = None,
+                 shutter: tuple[float, float] = (0.0, 0.0)):
         self._path = Path(path)
         emit = warn or _print_warning
         pending: list[str] = []
@@ -132,6 +159,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         self._start, self.frame_count = frame_range(self.stage, self._where)
         self._check_frames(frames)
         self.frames_per_second = float(self.stage.GetTimeCodesPerSecond())
+        self._shutter = _checked_shutter(shutter, self._where)
         self._span = self.time_span(frames)
         self._skinned, said = bake_skinning(self.stage, *self._span, self._where)
         pending += said
@@ -150,6 +178,8 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         if not self._shapes:
             raise nothing_renderable(self._where, unresolved, pending)
         self._camera = self._pick_camera(camera)
+        if self._shutter[1] > self._shutter[0]:
+            pending += self._unblurred_lines()
         self._warn = emit
         for line in pending:
             emit(line)
@@ -185,10 +215,15 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
 
     def time_span(self, frames: range | None = None) -> tuple[float, float]:
         """``(first, last)``: the time codes that reading ``frames`` (``None``: every
-        frame) reads, within the stage's range; a frame reads its own time code."""
+        frame) reads, within the stage's range: a frame reads its own time code and,
+        through :meth:`frame_at`, those of the shutter around it, out to the whole
+        frames that hold them (skinning is baked at frames, and read between them)."""
         frames = range(self.frame_count) if frames is None else frames
         first = min(max(frames.start, 0), self.frame_count - 1)
         last = min(max(frames.stop - 1, first), self.frame_count - 1)
+        open_, close = self._shutter
+        first = max(min(first, math.floor(first + open_)), 0)
+        last = min(max(last, math.ceil(last + close)), self.frame_count - 1)
         return self._start + first, self._start + last
 
     def animated_ids(self) -> list[str]:
@@ -215,7 +250,6 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         return {m.id: m.group.triangles if isinstance(m, Instance) else len(m.faces)
                 for m in self._shapes}
 
-    @usd_quiet
     def frame(self, i: int) -> dict[str, FrameGeometry | FrameSensor]:
         """World-space points (Mitsuba's Y-up metres, float32) of every moving mesh at
         frame ``i``'s time code; faces too where the mesh's topology is time-sampled,
@@ -234,9 +268,43 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
                 outside the frames it was opened for; a moving camera whose lens or
                 transform would not make a sensor at this frame.
         """
+        return self._frame(i, 0.0)
+
+    def frame_at(self, time: float) -> dict[str, FrameGeometry | FrameSensor]:
+        """:meth:`AnimatedScene.frame_at` (``time`` in frames) as pxr evaluates the
+        stage there, for the frame nearest to ``time`` within the animation (the frame
+        whose shutter holds it; the base of velocities): each moving mesh's
+        points at the fractional time code (:func:`~.usd_meshes.points_at`: its samples
+        interpolated, or moved by its velocities and accelerations from the frame's
+        sample) and its xformOps at that time code, the time from the frame scaled by
+        the mesh's ``motion:blurScale`` (0: no blur); a moving camera at that very time
+        code (:meth:`camera_at`, clamped to the animation); instances at the frame's
+        pose (not keyed yet). The meshes' time is not clamped: a shutter reaching past
+        the stage's first or last frame reads what pxr gives there (samples held,
+        velocities extrapolated), so a one-frame stage blurs by its velocities.
+
+        Raises:
+            ValueError: as :meth:`frame`, naming the time code; a skinned stage's time
+                code outside the frames and shutter it was opened for.
+        """
+        time = float(time)
+        if not math.isfinite(time):
+            raise ValueError(f"{self._where}: frame_at({time}): expected a finite time")
+        i = min(max(math.floor(time + 0.5), 0), self.frame_count - 1)
+        frame = self._frame(i, time - i)
+        if SENSOR_ID in frame:
+            clamped = min(max(time, 0.0), float(self.frame_count - 1))
+            frame[SENSOR_ID] = self.camera_at(self._start + clamped)
+        return frame
+
+    @usd_quiet
+    def _frame(self, i: int, offset: float) -> dict[str, FrameGeometry | FrameSensor]:
+        """:meth:`frame` ``i`` with its moving meshes ``offset`` frames from it (each
+        scaled by its ``motion:blurScale``; see :meth:`frame_at`)."""
         at = self._baked_at(i)
         time = Usd.TimeCode(self.time_code(i))
         cache = UsdGeom.XformCache(time)
+        caches = {time.GetValue(): cache}  # a cache per time code the meshes are read at
         frame = {}
         given = self.__dict__.setdefault("_faces_given", set())
         moving = [m for m in self._instances if m.motion != "static"]
@@ -249,21 +317,20 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
                 continue
             if isinstance(mesh, Instance):
                 frame[mesh.id] = FrameGeometry(to_world=moved[mesh.id])
-            else:
-                frame[mesh.id] = mesh_frame(self._placements, mesh, time, cache, at,
-                                            self._where, given)
+                continue
+            code = time.GetValue()
+            if offset:
+                prim = self.stage.GetPrimAtPath(mesh.path)
+                code += offset * UsdGeom.MotionAPI(prim).ComputeMotionBlurScale(time)
+            if code not in caches:
+                caches[code] = UsdGeom.XformCache(Usd.TimeCode(code))
+            frame[mesh.id] = mesh_frame(
+                self._placements, mesh, Usd.TimeCode(code), caches[code],
+                at if code == time.GetValue() else self._baked(code, f"time code {code:g} "
+                                                                     f"(inside {at})"),
+                self._where, given, base=time)
         if self.camera_moves():
             frame[SENSOR_ID] = self.camera_at(self.time_code(i))
-        return frame
-
-    def frame_at(self, time: float) -> dict[str, FrameGeometry | FrameSensor]:
-        """:meth:`AnimatedScene.frame_at` (``time`` in frames, clamped to the
-        animation), with a moving camera at that very time code (:meth:`camera_at`, USD
-        interpolating its samples) rather than at the nearer frame."""
-        frame = super().frame_at(time)
-        if SENSOR_ID in frame:
-            frames = min(max(float(time), 0.0), float(self.frame_count - 1))
-            frame[SENSOR_ID] = self.camera_at(self._start + frames)
         return frame
 
     @usd_quiet
@@ -545,13 +612,46 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         """:meth:`_at`, and a ValueError naming it when the stage's skinning was not
         baked at frame ``i`` (outside the frames the stage was opened for), where its
         skinned meshes would hold the nearest baked pose."""
-        at = self._at(i)
+        return self._baked(self.time_code(i), self._at(i))
+
+    def _baked(self, code: float, at: str) -> str:
+        """``at`` (naming time code ``code``), and a ValueError naming it when the
+        stage is skinned and ``code`` lies outside the time codes its skinning was baked
+        over (:meth:`time_span`) but inside the stage's range (past the range, pxr holds
+        the first or last baked pose, as it holds any sample)."""
         first, last = self._span
-        if self._skinned and not first <= self.time_code(i) <= last:
+        end = self._start + self.frame_count - 1
+        if self._skinned and (first > self._start and code < first
+                              or last < end and code > last):
             raise ValueError(f"{self._where}: {at}: its UsdSkel skinning was baked over time "
-                             f"codes {first:g}..{last:g} only (the frames it was opened "
-                             f"for); open it with frames that hold this one")
+                             f"codes {first:g}..{last:g} only (the frames and shutter it "
+                             f"was opened for); open it with frames and a shutter that hold "
+                             f"this time")
         return at
+
+    def _unblurred_lines(self) -> list[str]:
+        """What an open shutter does not blur as the stage authors it: moving
+        instances (point instancers' too) keep their frame's pose, since only meshes
+        are keyed; a mesh whose ``accelerations`` curve its motion gets the keys
+        ``--motion-keys`` asks for, joined linearly, and its
+        ``motion:nonlinearSampleCount`` is said as the ``--motion-keys`` it asks."""
+        lines = []
+        moving = [shape for shape in self._instances if shape.motion != "static"]
+        if moving:
+            lines.append(f"{self._where}: {len(moving)} moving instance(s) ({moving[0].path}"
+                         f"{', ...' if len(moving) > 1 else ''}) keep their frame's pose "
+                         f"inside the shutter: instances are not keyed yet, only meshes "
+                         f"blur")
+        time = Usd.TimeCode(self._start)
+        for mesh in {m.path: m for m in self._meshes if m.motion == "deforming"}.values():
+            prim = self.stage.GetPrimAtPath(mesh.path)
+            if UsdGeom.Mesh(prim).GetAccelerationsAttr().GetNumTimeSamples() > 0:
+                count = UsdGeom.MotionAPI(prim).ComputeNonlinearSampleCount(time)
+                lines.append(f"{self._where}: {mesh.path}: its accelerations curve its "
+                             f"motion; motion:nonlinearSampleCount {count} asks for "
+                             f"{count} samples over the shutter: --motion-keys "
+                             f"{max(count - 1, 1)} gives them (keys are joined linearly)")
+        return lines
 
     def _warn_once(self, line: str) -> None:
         said = self.__dict__.setdefault("_said", set())

@@ -12,8 +12,12 @@ stage). Authored vertex normals are used on meshes that do not move (a moving me
 normals are recomputed every frame by :func:`hlbvh.scenes.apply_frame`);
 ``doubleSided`` wraps the BSDF in ``twosided``.
 
-Motion, from the time samples: *deforming* (its points are time-sampled), *rigid* (only
-a transform, its own or an ancestor's, is), *static* (nothing is).
+Motion, from the time samples: *deforming* (its points are time-sampled, or moved by
+time-sampled ``velocities``), *rigid* (only a transform, its own or an ancestor's, is),
+*static* (nothing is). Points are pxr's at each time code (:func:`points_at`):
+interpolated between time samples, and where ``velocities`` (and ``accelerations``) are
+authored, extrapolated from the sample at or before the frame being rendered, as
+``UsdGeomPointBased.ComputePointsAtTime`` computes them for renderers.
 
 Per-face materials: a mesh with ``materialBind`` GeomSubsets becomes one Mitsuba mesh
 per subset (id from the subset's path, its faces, its bound material) plus one for the
@@ -74,12 +78,30 @@ def renders(imageable, time) -> bool:
     return purpose in (UsdGeom.Tokens.default_, UsdGeom.Tokens.render)
 
 
+def moves_by_velocity(mesh) -> bool:
+    """Whether pxr moves the mesh's points by its ``velocities``: both time-sampled (pxr
+    reads the velocities at the points' own samples; a default value alone is ignored)."""
+    return (mesh.GetPointsAttr().GetNumTimeSamples() > 0
+            and mesh.GetVelocitiesAttr().GetNumTimeSamples() > 0)
+
+
+def points_at(mesh, time, base) -> np.ndarray:
+    """A mesh's points in its own space at ``time`` (a ``Usd.TimeCode``), as pxr
+    evaluates them for a renderer drawing the frame at ``base``: where velocities move
+    them (:func:`moves_by_velocity`), ``ComputePointsAtTime(time, base)`` (the sample at
+    or before ``base`` plus velocity, and half acceleration, times the time between, in
+    seconds); else the points attribute at ``time`` (linear between samples)."""
+    if moves_by_velocity(mesh):
+        return _array(mesh.ComputePointsAtTime(time, base), 3)
+    return _array(mesh.GetPointsAttr().Get(time), 3)
+
+
 def mesh_motion(prim, mesh) -> tuple[bool, bool, str]:
     """``(deforming, topology_varies, motion)`` of a mesh prim from its time samples:
     its points time-sampled (deforming), its faces time-sampled, and its motion,
     ``"deforming"`` (either), ``"rigid"`` (only a transform, its own or an
     ancestor's, is) or ``"static"``."""
-    deforming = mesh.GetPointsAttr().GetNumTimeSamples() > 1
+    deforming = mesh.GetPointsAttr().GetNumTimeSamples() > 1 or moves_by_velocity(mesh)
     topology_varies = any(a.GetNumTimeSamples() > 1 for a in (
         mesh.GetFaceVertexCountsAttr(), mesh.GetFaceVertexIndicesAttr()))
     rigid = not deforming and _transform_varies(prim)
@@ -105,7 +127,7 @@ def read_mesh(prim, time, where: str, warn, skinned: bool, group_only: bool,
     if prim.HasAPI(skel_binding()) and not deforming and not skinned:
         warn(f"{where}: {path}: bound to a UsdSkel skeleton whose skinning "
              f"is not applied (bake it into points); its rest points render")
-    points = _array(mesh.GetPointsAttr().Get(time), 3)
+    points = points_at(mesh, time, time)
     check_finite(where, path, "points", points, f"time code {time.GetValue():g}")
     faces, source_faces, corners = _triangulate(mesh, time, len(points), path,
                                                 where, with_faces=True)
@@ -190,9 +212,10 @@ def mesh_parts(read: MeshPrim, parts: list, normals, uv, transform: np.ndarray,
     return meshes
 
 
-def world_geometry(placements, mesh: _Mesh, time, cache, at: str, where: str):
+def world_geometry(placements, mesh: _Mesh, time, cache, at: str, where: str, base=None):
     """``(points (V, 3) float64 world space, faces (F, 3) or None)`` of a mesh at
-    ``time`` (``at`` names it: the frame and time code), placed by ``placements``
+    ``time`` (``at`` names it: the frame and time code) for the frame rendered at
+    ``base`` (``None``: ``time``; see :func:`points_at`), placed by ``placements``
     (:class:`hlbvh.scenes.usd_instances.Placements`): faces when its topology is
     time-sampled, or when its transform mirrors at this time and not at the first
     frame (or the reverse), so its faces keep facing out.
@@ -205,7 +228,7 @@ def world_geometry(placements, mesh: _Mesh, time, cache, at: str, where: str):
     if mesh.local_points is not None:
         local = mesh.local_points
     else:
-        local = _array(UsdGeom.Mesh(prim).GetPointsAttr().Get(time), 3)
+        local = points_at(UsdGeom.Mesh(prim), time, time if base is None else base)
     transform = placements.of(prim, cache)
     check_finite(where, mesh.path, "transform", transform, at)
     check_finite(where, mesh.path, "points", local, at)
@@ -224,8 +247,9 @@ def world_geometry(placements, mesh: _Mesh, time, cache, at: str, where: str):
 
 
 def mesh_frame(placements, mesh: _Mesh, time, cache, at: str, where: str,
-               given: set) -> FrameGeometry:
-    """A moving mesh's world-space points (float32) at ``time`` (``at`` names it), and
+               given: set, base=None) -> FrameGeometry:
+    """A moving mesh's world-space points (float32) at ``time`` (``at`` names it) for
+    the frame rendered at ``base`` (:func:`world_geometry`), and
     its faces where :func:`world_geometry` gives them, where its point count differs
     from the first frame's, and for every later call once the mesh was given faces
     (``given``: the ids given faces so far, updated), so whichever frames came before,
@@ -236,7 +260,7 @@ def mesh_frame(placements, mesh: _Mesh, time, cache, at: str, where: str,
             changed while its faces did not, too few for them (and see
             :func:`world_geometry`).
     """
-    points, faces = world_geometry(placements, mesh, time, cache, at, where)
+    points, faces = world_geometry(placements, mesh, time, cache, at, where, base)
     if faces is None and mesh.vertex_points is None \
             and len(points) <= int(mesh.faces.max(initial=0)):
         raise ValueError(f"{where}: mesh {mesh.path} has {len(points)} points "

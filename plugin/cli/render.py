@@ -82,7 +82,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hlbvh.cli.options import add_scene_options, out_flag, scene_render_settings
+from hlbvh.cli.options import add_scene_options, out_flag, scene_render_settings, shutter_settings
 from hlbvh.errors import UserError, int_flag
 from hlbvh.render.animation import render_animation
 from hlbvh.render.settings import frames_text
@@ -112,7 +112,9 @@ def configure(parser) -> None:
 
 def run(args) -> int:
     """``hlbvh render``: see the module docstring. Returns the exit status (0)."""
-    spec = SceneSpec.of(args.scene, args.frames_dir, args.triangles, args.frames, args.topology)
+    shutter = shutter_settings(args).get("shutter", (0.0, 0.0))  # a USD stage's skinning span
+    spec = SceneSpec.of(args.scene, args.frames_dir, args.triangles, args.frames, args.topology,
+                        shutter)
     animation, source, frames = open_animation(spec)
     settings, overrides = scene_render_settings(args, animation, args.scene)
     if overrides is not None:
@@ -130,7 +132,8 @@ def run(args) -> int:
             raise UserError(f"--cluster and --scheduler need Dask's distributed ({error}): "
                             f"pip install 'hlbvh[cluster]'") from None
         chunk = None if args.chunk_size is None else int_flag("--chunk-size", args.chunk_size, 1)
-        whole = SceneSpec.of(args.scene, args.frames_dir, args.triangles, frames, args.topology)
+        whole = SceneSpec.of(args.scene, args.frames_dir, args.triangles, frames, args.topology,
+                             shutter)
         rows, rendered = cluster.render_on_cluster(
             animation, whole.absolute(), frames, out, settings, source, cluster=args.cluster,
             scheduler=args.scheduler, chunk_size=chunk, progress=not args.quiet)

@@ -22,9 +22,11 @@ class SceneSpec:
     """An animation as the command line names it, in one record: SCENE (a procedural
     scene with its options, a Mitsuba XML file, a USD stage with its options), and the
     strings of ``--frames-dir``, ``--triangles``, ``--frames`` (None: every frame),
-    ``--topology``, ``--camera`` and ``--no-default-light``. :func:`open_animation`
-    opens it; :meth:`absolute` is what a cluster's worker, in its own working directory,
-    opens as the client did."""
+    ``--topology``, ``--camera`` and ``--no-default-light``, and the ``--shutter``
+    (``(open, close)`` in frames around each frame) the frames are read over: a USD
+    stage's skinning is baked over the frames and the shutter around them.
+    :func:`open_animation` opens it; :meth:`absolute` is what a cluster's worker, in its
+    own working directory, opens as the client did."""
 
     scene: str
     frames_dir: str | None = None
@@ -33,18 +35,20 @@ class SceneSpec:
     topology: str | None = None
     camera: str | None = None
     default_light: bool = True
+    shutter: tuple[float, float] = (0.0, 0.0)
 
     @classmethod
     def of(cls, scene, frames_dir=None, triangles=None, frames=None,
-           topology=None) -> SceneSpec:
+           topology=None, shutter=(0.0, 0.0)) -> SceneSpec:
         """The spec of the command line's values: SCENE (its ``--camera`` and
         ``--no-default-light`` ride on a :class:`hlbvh.cli.options.SceneArgument`),
-        ``frames`` as the ``--frames`` text or a range."""
+        ``frames`` as the ``--frames`` text or a range, ``shutter`` the settings'."""
         if isinstance(frames, range):
             frames = frames_argument(frames)
         return cls(str(scene), None if frames_dir is None else str(frames_dir),
                    None if triangles is None else str(triangles), frames, topology,
-                   getattr(scene, "camera", None), getattr(scene, "default_light", True))
+                   getattr(scene, "camera", None), getattr(scene, "default_light", True),
+                   tuple(float(value) for value in shutter))
 
     def absolute(self) -> SceneSpec:
         """The same spec with its files absolute (a USD stage's options written out)."""
@@ -104,7 +108,7 @@ def open_animation(spec: SceneSpec) -> tuple:
         # reach past it (a stop past any stage's frames: to the last)
         asked = range(start, sys.maxsize if stop is None else stop)
         animation, source = _open_usd(stage, scene, frames_dir, triangles, topology, camera,
-                                      held.append, asked)
+                                      held.append, asked, spec.shutter)
         stop = animation.frame_count if stop is None else stop
         for line in held:
             print(f"hlbvh: {line}", file=sys.stderr)
@@ -180,9 +184,10 @@ def usd_scene_string(path, options: dict) -> str:
 
 
 def _open_usd(stage: tuple, scene: str, frames_dir, triangles, topology, camera,
-              warn, frames: range) -> tuple:
+              warn, frames: range, shutter: tuple) -> tuple:
     """``(animation, source)`` of a USD stage (``stage``: :func:`usd_stage`'s path and
-    options) opened for ``frames`` (what its skinning is baked over): a
+    options) opened for ``frames`` and the ``shutter`` around them (what its skinning is
+    baked over): a
     :class:`hlbvh.scenes.usd.UsdScene` (imported here, ``pxr`` being an optional extra)
     and what identifies it (with its options, and the camera when ``--camera`` names
     one, so a resume through others is refused)."""
@@ -197,7 +202,8 @@ def _open_usd(stage: tuple, scene: str, frames_dir, triangles, topology, camera,
     except ImportError as error:
         raise UserError(f"scene {scene!r}: {error}") from None
     try:
-        animation = UsdScene(str(path), camera=camera, warn=warn, frames=frames, **options)
+        animation = UsdScene(str(path), camera=camera, warn=warn, frames=frames,
+                             shutter=shutter, **options)
     except ValueError as error:
         raise UserError(str(error)) from None
     source = {"scene": usd_scene_string(path.resolve(), options),
