@@ -34,7 +34,7 @@ Short stack: the top ``REGISTERS`` entries of each lane's stack live in loop
 registers, the rest in local memory (``dr.alloc_local``), which only a packet in which
 some lane pushes past the registers, or pops with none held, touches (in a symbolic
 if). A wide node pushes at most three entries and the packer refuses trees deeper than
-``layout.MAX_DEPTH`` binary levels, so ``STACK_SIZE`` entries always suffice; the
+``slots.MAX_DEPTH`` binary levels, so ``STACK_SIZE`` entries always suffice; the
 packer also refuses cycles and shared subtrees, so every ray ends.
 
 **Trees read at each ray's time** (:class:`TimedTree`: a
