@@ -16,8 +16,9 @@ symbolic loop would trace every registered shape); any other moving shape is ref
 naming it. With ``static="hlbvh"`` every mesh is in our BVHs and traced by our
 watertight traversal; instances, curves and the like are refused.
 
-A query asks each structure and keeps the nearest hit (:class:`NearestHit`); hits of
-two structures that tie (:data:`hlbvh.accel.hits.TIE`) go to the shape of lower index in
+A query asks each structure that traces the scene now, one after the other through the
+same two queries (:mod:`hlbvh.accel.structures`), and keeps the nearest hit
+(:class:`NearestHit`); hits of two structures that tie (:data:`hlbvh.accel.hits.TIE`) go to the shape of lower index in
 ``scene.shapes()``, whichever structure traced it. Meshes without triangles are refused,
 naming them (more likely a mistake than an intent); a scene without geometry misses
 everywhere. :meth:`SceneAccel.update` does only what changed (the dynamic group refit
@@ -46,10 +47,8 @@ from hlbvh.accel.policy import ACCELS, DECISIONS, UpdatePolicy, split_options
 from hlbvh.accel.queries import NativeAccel, SceneQueries, checked_scene
 from hlbvh.accel.scene_geometry import (declared_indices, describe_shape, scene_shapes,
                                         unmovable_error)
-from hlbvh.kernels.arrays import concat
+from hlbvh.accel.structures import MeshTree, scene_structures
 from hlbvh.kernels.bvh import BuildConfig
-from hlbvh.kernels.layout import joined
-from hlbvh.kernels.traversal import any_hit, closest_hit, closest_instance_hit
 from hlbvh.timing import clock_ms
 
 
@@ -144,9 +143,10 @@ class SceneAccel(SceneQueries):
         self._states = None  # each shape's state at the last update
         self._current = False  # whether the last update succeeded
         self._traced = []  # the mesh groups with triangles our BVHs trace, static first
-        self._tree = None  # their joined traversal slots (None: no triangles)
+        self._joined_tree = None  # their joined tree, a MeshTree (None: no triangles)
         self._keyed = None  # the group traced at each ray's time (motion keys), if any
-        self._prim_shape = self._prim_local = None  # mesh, in-mesh index per face index
+        self._keyed_tree = self._keyed_faces = None  # its MeshTree, each shape's first face
+        self._structures = []  # what queries ask, in order (hlbvh.accel.structures)
         self.update()
 
     def is_for(self, scene) -> bool:
@@ -219,6 +219,7 @@ class SceneAccel(SceneQueries):
                   and (g is not self.dynamic or structure == "hlbvh")]
         if traced != self._traced or any(g.last.decision != "kept" for g in traced):
             self._join(traced)
+        self._arrange()  # the sub-scenes, instances and routines may have changed too
         groups = (self.static, self.dynamic, self.native_moving) + (
             (self.instances,) if self.instances else ())
         self.last_update = dict(
@@ -356,7 +357,7 @@ class SceneAccel(SceneQueries):
             si = self.shading.surface_interaction(pi, ray, ray_flags, active)
         if self._keyed is not None:  # a mesh with motion keys: where it is at ray.time
             si = at_ray_time(si, pi, ray, self._keyed, self._keyed_faces,
-                             self._ray_time(ray), active)
+                             self._keyed_tree.time(ray), active)
         return si
 
     def points_over_shutter(self, pi, si, active=True):
@@ -429,30 +430,35 @@ class SceneAccel(SceneQueries):
                 "geometry)")
 
     def _join(self, traced):
-        """One tree over our groups' BVHs (static first: its slots stay cached while
-        the dynamic group changes), packed now, not inside some integrator's symbolic
-        loop, and the mesh and in-mesh index of each of its face indices. A group with
-        motion keys is traced on its own, at each ray's time (:attr:`_keyed`)."""
+        """One tree over our groups' BVHs (:meth:`MeshTree.joined_groups`), and the
+        structures queries ask listed anew. A group with motion keys is traced on its
+        own, at each ray's time (:attr:`_keyed`)."""
         self._traced = traced
         keyed = [g for g in traced if g.keyed is not None]
         self._keyed = keyed[0] if keyed else None
         still = [g for g in traced if g.keyed is None]
-        self._tree = joined([g.bvh for g in still]) if still else None
-        self._prim_shape = concat([g.geometry.prim_shape for g in still]) if still else None
-        self._prim_local = concat([g.geometry.prim_local for g in still]) if still else None
-        self._keyed_faces = None
+        self._joined_tree = MeshTree.joined_groups(still) if still else None
+        self._keyed_tree = self._keyed_faces = None
         if self._keyed is not None:  # each shape's first face in the keyed group
             group = self._keyed
+            self._keyed_tree = MeshTree.keyed_group(group)
             counts = [self.shapes[i].face_count() for i in group.indices]
             first = [0xFFFFFFFF] * len(self.shapes)
             for i, base in zip(group.indices, [sum(counts[:j]) for j in range(len(counts))]):
                 first[i] = base
             self._keyed_faces = mi.UInt32(first)
+        self._arrange()
 
-    def _ray_time(self, ray) -> mi.Float:
-        """``ray.time`` normalised to the keyed group's shutter (0 at open, 1 at close)."""
-        open_, close = self._keyed.shutter
-        return (ray.time - open_) * (1.0 / (close - open_))
+    def _arrange(self):
+        """List the structures that trace the scene now (:func:`scene_structures`), in
+        the order queries ask them: the still world's sub-scene (``static="native"``),
+        our joined tree, the keyed tree, the moving meshes' sub-scene while it traces
+        them, the instances' tree, the analytic shapes' own routines. Called where the
+        groups change (:meth:`update`, :meth:`_join`), not per query."""
+        self._structures = scene_structures(
+            self.static if self.static.native else None, self._joined_tree, self._keyed_tree,
+            self.native_moving if self.moving_structure == "native" else None,
+            self.instances, self._routine_shapes())
 
     def _routine_shapes(self):
         """``(index, shape)`` of the analytic shapes traced by their own routine: all of
@@ -462,78 +468,26 @@ class SceneAccel(SceneQueries):
         return self.analytic
 
     def _preliminary(self, ray, coherent, active, reorder):
-        """The static group's closest hit, then the moving meshes' (our BVHs' or their
-        native sub-scene's), then the instances', then each analytic shape's own
-        routine, merged by nearest ``t`` (ties as :meth:`NearestHit.take` breaks them)."""
+        """Each structure's closest hit in turn, merged by nearest ``t`` (ties as
+        :meth:`NearestHit.take` breaks them); each looks no further than the nearest
+        hit so far (it narrows the ray's ``maxt``, on a copy of the ray)."""
         self._check_current()
         n = dr.width(ray)
         active = mi.Bool(active) & dr.full(mi.Bool, True, n)
         hit = NearestHit.none(n)
-        native = self.static.native and self.static.scene is not None
-        if native:
-            hit.take_native(self.static.preliminary(ray, coherent, active, reorder))
-        # Each later structure looks no further than the nearest hit so far.
         ray = mi.Ray3f(ray)
-        if self._tree is not None:
-            ray.maxt = hit.reach(ray.maxt)
-            hit.take(*self._closest_mesh_hit(ray, active))
-        if self._keyed is not None:
-            ray.maxt = hit.reach(ray.maxt)
-            hit.take(*self._closest_mesh_hit(ray, active, self._keyed))
-        if self.moving_structure == "native" and self.native_moving.scene is not None:
-            ray.maxt = hit.reach(ray.maxt)
-            hit.take_native(self.native_moving.preliminary(ray, coherent, active, reorder))
-        if self.instances is not None and self.instances.tree is not None:
-            ray.maxt = hit.reach(ray.maxt)
-            t_i, u_i, v_i, prim_i, inst_i, valid_i = closest_instance_hit(
-                self.instances.tree, ray.o, ray.d, ray.maxt, active)
-            valid_i = mi.Bool(valid_i)
-            local, in_group, inst_index = self.instances.hit_fields(
-                mi.UInt32(prim_i), mi.UInt32(inst_i), valid_i)
-            hit.take(dr.select(valid_i, mi.Float(t_i), dr.inf),
-                     mi.Point2f(mi.Float(u_i), mi.Float(v_i)), local, in_group,
-                     instance=inst_index)
-        for index, shape in self._routine_shapes():
-            ray.maxt = hit.reach(ray.maxt)
-            pi_s = shape.ray_intersect_preliminary(ray, 0, active)
-            hit.take(dr.select(pi_s.is_valid(), pi_s.t, dr.inf), pi_s.prim_uv,
-                     pi_s.prim_index, dr.full(mi.UInt32, index, n))
+        for structure in self._structures:
+            structure.closest(ray, active, hit, coherent, reorder)
         return hit.preliminary(active, self.shapes_dr)
 
-    def _closest_mesh_hit(self, ray, active, keyed=None):
-        """(t, prim_uv, prim_index, shape_index) of the closest triangle hit of our
-        groups' joined tree, or of the ``keyed`` group's tree at each ray's time; t
-        infinite where there is none."""
-        if keyed is None:
-            tree, prim_shape, prim_local, time = (self._tree, self._prim_shape,
-                                                  self._prim_local, None)
-        else:
-            tree, prim_shape, prim_local = (keyed.keyed, keyed.geometry.prim_shape,
-                                            keyed.geometry.prim_local)
-            time = self._ray_time(ray)
-        t, u, v, prim, valid = closest_hit(tree, ray.o, ray.d, ray.maxt, active, time=time)
-        valid = mi.Bool(valid)
-        return (dr.select(valid, mi.Float(t), dr.inf), mi.Point2f(mi.Float(u), mi.Float(v)),
-                dr.gather(mi.UInt32, prim_local, mi.UInt32(prim), valid),
-                dr.gather(mi.UInt32, prim_shape, mi.UInt32(prim), valid))
-
     def _test(self, ray, coherent, active):
+        """Whether any structure occludes the ray; each asked only for the lanes the
+        ones before it left unoccluded."""
         self._check_current()
         active = mi.Bool(active) & dr.full(mi.Bool, True, dr.width(ray))
         hit = dr.zeros(mi.Bool, dr.width(ray))
-        if self.static.native and self.static.scene is not None:
-            hit |= self.static.test(ray, coherent, active)
-        if self._tree is not None:
-            hit |= mi.Bool(any_hit(self._tree, ray.o, ray.d, ray.maxt, active & ~hit))
-        if self._keyed is not None:
-            hit |= mi.Bool(any_hit(self._keyed.keyed, ray.o, ray.d, ray.maxt, active & ~hit,
-                                   time=self._ray_time(ray)))
-        if self.moving_structure == "native" and self.native_moving.scene is not None:
-            hit |= self.native_moving.test(ray, coherent, active & ~hit)
-        if self.instances is not None and self.instances.tree is not None:
-            hit |= mi.Bool(any_hit(self.instances.tree, ray.o, ray.d, ray.maxt, active & ~hit))
-        for _, shape in self._routine_shapes():
-            hit |= shape.ray_test(ray, active & ~hit)
+        for structure in self._structures:
+            hit |= structure.occluded(ray, active & ~hit, coherent)
         return hit & active
 
 
