@@ -18,12 +18,13 @@ watertight traversal; instances, curves and the like are refused.
 
 A query asks each structure that traces the scene now, one after the other through the
 same two queries (:mod:`hlbvh.accel.structures`), and keeps the nearest hit
-(:class:`NearestHit`); hits of two structures that tie (:data:`hlbvh.accel.hits.TIE`) go to the shape of lower index in
-``scene.shapes()``, whichever structure traced it. Meshes without triangles are refused,
-naming them (more likely a mistake than an intent); a scene without geometry misses
-everywhere. :meth:`SceneAccel.update` does only what changed (the dynamic group refit
-or rebuilt as the :class:`UpdatePolicy` says); a query after a change the accelerator
-has not followed is refused, naming the mesh. ``coherent`` is passed on to Mitsuba's
+(:class:`NearestHit`); hits of two structures that tie (:data:`hlbvh.accel.hits.TIE`)
+go to the shape of lower index in ``scene.shapes()``, whichever structure traced it.
+Meshes without triangles are refused, naming them (more likely a mistake than an
+intent); a scene without geometry misses everywhere. :meth:`SceneAccel.update` does
+only what changed (the dynamic group refit or rebuilt as the :class:`UpdatePolicy`
+says); a query after a change the accelerator has not followed is refused, naming the
+mesh. ``coherent`` is passed on to Mitsuba's
 accelerator; our traversal traces coherent and incoherent rays alike.
 """
 
