@@ -176,3 +176,26 @@ def test05_render_with_a_shutter_blurs_a_velocity_moving_quad_as_native(tmp_path
     again = render("again", "--accel", "native", "--shutter", "0.5", "--seed", "200")
     assert noise_judge(blurred, reference, again)["passed"]
     assert not noise_judge(still, reference, again)["passed"]
+
+
+def test06_accelerations_curve_the_motion_and_their_sample_count_is_said(tmp_path):
+    """Velocities and accelerations: frame_at is pxr's ComputePointsAtTime from the
+    frame's sample (the curve, not a line between frames); with an open shutter the
+    mesh's ``motion:nonlinearSampleCount`` is said as the ``--motion-keys`` it asks."""
+    path = tmp_path / "falling.usda"
+    stage = _stage(path, velocity=(0.0, 0.0, 0.0))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Quad"))
+    mesh.CreateAccelerationsAttr().Set(Vt.Vec3fArray([(0.0, -TCPS * TCPS, 0.0)] * 4), 0)
+    UsdGeom.MotionAPI.Apply(mesh.GetPrim()).CreateNonlinearSampleCountAttr(5)
+    stage.GetRootLayer().Save()
+    said = []
+    animation = UsdScene(path, warn=said.append, shutter=(-0.25, 0.25))
+    for time, frame in ((1.0, 1), (1.25, 1), (1.75, 2)):
+        expected = np.array(mesh.ComputePointsAtTime(Usd.TimeCode(time), Usd.TimeCode(frame)))
+        np.testing.assert_allclose(_quad(animation.frame_at(time)), expected, atol=1e-5)
+    # y = -1 - t^2 / 2 (t in frames): -1.78125 at 1.25, not -1.875 on the line between
+    # frames 1 (-1.5) and 2 (-3)
+    assert _quad(animation.frame_at(1.25))[0, 1] == pytest.approx(-1 - 1.25 ** 2 / 2)
+    assert any("/Quad: its accelerations curve its motion; motion:nonlinearSampleCount 5 "
+               "asks for 5 samples over the shutter: --motion-keys 4 gives them" in line
+               for line in said)
