@@ -24,8 +24,8 @@ Meshes without triangles are refused, naming them (more likely a mistake than an
 intent); a scene without geometry misses everywhere. :meth:`SceneAccel.update` does
 only what changed (the dynamic group refit or rebuilt as the :class:`UpdatePolicy`
 says); a query after a change the accelerator has not followed is refused, naming the
-mesh. ``coherent`` is passed on to Mitsuba's
-accelerator; our traversal traces coherent and incoherent rays alike.
+mesh. ``coherent`` is passed on to Mitsuba's accelerator; our traversal traces
+coherent and incoherent rays alike.
 """
 
 from __future__ import annotations
