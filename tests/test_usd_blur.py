@@ -199,3 +199,18 @@ def test06_accelerations_curve_the_motion_and_their_sample_count_is_said(tmp_pat
     assert any("/Quad: its accelerations curve its motion; motion:nonlinearSampleCount 5 "
                "asks for 5 samples over the shutter: --motion-keys 4 gives them" in line
                for line in said)
+
+
+def test07_a_skinned_stage_opened_for_one_frame_blurs_over_its_shutter(tmp_path):
+    """UsdSkel skinning (pxr's bake) of a stage opened for frame 1 with a shutter of
+    -0.25..0.25: frame_at reads the skinned quad at 0.75 and 1.25 (it moves +x by the
+    time code), not refused as outside the frames baked, nor held at frame 1's pose."""
+    from test_usd_stages import _skinned
+
+    path = _skinned(tmp_path / "char.usda", baked_points=False)
+    animation = UsdScene(path, warn=lambda line: None, frames=range(1, 2),
+                         shutter=(-0.25, 0.25))
+    (body,) = [i for i, p in animation.prim_paths().items() if p == "/Char/Body"]
+    for time in (0.75, 1.0, 1.25):
+        xs = animation.frame_at(time)[body].positions.reshape(-1, 3)[:, 0]
+        assert (xs.min(), xs.max()) == pytest.approx((-1 + time, 1 + time))
