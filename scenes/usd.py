@@ -321,7 +321,11 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             code = time.GetValue()
             if offset:
                 prim = self.stage.GetPrimAtPath(mesh.path)
-                code += offset * UsdGeom.MotionAPI(prim).ComputeMotionBlurScale(time)
+                scale = UsdGeom.MotionAPI(prim).ComputeMotionBlurScale(time)
+                if not math.isfinite(scale):
+                    raise ValueError(f"{self._where}: {mesh.path}: motion:blurScale {scale} at "
+                                     f"{at}: expected a finite scale")
+                code += offset * scale
             if code not in caches:
                 caches[code] = UsdGeom.XformCache(Usd.TimeCode(code))
             frame[mesh.id] = mesh_frame(

@@ -214,3 +214,12 @@ def test07_a_skinned_stage_opened_for_one_frame_blurs_over_its_shutter(tmp_path)
     for time in (0.75, 1.0, 1.25):
         xs = animation.frame_at(time)[body].positions.reshape(-1, 3)[:, 0]
         assert (xs.min(), xs.max()) == pytest.approx((-1 + time, 1 + time))
+
+
+def test08_a_blur_scale_that_is_not_finite_is_one_line_naming_the_prim(tmp_path):
+    path = tmp_path / "nan.usda"
+    _stage(path, velocity=(1.0, 0.0, 0.0), blur_scale=float("nan"))
+    animation = UsdScene(path, warn=lambda line: None)
+    with pytest.raises(ValueError, match=r"/Quad: motion:blurScale nan at frame 1 "
+                                         r"\(time code 1\): expected a finite scale"):
+        animation.frame_at(1.25)
