@@ -359,7 +359,7 @@ def run(args) -> int:
     base = render_settings(args, spp=spp)
     animation, source, frames = open_animation(SceneSpec.of(
         args.scene, args.frames_dir, args.triangles,
-        DEFAULT_FRAMES if args.frames is None else args.frames, args.topology))
+        DEFAULT_FRAMES if args.frames is None else args.frames, args.topology, base.shutter))
     if len(frames) < 2:
         raise UserError(f"--frames {args.frames}: a sweep needs at least two frames")
     base = with_scene_integrator(args, animation, base, "sweep")
