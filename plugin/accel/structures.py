@@ -84,7 +84,7 @@ class MeshTree:
         t, u, v, prim, valid = closest_hit(self.tree, ray.o, ray.d, ray.maxt, active,
                                            time=self.time(ray))
         valid, prim = mi.Bool(valid), mi.UInt32(prim)
-        hit.take(dr.select(valid, mi.Float(t), dr.inf), mi.Point2f(mi.Float(u), mi.Float(v)),
+        hit.take(*_distance_and_uv(t, u, v, valid),
                  dr.gather(mi.UInt32, self.prim_local, prim, valid),
                  dr.gather(mi.UInt32, self.prim_shape, prim, valid))
 
@@ -109,8 +109,7 @@ class InstanceTree:
         valid = mi.Bool(valid)
         local, in_group, instance = self.group.hit_fields(mi.UInt32(prim), mi.UInt32(inst),
                                                           valid)
-        hit.take(dr.select(valid, mi.Float(t), dr.inf), mi.Point2f(mi.Float(u), mi.Float(v)),
-                 local, in_group, instance=instance)
+        hit.take(*_distance_and_uv(t, u, v, valid), local, in_group, instance=instance)
 
     def occluded(self, ray, active, coherent) -> mi.Bool:
         return mi.Bool(any_hit(self.group.tree, ray.o, ray.d, ray.maxt, active))
@@ -149,6 +148,12 @@ def scene_structures(still_world, joined_tree, keyed_tree, native_moving, instan
     if instances is not None and instances.tree is not None:
         structures.append(InstanceTree(instances))
     return structures + [OwnRoutine(index, shape) for index, shape in routines]
+
+
+def _distance_and_uv(t, u, v, valid: mi.Bool) -> tuple:
+    """Our traversal's hit as :meth:`NearestHit.take` takes it: ``t`` (infinite where
+    not ``valid``) and ``prim_uv``, in the variant's types."""
+    return dr.select(valid, mi.Float(t), dr.inf), mi.Point2f(mi.Float(u), mi.Float(v))
 
 
 def _has_scene(group) -> bool:
