@@ -158,7 +158,9 @@ def test07_a_wrapper_renders_when_the_whole_scene_traces_the_moving_meshes(
     """With the whole scene chosen (forced, or by ``auto``), the nested integrator's
     ``sample()`` traces the scene's own queries, as its own render does: a render through
     the wrapper of a moving mesh equals the wrapper around ``accel="native"``, frame by
-    frame (it raised "query the scene itself" before)."""
+    frame (it raised "query the scene itself" before): bit for bit through the whole
+    scene; under ``auto``, whatever it chose, within float rounding (our traversal and
+    Mitsuba's part on a few paths' last bits)."""
     def scene(inner):
         desc = cornell_box(res=16, spp=2)
         desc["integrator"] = dict(type=wrapper, **WRAPPERS[wrapper], inner=inner)
@@ -176,7 +178,11 @@ def test07_a_wrapper_renders_when_the_whole_scene_traces_the_moving_meshes(
         params[key], ref_params[ref_key] = moved, mi.Float(moved)
         params.update()
         ref_params.update()
-        np.testing.assert_array_equal(np.array(mi.render(ours, seed=frame)),
-                                      np.array(mi.render(reference, seed=frame)))
+        image, expected = (np.array(mi.render(ours, seed=frame)),
+                           np.array(mi.render(reference, seed=frame)))
+        if moving_accel == "scene":
+            np.testing.assert_array_equal(image, expected)
+        else:
+            np.testing.assert_allclose(image, expected, rtol=1e-4, atol=1e-7)
     if moving_accel == "scene":
         assert inner.scene_accel.moving_structure == "scene"
