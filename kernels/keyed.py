@@ -17,20 +17,24 @@ conservative slab test, Woop's watertight triangle test,
 reads a slot's two keys from two adjacent 64-byte lines. References (slot numbers) are
 the still tree's. Memory: ``S + 1`` times the still tree's slots.
 
-**The interpolation**, one function for boxes and vertices (:func:`lerp`):
-``lerp(a, b, f) = float32(fma(f, b, (1 - f)·a))`` computed in double. It is
+**The interpolation**, in float, with ``g = 1 - f`` (the weight of key ``k``):
 
-- *monotone* in ``a`` and in ``b`` (each step rounds monotonically, the weights are
-  never negative), so a key box corner below a vertex at both keys stays below the
-  vertex at every time: the interpolated box contains the interpolated triangle
-  exactly, with no rounding margin (linear bounds as Embree's, conservative in float
-  arithmetic too). A float ``fma(f, b - a, a)`` is not monotone: the rounding of
-  ``b - a`` can put a vertex outside its interpolated box (``docs/motion.md``);
-- *exact* at the keys (``f = 0`` gives ``a``, ``f = 1`` gives ``b``) and wherever
-  ``a == b`` (the double result is within 2^-51 of ``a`` and rounds back to it): a
-  keyed tree whose keys are equal traces bit-identically to the still tree;
-- *the same for every triangle that shares a vertex* (same inputs, same output), so
-  the watertight test stays watertight at every time.
+- a vertex is :func:`lerp_vertex`: ``fma(g, a, f·b)``, or ``a`` itself where both keys
+  are equal. The fma form is *monotone* in ``a`` and in ``b`` (a product by a
+  non-negative weight, then an fma, each rounds monotonically), *exact* at the keys
+  (``f = 0`` gives ``a``, ``f = 1`` gives ``b``), and the select makes it exact where
+  the keys are equal: a keyed tree whose keys are equal traces bit-identically to the
+  still tree. It is *the same for every triangle that shares a vertex* (same inputs,
+  same output), so the watertight test stays watertight at every time;
+- a box bound is :func:`_box_float`: the same fma form moved outward by at least one
+  ulp. A bound below a vertex at both keys stays below the monotone form of that
+  vertex, and the monotone form of a still vertex is within an ulp of the vertex: the
+  widened box contains the interpolated triangle (linear bounds as Embree's,
+  conservative in float arithmetic too).
+
+A float ``fma(f, b - a, a)`` is not monotone (the rounding of ``b - a`` can put a
+vertex outside its interpolated box, ``docs/motion.md``). :func:`lerp` is the same
+monotone interpolation in double, for the mid-shutter pose.
 
 **Zero-area triangles.** The still tree packs them with NaN vertices (never hit). A
 keyed tree keeps the real vertices of a triangle that has an area at some key (a mesh
@@ -68,6 +72,8 @@ MAX_FLOATS = 2**32 - 1
 #: Fields of a wide node's 32 floats that are box coordinates (interpolated); the rest
 #: are child references and padding, the same at every key.
 _NODE_BOX_FIELDS = NODE_REF
+#: The first of them that is an upper bound (lower bounds first, then upper).
+_NODE_HI = NODE_REF // 2
 #: Fields of a triangle slot that are its vertices (interpolated).
 _TRI_VERTEX_FIELDS = range(TRI_P[0], TRI_P[2] + 3)
 assert list(_TRI_VERTEX_FIELDS) == list(range(9)) and TRI_FACE == 9
@@ -113,8 +119,8 @@ class RayKeys:
         stride: the tree's key count (slots of one place).
         k: UInt32, the ray's first key (its slot ``s`` is read at ``s·stride + k`` and
             the next).
-        f: Float64, the weight of key ``k + 1`` (``t·S - k``, in [0, 1]).
-        g: Float64, the weight of key ``k`` (``1 - f``).
+        f: Float, the weight of key ``k + 1`` (``t·S - k``, in [0, 1]).
+        g: Float, the weight of key ``k`` (``1 - f``).
         known: Bool, the ray has a time (not NaN); the others miss.
     """
 
@@ -135,7 +141,8 @@ class RayKeys:
     def triangle(self, rec: list) -> list:
         """The triangle record at the ray's time from :meth:`slot`'s 32 floats: the
         vertices interpolated, the rest key ``k``'s."""
-        return [lerp(rec[i], rec[SLOT + i], self.f, self.g) if i in _TRI_VERTEX_FIELDS
+        f, g = self.f, self.g
+        return [lerp_vertex(rec[i], rec[SLOT + i], f, g) if i in _TRI_VERTEX_FIELDS
                 else rec[i] for i in range(SLOT)]
 
     def node(self, first: list, second: list) -> list:
@@ -143,8 +150,9 @@ class RayKeys:
         two slots: the child boxes interpolated, the references key ``k``'s."""
         rec = first[:SLOT] + second[:SLOT]
         nxt = first[SLOT:] + second[SLOT:]
-        return [lerp(rec[i], nxt[i], self.f, self.g) if i < _NODE_BOX_FIELDS else rec[i]
-                for i in range(2 * SLOT)]
+        f, g = self.f, self.g
+        return [_box_float(rec[i], nxt[i], f, g, i < _NODE_HI) if i < _NODE_BOX_FIELDS
+                else rec[i] for i in range(2 * SLOT)]
 
 
 # ---------------------------------------------------------------------------------------
@@ -329,6 +337,21 @@ def lerp(a, b, f, g):
     return type(a)(dr.fma(f, Float64(b), g * Float64(a)))
 
 
+def lerp_vertex(a, b, f, g):
+    """A vertex at the ray's time in float: ``fma(g, a, f·b)``, monotone in ``a`` and
+    ``b`` (``f, g >= 0``), ``a`` itself where both keys are equal."""
+    return dr.select(a == b, a, dr.fma(g, a, f * b))
+
+
+def _box_float(a, b, f, g, low: bool):
+    """A box bound at the ray's time in float: ``fma(g, a, f·b)`` moved outward by at
+    least one ulp, so that it bounds every :func:`lerp_vertex` vertex it bounded at
+    both keys (the monotone form is within an ulp of a still vertex's exact value)."""
+    x = dr.fma(g, a, f * b)
+    step = dr.maximum(dr.abs(x) * 2.0**-23, 1e-30)
+    return x - step if low else x + step
+
+
 def ray_keys(keyed: KeyedTree, time: Float) -> RayKeys:
     """The keys and weights of rays at ``time`` (Float, normalised to the shutter;
     clamped to [0, 1]; NaN: ``known`` False)."""
@@ -337,5 +360,5 @@ def ray_keys(keyed: KeyedTree, time: Float) -> RayKeys:
     known = ~dr.isnan(time)
     x = dr.clip(dr.select(known, time, 0.0), 0.0, 1.0) * s
     k = dr.minimum(ns.UInt32(dr.floor(x)), s - 1)
-    f = ns.Float64(x - ns.Float(k))  # exact: x and k within a factor two (or k = 0)
+    f = x - ns.Float(k)  # exact: x and k within a factor two (or k = 0)
     return RayKeys(stride=keyed.keys, k=k, f=f, g=1.0 - f, known=known)

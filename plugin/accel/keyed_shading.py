@@ -18,7 +18,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from hlbvh.kernels.keyed import lerp, ray_keys
+from hlbvh.kernels.keyed import lerp_vertex, ray_keys
 
 
 def at_ray_time(si, pi, ray, group, first_face: mi.UInt32, time: mi.Float, active):
@@ -42,9 +42,9 @@ def at_ray_time(si, pi, ray, group, first_face: mi.UInt32, time: mi.Float, activ
     at_time, at_mid = [], []
     for corner in range(3):
         vertex = dr.gather(mi.UInt32, group.geometry.faces, 3 * face + corner, on)
-        at_time.append(mi.Point3f(*lerp(_key_point(group, keys.k, vertex, on),
-                                         _key_point(group, keys.k + 1, vertex, on),
-                                         keys.f, keys.g)))
+        at_time.append(mi.Point3f(*[lerp_vertex(a, b, keys.f, keys.g)
+                                    for a, b in zip(_key_point(group, keys.k, vertex, on),
+                                                    _key_point(group, keys.k + 1, vertex, on))]))
         at_mid.append(mi.Point3f(*[dr.gather(mi.Float, group.geometry.vertices,
                                              3 * vertex + c, on) for c in range(3)]))
 
