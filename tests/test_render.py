@@ -332,17 +332,12 @@ def test12_a_resume_refusal_names_a_default_not_none(tmp_path, capsys):
 def test13_the_summary_names_the_stage_s_file(tmp_path, capsys):
     """Not ``of usd``: a user renders many stages."""
     pytest.importorskip("pxr")
-    from pxr import Gf, UsdGeom, UsdLux, Usd
+    from pxr import Gf, UsdGeom, UsdLux
     path = tmp_path / "quad_shot.usda"
-    stage = Usd.Stage.CreateNew(str(path))
-    stage.SetStartTimeCode(0)
-    stage.SetEndTimeCode(3)
-    mesh = UsdGeom.Mesh.Define(stage, "/Q")
+    stage, mesh = _stage_with_mesh(path, 0, 3, [4], [0, 1, 2, 3])
     points = mesh.CreatePointsAttr()
     for t in range(4):
         points.Set([(0, 0, 0), (1, 0, 0), (1, 1 + 0.1 * t, 0), (0, 1, 0)], t)
-    mesh.CreateFaceVertexCountsAttr([4])
-    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
     mesh.CreateSubdivisionSchemeAttr("none")
     UsdGeom.Camera.Define(stage, "/Cam").AddTranslateOp().Set(Gf.Vec3d(0.5, 0.5, 4))
     UsdLux.DomeLight.Define(stage, "/Sky")
@@ -354,6 +349,18 @@ def test13_the_summary_names_the_stage_s_file(tmp_path, capsys):
         "hlbvh: 2 rendered" in summary, summary
 
 
+def _stage_with_mesh(path, start: int, end: int, counts: list, indices: list):
+    """A new stage at ``path`` of time codes ``start..end`` with a mesh ``/Q`` of
+    those faces (its points left to the caller): ``(stage, mesh)``."""
+    from pxr import Usd, UsdGeom
+    stage = Usd.Stage.CreateNew(str(path))
+    stage.SetStartTimeCode(start)
+    stage.SetEndTimeCode(end)
+    mesh = UsdGeom.Mesh.Define(stage, "/Q")
+    mesh.CreateFaceVertexCountsAttr(counts)
+    mesh.CreateFaceVertexIndicesAttr(indices)
+    return stage, mesh
+
 
 @pytest.mark.parametrize("frames", ["0:9", "5:", "2:7:2"])
 def test14_a_stage_s_range_is_refused_before_its_meshes_are_read(tmp_path, capsys,
@@ -361,16 +368,10 @@ def test14_a_stage_s_range_is_refused_before_its_meshes_are_read(tmp_path, capsy
     """As soon as the stage's time range is read: a large stage's meshes (and their
     skinning, baked over the frames asked) took seconds before the refusal."""
     pytest.importorskip("pxr")
-    from pxr import Usd, UsdGeom
     from hlbvh.scenes.usd import UsdScene
     path = tmp_path / "short.usda"
-    stage = Usd.Stage.CreateNew(str(path))
-    stage.SetStartTimeCode(1)
-    stage.SetEndTimeCode(5)
-    mesh = UsdGeom.Mesh.Define(stage, "/Q")
+    stage, mesh = _stage_with_mesh(path, 1, 5, [3], [0, 1, 2])
     mesh.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (1, 1, 0)])
-    mesh.CreateFaceVertexCountsAttr([3])
-    mesh.CreateFaceVertexIndicesAttr([0, 1, 2])
     stage.GetRootLayer().Save()
     read = []
     monkeypatch.setattr(UsdScene, "_collect", lambda self: read.append(1))
