@@ -1,4 +1,4 @@
-"""Binned SAH build (kernels/sah.py) against a reference written the obvious way: a
+"""Binned SAH build (kernels/sah/) against a reference written the obvious way: a
 numpy build that splits one node at a time, breadth-first, with the same bins, the same
 float32 cost arithmetic and the same tie rule (first axis, then lowest plane). Every test
 runs on both ways the kernels split a level: one lane per node (small inputs, the HLBVH

@@ -35,25 +35,25 @@ and every input size; min/max/integer reductions make the result bit-identical f
 run to run.
 
 The same trees come from two layouts of the work: one lane per node, a level in one
-frozen kernel (:mod:`hlbvh.kernels.sah_node_lanes`, for few items), or one lane per
-item, a level in about twenty launches (:mod:`hlbvh.kernels.sah_item_lanes`); the
-sweep's arithmetic both share is :mod:`hlbvh.kernels.sah_planes`.
+frozen kernel (:mod:`hlbvh.kernels.sah.node_lanes`, for few items), or one lane per
+item, a level in about twenty launches (:mod:`hlbvh.kernels.sah.item_lanes`); the
+sweep's arithmetic both share is :mod:`hlbvh.kernels.sah.planes`.
 """
 
 from __future__ import annotations
 
 import drjit as dr
 
-from .arrays import namespace_of, plain
-from .sah_item_lanes import build_by_item_lanes
-from .sah_node_lanes import build_by_node_lanes
-from .sah_planes import MAX_BINS, SahTree
+from ..arrays import namespace_of, plain
+from .item_lanes import build_by_item_lanes
+from .node_lanes import build_by_node_lanes
+from .planes import MAX_BINS, SahTree
 
 __all__ = ["MAX_BINS", "NODE_LANES_MAX_ITEMS", "SahTree", "binned_sah"]
 
 #: Inputs of at most this many items (the HLBVH top level's clusters, small meshes) are
-#: split one lane per node (:mod:`~hlbvh.kernels.sah_node_lanes`), larger ones one lane
-#: per item (:mod:`~hlbvh.kernels.sah_item_lanes`). Same trees; where the two cross is
+#: split one lane per node (:mod:`~hlbvh.kernels.sah.node_lanes`), larger ones one lane
+#: per item (:mod:`~hlbvh.kernels.sah.item_lanes`). Same trees; where the two cross is
 #: measured in docs/decisions.md#sah-top-level.
 NODE_LANES_MAX_ITEMS = 1 << 16
 

@@ -1,9 +1,9 @@
 """The binned SAH one lane per item (:func:`build_by_item_lanes`): every level of the
 tree in about twenty launches whatever its node count, for inputs too large for one
-lane per node (:mod:`hlbvh.kernels.sah_node_lanes`) to pay. A level's steps are those of
+lane per node (:mod:`hlbvh.kernels.sah.node_lanes`) to pay. A level's steps are those of
 :mod:`hlbvh.kernels.sah`: bin (a scatter-reduction per (node, axis, bin) into *cells*,
 only occupied bins stored in nodes of fewer than ``bins`` items), sweep (one lane per
-(node, axis) over its cells, the arithmetic of :mod:`hlbvh.kernels.sah_planes`),
+(node, axis) over its cells, the arithmetic of :mod:`hlbvh.kernels.sah.planes`),
 partition (a prefix sum over the items' left/right decisions), emit.
 """
 
@@ -14,10 +14,10 @@ from typing import Any
 
 import drjit as dr
 
-from .arrays import Array3f, Float, UInt32, high_half, low_half, pack_halves
-from .sah_planes import (MIDDLE, NO_PLANE, RECORD, SahTree, bin_index, box_centroid, cheaper,
-                         extent_scale, grow, plane_cost, plane_key, side_cost,
-                         tree_from_records, write_records)
+from ..arrays import Array3f, Float, UInt32, high_half, low_half, pack_halves
+from .planes import (MIDDLE, NO_PLANE, RECORD, SahTree, bin_index, box_centroid, cheaper,
+                     extent_scale, grow, plane_cost, plane_key, side_cost,
+                     tree_from_records, write_records)
 
 #: Scatter-reductions pre-reduce equal targets within a SIMD packet, then use atomics
 #: (measured faster than plain atomics here). ReduceMode.Expand, which Auto picks for

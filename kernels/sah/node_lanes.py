@@ -1,5 +1,5 @@
 """The binned SAH one lane per node (:func:`build_by_node_lanes`): the same tree as
-one lane per item (:mod:`hlbvh.kernels.sah_item_lanes`), for few items (the HLBVH top
+one lane per item (:mod:`hlbvh.kernels.sah.item_lanes`), for few items (the HLBVH top
 level's coarse clusters, small meshes).
 
 Every level is one kernel whose lanes are the children made by the level above (the
@@ -20,10 +20,10 @@ from dataclasses import dataclass
 
 import drjit as dr
 
-from .arrays import Array3f, Float, UInt32, low_half, namespace_of
-from .sah_planes import (NO_PLANE, RECORD, SahTree, bin_index, box_centroid, cheaper,
-                         extent_scale, grow, plane_cost, plane_key, side_cost,
-                         tree_from_records, write_records)
+from ..arrays import Array3f, Float, UInt32, low_half, namespace_of
+from .planes import (NO_PLANE, RECORD, SahTree, bin_index, box_centroid, cheaper,
+                     extent_scale, grow, plane_cost, plane_key, side_cost,
+                     tree_from_records, write_records)
 
 #: Floats per child row: lo.xyz, hi.xyz, centroid min.xyz and max.xyz, first slot, item
 #: count (the bits of UInt32s), two zeros.
@@ -216,7 +216,7 @@ def _split_nodes(ns, items, slots_out, item_order, active, node: _Node, leaf_ite
     others go to ``slots_out``).
 
     The cost of a plane and the choice among planes are those of the item-lane sweep
-    (:mod:`hlbvh.kernels.sah_planes`: the cheapest plane leaving weight on both sides,
+    (:mod:`hlbvh.kernels.sah.planes`: the cheapest plane leaving weight on both sides,
     the first in (axis, plane) order on ties, reported as the last occupied bin on its
     left; a middle split when there is none); here every bin is a cell, and an empty
     bin changes no union or sum.
@@ -306,7 +306,7 @@ class _Side:
 
 def _sweep_bins(ns, mem, active, s, zeros, empty, bins):
     """The plane sweep over a lane's bins on all three axes: ``(best, mem)``, the least
-    :func:`~hlbvh.kernels.sah_planes.plane_key` (all ones when no plane qualifies) and
+    :func:`~hlbvh.kernels.sah.planes.plane_key` (all ones when no plane qualifies) and
     the local memory with every plane's left side stored."""
     UInt32, Float = ns.UInt32, ns.Float
 

@@ -1,5 +1,5 @@
-"""What the two binned-SAH layouts (:mod:`hlbvh.kernels.sah_node_lanes`, one lane per
-node, and :mod:`hlbvh.kernels.sah_item_lanes`, one lane per item) share: the tree they
+"""What the two binned-SAH layouts (:mod:`hlbvh.kernels.sah.node_lanes`, one lane per
+node, and :mod:`hlbvh.kernels.sah.item_lanes`, one lane per item) share: the tree they
 return, its staging records, the binning of a centroid, and the plane sweep's
 arithmetic (a side grown by a bin, its cost share, a plane's cost, the key that orders
 planes), written once so both layouts choose the same plane bit for bit.
@@ -19,8 +19,8 @@ from typing import Any
 
 import drjit as dr
 
-from .arrays import pack_halves
-from .geometry import half_area
+from ..arrays import pack_halves
+from ..geometry import half_area
 
 #: Most bins per axis (a node's occupied bins are a 64-bit mask).
 MAX_BINS = 64
