@@ -48,6 +48,19 @@ positions (key ``S/2``, or the two middle keys interpolated at one half). A refi
 tree's boxes grow with how far the mesh has moved since the pose the tree was built
 for; the middle of the shutter is never more than half a shutter away from a ray's
 time, key 0 a whole shutter.
+
+**The tree's quality over the shutter** (:func:`sah_over_shutter`): a node's box at
+time ``t`` of a segment is linear in ``t``, so its half area is a quadratic in ``t``
+whose integral Simpson's rule gives exactly (the ends and the box of the averaged
+corners). The expected SAH cost of a ray at a uniform time is the weighted sum of those
+integrals over the root's integral (a uniform scaling of the mesh over the shutter
+leaves it unchanged). Over the still SAH of a tree built at mid-shutter, it is the
+degradation of keying: 1 where the mesh moves rigidly, large where the motion scrambles
+the triangles that the mid-shutter tree put together. Where it passes a tolerance,
+``topology="auto"`` also builds over each triangle's box over the whole shutter (the
+union of its key boxes: triangles that stay together through the motion end up
+together) and keeps whichever of the two has the lower SAH over the shutter
+(docs/decisions.md#keyed-topology).
 """
 
 from __future__ import annotations
@@ -60,8 +73,9 @@ from typing import Any, Sequence
 import drjit as dr
 
 from .arrays import Float, UInt32, namespace_of
+from .bounds import node_bounds
 from .build import build
-from .geometry import as_faces, as_points
+from .geometry import as_faces, as_points, slot_triangles, triangles_of
 from .packing import pack_state, packed_records
 from .refit import RefitState, refit, refit_packed, slot_faces
 from .slots import NODE_REF, SLOT, TRI_FACE, TRI_P
@@ -93,6 +107,14 @@ class KeyedTree:
         slots: slots of one key (the still tree's slot count).
         bvh: the tree whose topology the slots have (as given: not refit here), for the
             next frame's :func:`keyed_tree`.
+        sah: the topology's expected SAH cost over the shutter
+            (:func:`sah_over_shutter`), where :func:`build_keyed` made the tree; else
+            None.
+        still_sah: the SAH cost of a tree built over the mid-shutter pose, at that
+            pose (what a still frame at mid-shutter traces), where :func:`build_keyed`
+            made the tree.
+        topology: which pose :func:`build_keyed` built the topology over
+            (:data:`TOPOLOGIES`), None for :func:`keyed_tree`'s.
     """
 
     records: Any
@@ -100,6 +122,17 @@ class KeyedTree:
     keys: int
     slots: int
     bvh: Tree
+    sah: float | None = None
+    still_sah: float | None = None
+    topology: str | None = None
+
+    @property
+    def degradation(self) -> float | None:
+        """:attr:`sah` over :attr:`still_sah`: what keying costs the tree's quality
+        (1: none), None where not measured."""
+        if self.sah is None or not self.still_sah:
+            return None
+        return self.sah / self.still_sah
 
     @property
     def segments(self) -> int:
@@ -266,17 +299,117 @@ def _keyed(bvh: Tree, points: list) -> KeyedTree:
     return KeyedTree(records=records, root=root, keys=count, slots=total, bvh=bvh)
 
 
-def build_keyed(keys, faces, **options) -> KeyedTree:
-    """Build a tree over the mid-shutter positions (:func:`mid_shutter`) and key it:
-    ``hlbvh.build`` then :func:`keyed_tree`.
+#: What :func:`build_keyed` builds a keyed tree's topology over: ``"mid"``, the
+#: mid-shutter pose; ``"union"``, each triangle's box over the whole shutter;
+#: ``"auto"``, the mid-shutter pose, and the union too where the mid-shutter tree's SAH
+#: over the shutter degrades past a tolerance, the better of the two kept.
+TOPOLOGIES = ("auto", "mid", "union")
+
+
+def build_keyed(keys, faces, topology: str = "mid", tolerance: float = 1.05,
+                **options) -> KeyedTree:
+    """Build a tree over the mid-shutter positions (:func:`mid_shutter`) or over each
+    triangle's box over the shutter (:func:`union_tree`), key it (:func:`keyed_tree`)
+    and measure its SAH cost over the shutter (:func:`sah_over_shutter`).
 
     Args:
         keys: as :func:`keyed_tree`.
         faces: flat UInt32 (3·F) or Array3u (F).
-        options: ``hlbvh.build``'s (``builder``, ``leaf_size``, ...).
+        topology: one of :data:`TOPOLOGIES`.
+        tolerance: with ``"auto"``, the degradation (SAH over the shutter over the
+            still SAH at mid-shutter) the mid-shutter topology may reach before the
+            union topology is built too (the update policy's ``refit_tolerance``: the
+            same bound on a tree's drift from a fresh build).
+        options: ``hlbvh.build``'s (``builder``, ``leaf_size``, ``config``, ...).
+    Returns:
+        a :class:`KeyedTree` with ``sah``, ``still_sah`` and ``topology`` set.
+    Raises:
+        ValueError: an unknown ``topology``; bad keys, as :func:`checked_keys`.
     """
-    points = checked_keys(keys, as_faces(faces))
-    return _keyed(build(mid_shutter(points), faces, **options), points)
+    if topology not in TOPOLOGIES:
+        raise ValueError(f"topology={topology!r}: expected one of {TOPOLOGIES}")
+    faces = as_faces(faces)
+    points = checked_keys(keys, faces)
+    mid = build(mid_shutter(points), faces, **options)
+    still_sah = float(mid.stats.sah_cost)
+    kept = None
+    if topology != "union":
+        kept = _measured(_keyed(mid, points), points, still_sah, "mid")
+        if topology == "mid" or kept.degradation <= tolerance:
+            return kept
+    other = _measured(_keyed(union_tree(points, faces, **options), points), points,
+                      still_sah, "union")
+    return other if kept is None or other.sah < kept.sah else kept
+
+
+def _measured(keyed: KeyedTree, points: list, still_sah: float, topology: str) -> KeyedTree:
+    """``keyed`` with its SAH over the shutter, the still SAH and its topology."""
+    keyed.sah, keyed.still_sah, keyed.topology = \
+        sah_over_shutter(keyed.bvh, points), still_sah, topology
+    return keyed
+
+
+def union_tree(points: list, faces, **options) -> Tree:
+    """A tree whose topology is built over each triangle's box over the whole shutter
+    (the union of its boxes at the keys ``points``, flat Float arrays), its boxes and
+    triangles then refit to the mid-shutter pose.
+
+    The builders take triangles: each face is given to ``hlbvh.build`` as the flat
+    triangle ``(lo, hi, hi)`` of its union box, whose box and centroid (what the
+    builders read) are the union box's; the tree then takes the real faces (slot
+    ``i`` holds face ``prim_ids[i]`` in both) and is refit to the mid-shutter pose.
+    """
+    ns = namespace_of(faces)
+    face = dr.unravel(ns.Array3u, faces)
+    lo = hi = None
+    for p in points:
+        for c in range(3):
+            v = dr.gather(ns.Array3f, p, face[c])
+            lo = v if lo is None else dr.minimum(lo, v)
+            hi = v if hi is None else dr.maximum(hi, v)
+    n = dr.width(face[0])
+    box_points = dr.empty(ns.Float, 9 * n)
+    at = dr.arange(ns.UInt32, n) * 9
+    for c, corner in enumerate((lo, hi, hi)):
+        for axis in range(3):
+            dr.scatter(box_points, corner[axis], at + 3 * c + axis)
+    tree = build(box_points, dr.arange(ns.UInt32, 3 * n), **options)
+    tree = dataclasses.replace(tree, faces=faces, kept={})
+    return refit(tree, mid_shutter(points))
+
+
+def sah_over_shutter(bvh: Tree, keys) -> float:
+    """The expected SAH cost of ``bvh``'s topology keyed over ``keys`` (as
+    :func:`keyed_tree` takes them, checked as it checks them) for a ray at a uniform time in the shutter: the node boxes at
+    each key (the keyed tree's, before the ulp it widens them by), each node's half
+    area integrated exactly over each segment (Simpson's rule: the area of a box whose
+    corners move linearly is a quadratic in time), weighted as
+    :func:`hlbvh.kernels.bounds.sah_cost` weighs a node (1 an internal node, its
+    triangle count a leaf) and divided by the root's integral. Equal keys give
+    ``sah_cost`` of that pose. In double precision, as ``sah_cost``."""
+    ns = namespace_of(bvh.node_count)
+    Array3d, Float64 = ns.Array3f64, ns.Float64
+    points = checked_keys(keys, bvh.faces)
+    faces = slot_faces(bvh)[0]
+
+    def half_area(e):
+        return e.x * e.y + e.y * e.z + e.z * e.x
+
+    integral, last = dr.zeros(Float64, bvh.size), None
+    for p in points:
+        _, boxes = slot_triangles(triangles_of(p, faces))
+        lo, hi = node_bounds(bvh.node_first, bvh.node_count, boxes, bvh.levels,
+                             bvh.config.leaf_size)
+        extent = dr.maximum(Array3d(hi) - Array3d(lo), 0.0)
+        if last is not None:
+            integral += (half_area(last) + 4.0 * half_area(0.5 * (last + extent))
+                         + half_area(extent)) / 6.0
+        last = extent
+        dr.eval(integral, last)
+    root = dr.gather(Float64, integral, dr.zeros(ns.UInt32, 1))
+    rel = dr.select(root > 0, integral / dr.select(root > 0, root, 1.0), 1.0)
+    weight = dr.select(bvh.node_count == 0, 1.0, Float64(bvh.node_count))
+    return float(dr.sum(rel * weight)[0])
 
 
 def mid_shutter(points: list) -> Float:

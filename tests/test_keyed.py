@@ -389,3 +389,123 @@ def test09_traced_inside_a_symbolic_loop():
     _, total = dr.while_loop((dr.zeros(mi.UInt32, 8), dr.zeros(mi.Float, 8)),
                              lambda i, total: i < 5, body, mode="symbolic")
     np.testing.assert_allclose(total.numpy(), 5 + 4.75 + 4.5 + 4.25 + 4)
+
+
+# ---------------------------------------------------------------------------------------
+# (f) The keyed tree's SAH over the shutter, and the topology it is built over
+# ---------------------------------------------------------------------------------------
+
+
+def _key_node_boxes(bvh, keys, faces):
+    """Each binary node's box (lo, hi: (N, 3) float64) at each key, by recursion over
+    the tree's arrays (a tiny tree)."""
+    first, count = bvh.node_first.numpy(), bvh.node_count.numpy()
+    prims = bvh.prim_ids.numpy()
+    boxes = []
+    for key in keys:
+        tri = np.asarray(key, np.float64)[faces]  # (F, 3, 3)
+        lo, hi = np.empty((len(first), 3)), np.empty((len(first), 3))
+
+        def visit(n):
+            if count[n]:
+                corners = tri[prims[first[n]:first[n] + count[n]]].reshape(-1, 3)
+                lo[n], hi[n] = corners.min(0), corners.max(0)
+            else:
+                for c in (first[n], first[n] + 1):
+                    visit(c)
+                lo[n] = np.minimum(lo[first[n]], lo[first[n] + 1])
+                hi[n] = np.maximum(hi[first[n]], hi[first[n] + 1])
+        visit(0)
+        boxes.append((lo, hi))
+    return boxes
+
+
+def _brute_sah_over_time(bvh, keys, faces, samples=4001):
+    """The SAH over the shutter by brute force: at ``samples`` times, each node's box
+    interpolated between its boxes at the two keys around the time, the weighted sum of
+    half areas and the root's, each averaged over the times, then divided."""
+    boxes = _key_node_boxes(bvh, keys, faces)
+    count = bvh.node_count.numpy()
+    weight = np.where(count == 0, 1.0, count)
+    s = len(keys) - 1
+    total = root = 0.0
+    for time in (np.arange(samples) + 0.5) / samples:
+        k = min(int(time * s), s - 1)
+        f = time * s - k
+        lo = (1 - f) * boxes[k][0] + f * boxes[k + 1][0]
+        hi = (1 - f) * boxes[k][1] + f * boxes[k + 1][1]
+        e = hi - lo
+        area = e[:, 0] * e[:, 1] + e[:, 1] * e[:, 2] + e[:, 2] * e[:, 0]
+        total += weight @ area
+        root += area[0]
+    return total / root
+
+
+@pytest.mark.parametrize("segments", [1, 3])
+def test10_sah_over_shutter_is_the_exact_average_of_the_interpolated_boxes(segments):
+    rng = np.random.default_rng(20 + segments)
+    vertices, faces = random_soup(24, seed=5)
+    keys = moving_keys(vertices, rng, segments + 1, 0.15)
+    tree = build_keyed([flat(k) for k in keys], mi.UInt32(faces.ravel()), topology="mid",
+                       leaf_size=2)
+    expected = _brute_sah_over_time(tree.bvh, keys, faces)
+    assert tree.sah == pytest.approx(expected, rel=1e-6)
+    # The average of the SAH at each instant is another number (the quadratic's ratio):
+    # what is computed is the ratio of the integrals, not a sample at the keys.
+    at_keys = np.mean([keyed_module.sah_over_shutter(tree.bvh, [flat(k)] * 2) for k in keys])
+    assert abs(at_keys - expected) > 1e-3 * expected
+    # Equal keys: the still tree's SAH cost at that pose.
+    still = build(keys[0], faces, leaf_size=2)
+    assert keyed_module.sah_over_shutter(still, [flat(keys[0])] * 3) == \
+        pytest.approx(float(still.stats.sah_cost), rel=1e-9)
+    assert tree.still_sah == pytest.approx(float(keyed_module.build(
+        keyed_module.mid_shutter([flat(k) for k in keys]), mi.UInt32(faces.ravel()),
+        leaf_size=2).stats.sah_cost), rel=1e-9)
+
+
+def _swap_keys(seed=6, count=400):
+    """A soup whose triangles trade places over the shutter: key 1 is key 0 with every
+    triangle moved to where a random other triangle was (the tree built at mid-shutter,
+    where the triangles are halfway, groups triangles that are far apart at both ends)."""
+    vertices, faces = random_soup(count, seed=seed)
+    tri = vertices.reshape(count, 3, 3)
+    centre = tri.mean(1, keepdims=True)
+    order = np.random.default_rng(seed).permutation(count)
+    moved = (tri - centre + centre[order]).reshape(-1, 3).astype(np.float32)
+    return vertices, moved, faces
+
+
+def test11_a_scrambling_motion_degrades_and_builds_the_union_topology():
+    vertices, moved, faces = _swap_keys()
+    keys, f = [flat(vertices), flat(moved)], mi.UInt32(faces.ravel())
+    mid = build_keyed(keys, f, topology="mid")
+    union = build_keyed(keys, f, topology="union")
+    assert mid.topology == "mid" and union.topology == "union"
+    assert mid.degradation > 1.5  # the mid-shutter tree's boxes sweep the scene
+    assert union.sah < mid.sah
+    chosen = build_keyed(keys, f, topology="auto", tolerance=1.05)
+    assert chosen.topology == "union" and chosen.sah == pytest.approx(union.sah)
+    # A tolerance above the degradation keeps the mid-shutter tree.
+    assert build_keyed(keys, f, topology="auto", tolerance=mid.degradation * 1.01).topology \
+        == "mid"
+    # The union topology traces the same hits as the mid-shutter one (any topology is
+    # a correct keyed tree).
+    rng = np.random.default_rng(3)
+    o = (rng.random((3000, 3)) * 1.4 - 0.2).astype(np.float32)
+    d = rng.normal(size=(3000, 3)).astype(np.float32)
+    time = rng.random(3000).astype(np.float32)
+    a, b = trace(mid, o, d, time), trace(chosen, o, d, time)
+    assert a["valid"].sum() > 300
+    np.testing.assert_array_equal(a["valid"], b["valid"])
+    np.testing.assert_allclose(a["t"][a["valid"]], b["t"][b["valid"]], rtol=1e-6)
+
+
+def test12_a_still_or_rigid_shutter_keeps_the_mid_shutter_topology():
+    vertices, faces = random_soup(300, seed=8)
+    f = mi.UInt32(faces.ravel())
+    for keys in ([vertices] * 3, [vertices, vertices + np.float32([0.3, -0.2, 0.1])]):
+        tree = build_keyed([flat(k) for k in keys], f, topology="auto")
+        assert tree.topology == "mid"
+        assert tree.degradation == pytest.approx(1.0, abs=1e-6)
+    with pytest.raises(ValueError, match="topology='sideways'"):
+        build_keyed([flat(vertices)] * 2, f, topology="sideways")
