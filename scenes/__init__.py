@@ -77,7 +77,8 @@ naming the file and the frame. See :mod:`hlbvh.scenes.sequence`.
 
 Example::
 
-    import hlbvh, mitsuba as mi
+    import hlbvh
+    import mitsuba as mi
     from hlbvh import scenes
 
     animation = scenes.get("fracture", triangles=1_000_000)
