@@ -9,7 +9,7 @@ import mitsuba as mi
 
 from hlbvh.accel.groups import Change, MeshUpdate
 from hlbvh.accel.keys import motion_keys
-from hlbvh.accel.policy import RefitOrRebuild
+from hlbvh.accel.policy import RefitOrRebuild, UpdatePolicy
 from hlbvh.accel.scene_geometry import collect_geometry, named_build_error
 from hlbvh.kernels.arrays import concat
 from hlbvh.kernels.build import build
@@ -35,7 +35,9 @@ class MeshGroup:
         builds, refits: how often the group was built and refit so far.
         last: what the group's last update did (:class:`~hlbvh.accel.groups.MeshUpdate`;
             its ``ms`` includes the packing of the traversal records, its ``drift`` is
-            over ``built_sah``).
+            over ``built_sah``; a keyed group's ``sah_cost`` is its SAH over the
+            shutter and its ``drift`` that over the still tree's at mid-shutter,
+            :attr:`hlbvh.kernels.keyed.KeyedTree.degradation`).
         keyed: where a mesh of the group has motion keys
             (:func:`hlbvh.accel.keys.set_motion_keys`), the group's
             :class:`~hlbvh.kernels.keyed.KeyedTree` (built over the mid-shutter pose,
@@ -85,10 +87,10 @@ class MeshGroup:
         shapes = change.shapes
         keys = [motion_keys(shapes[i]) for i in self.indices]
         if any(keys):
-            self._build_keyed(shapes, keys, change.config)
+            self._build_keyed(shapes, keys, change.config, change.policy)
             self.last = MeshUpdate(decision="build" if change.first else "rebuild",
                                    ms=clock_ms() - start, triangles=self.triangles,
-                                   sah_cost=self._sah())
+                                   sah_cost=self._sah(), drift=self.keyed.degradation)
             return
         self.keyed = self.shutter = self.key_points = None
         reshaped = change.reshaped or self.bvh is None or self.stale
@@ -114,6 +116,10 @@ class MeshGroup:
                                sah_cost=self._sah())
 
     def _sah(self) -> float | None:
+        """The SAH cost of what the group traces: a keyed tree's over the shutter (a ray
+        at a uniform time in it), else the tree's."""
+        if self.keyed is not None:
+            return self.keyed.sah
         return None if self.bvh is None else float(self.bvh.stats.sah_cost)
 
     def root_box(self) -> tuple[list, list]:
@@ -139,11 +145,17 @@ class MeshGroup:
         self.builds += 1
         return bvh is not None and bvh.stats.csd_seeded
 
-    def _build_keyed(self, shapes, keys: list, config: BuildConfig):
+    def _build_keyed(self, shapes, keys: list, config: BuildConfig, policy: UpdatePolicy):
         """A keyed tree over the meshes' keys: built over the mid-shutter pose, refit
         per key (:func:`hlbvh.kernels.keyed.build_keyed`); a mesh without keys is at
         its positions at every key. Every mesh with keys must have the same number of
-        keys over the same shutter (one tree, one time per ray)."""
+        keys over the same shutter (one tree, one time per ray).
+
+        Under the ``"auto"`` policy, a mid-shutter tree whose SAH over the shutter
+        passes ``refit_tolerance`` times the still tree's (the drift ``"auto"`` accepts
+        of a refit tree) is built again over the triangles' boxes over the shutter,
+        the better kept (``topology="auto"``); the other policies keep the
+        mid-shutter tree."""
         given = [k for k in keys if k is not None]
         first = given[0]
         for i, k in zip(self.indices, keys):
@@ -156,7 +168,9 @@ class MeshGroup:
         points = [concat([k.points[j] if k is not None else shapes[i].vertex_positions_buffer()
                           for i, k in zip(self.indices, keys)]) for j in range(first.count)]
         try:
-            keyed = build_keyed(points, geometry.faces, config=config)
+            keyed = build_keyed(points, geometry.faces, config=config,
+                                topology="auto" if policy.update == "auto" else "mid",
+                                tolerance=policy.refit_tolerance)
         except ValueError as error:
             raise named_build_error(shapes, self.indices, error) from error
         self.geometry, self.keyed, self.bvh = geometry, keyed, keyed.bvh
@@ -178,15 +192,16 @@ class MeshGroup:
 
 
 def joined_sah_cost(groups: list) -> float | None:
-    """SAH cost of the groups' BVHs traced together: each group's SAH cost weighted by
-    its root box's area over the area of the box around them (a ray through that box
-    enters each group through its root box); None without a group."""
+    """SAH cost of the groups' BVHs traced together: each group's SAH cost (a keyed
+    group's over the shutter) weighted by its root box's area over the area of the box
+    around them (a ray through that box enters each group through its root box); None
+    without a group."""
     if len(groups) < 2:
-        return float(groups[0].bvh.stats.sah_cost) if groups else None
+        return groups[0]._sah() if groups else None
     boxes = [g.root_box() for g in groups]
     union = _half_area([min(lo[k] for lo, _ in boxes) for k in range(3)],
                        [max(hi[k] for _, hi in boxes) for k in range(3)])
-    return sum((_half_area(*box) / union if union > 0 else 1.0) * g.bvh.stats.sah_cost
+    return sum((_half_area(*box) / union if union > 0 else 1.0) * g._sah()
                for g, box in zip(groups, boxes))
 
 
