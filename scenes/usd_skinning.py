@@ -8,7 +8,12 @@ time code of the stage's playback range inside the interval it is given, so a st
 mesh's points. The inputs pxr does not check in a way a user sees are checked first
 (:func:`check_bindings`): weights that are not finite (pxr would bake NaN points) and
 joint indices past the skeleton's joints (pxr prints a raw warning per time code and
-leaves the mesh at rest).
+leaves the mesh at rest). Bindings authored without ``SkelBindingAPI`` (glTF
+converters' morph targets: ``skel:blendShapes`` on a mesh that lacks the schema),
+which UsdSkel ignores, get the schema in the session layer first
+(:func:`apply_bindings`), so their blend shapes (``UsdSkelBlendShape`` offsets,
+``pointIndices``, inbetweens) are baked by pxr, weighted by the skeleton animation's
+``blendShapeWeights``, like any other.
 """
 
 from __future__ import annotations
@@ -75,6 +80,43 @@ def check_bindings(stage, where: str) -> list[str]:
     return list(dict.fromkeys(lines))  # a nested SkelRoot's meshes are its parent's too
 
 
+def _bound_without_api(stage) -> list:
+    """The prims that author UsdSkel binding properties (``skel:skeleton``,
+    ``skel:blendShapes``, ``primvars:skel:jointWeights``, ...) without
+    ``SkelBindingAPI`` applied: UsdSkel ignores such bindings (since USD 23.08; before,
+    it honoured them with a deprecation warning), which exports from glTF converters
+    author for their morph targets."""
+    return [prim for prim in stage.Traverse() if not prim.HasAPI(UsdSkel.BindingAPI)
+            and any(name.startswith(("skel:", "primvars:skel:"))
+                    for name in prim.GetAuthoredPropertyNames())]
+
+
+def apply_bindings(stage, where: str) -> list[str]:
+    """Apply ``SkelBindingAPI`` in the session layer (in memory) to every prim that
+    authors UsdSkel bindings without it (:func:`_bound_without_api`), so that pxr's
+    bake skins them and applies their blend shapes as their author bound them.
+
+    Returns:
+        One line to say (naming ``where``, the stage, the first prim and how many
+        others), or none.
+    """
+    prims = _bound_without_api(stage)
+    if not prims:
+        return []
+    target = stage.GetEditTarget()
+    stage.SetEditTarget(Usd.EditTarget(stage.GetSessionLayer()))
+    try:
+        for prim in prims:
+            UsdSkel.BindingAPI.Apply(prim)
+    finally:
+        stage.SetEditTarget(target)
+    others = f" and {len(prims) - 1} other prims" if len(prims) > 1 else ""
+    return [f"{where}: {prims[0].GetPath()}{others} author UsdSkel bindings (skel:...) "
+            f"without SkelBindingAPI, which UsdSkel ignores since USD 23.08 (usdview "
+            f"shows them at rest); they are applied as authored: skinned, blend shapes "
+            f"weighted by their skeleton's animation"]
+
+
 def _animation_attributes(stage) -> list:
     """The attributes whose time samples pxr's bake follows: every skeleton
     animation's, and the transforms of the skeletons and skinned meshes."""
@@ -113,12 +155,13 @@ def bake_skinning(stage, first: float, last: float, where: str) -> tuple[bool, l
     session layer: at the stage's playback time codes inside that interval (pxr's own
     step, ``timeCodesPerSecond / framesPerSecond``) and at the animation's samples that
     bracket it, no others. A mesh whose points are time-sampled already holds its
-    skinning (baked by the export): its own points are kept.
+    skinning (baked by the export): its own points are kept. Bindings authored without
+    ``SkelBindingAPI`` are applied first (:func:`apply_bindings`).
 
     Returns:
         ``(baked, lines)``: False when the stage has no skeleton, or this USD build has no
         ``UsdSkelBakeSkinning`` or it fails (the rest points then render, said by the
-        mesh loader); the lines to say (:func:`check_bindings`; pxr's own diagnostics,
+        mesh loader); the lines to say (:func:`apply_bindings`, :func:`check_bindings`; pxr's own diagnostics,
         once each, those on joint indices left to :func:`check_bindings`'s line).
     Raises:
         ValueError: see :func:`check_bindings`.
@@ -126,7 +169,7 @@ def bake_skinning(stage, first: float, last: float, where: str) -> tuple[bool, l
     if UsdSkel is None or not hasattr(UsdSkel, "BakeSkinning") or not any(
             prim.IsA(UsdSkel.Skeleton) for prim in stage.Traverse()):
         return False, []
-    lines = check_bindings(stage, where)
+    lines = apply_bindings(stage, where) + check_bindings(stage, where)
     low, high = bake_span(_animation_attributes(stage), first, last)
     baked = [prim.GetPath() for prim in stage.Traverse() if prim.IsA(UsdGeom.Mesh)
              and UsdGeom.Mesh(prim).GetPointsAttr().GetNumTimeSamples() > 1]

@@ -126,6 +126,59 @@ def test03_joint_indices_past_the_skeleton_are_our_one_line(tmp_path, capfd):
     assert corners[:, 0].min() == -1 and corners[:, 0].max() == 1
 
 
+def _morphing(path):
+    """A glTF converter's morph targets: time codes 0..2, a quad under a SkelRoot with
+    two blend shapes, "lift" (every point +z) and "widen" (points 1 and 2 +x/2), bound
+    to a skeleton whose animation weighs both 0 at time code 0 and 1 at 2, the mesh's
+    bindings authored without SkelBindingAPI."""
+    stage = _stage(path, 0, 2, quad="/Char/Body")
+    UsdLux.DomeLight.Define(stage, "/Sky")
+    UsdSkel.Root.Define(stage, "/Char")
+    skeleton = UsdSkel.Skeleton.Define(stage, "/Char/Skel")
+    animation = UsdSkel.Animation.Define(stage, "/Char/Skel/Morph")
+    animation.CreateBlendShapesAttr(["lift", "widen"])
+    for t, w in ((0, 0.0), (2, 1.0)):
+        animation.CreateBlendShapeWeightsAttr().Set([w, w], t)
+    UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets(
+        [animation.GetPath()])
+    lift = UsdSkel.BlendShape.Define(stage, "/Char/Body/Lift")
+    lift.CreateOffsetsAttr([Gf.Vec3f(0, 0, 1)] * 4)
+    widen = UsdSkel.BlendShape.Define(stage, "/Char/Body/Widen")
+    widen.CreateOffsetsAttr([Gf.Vec3f(0.5, 0, 0)] * 2)
+    widen.CreatePointIndicesAttr([1, 2])
+    binding = UsdSkel.BindingAPI(stage.GetPrimAtPath("/Char/Body"))  # not applied
+    binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
+    binding.CreateBlendShapesAttr(["lift", "widen"])
+    binding.CreateBlendShapeTargetsRel().SetTargets([lift.GetPath(), widen.GetPath()])
+    stage.GetRootLayer().Save()
+    return path
+
+
+def test08_blend_shapes_bound_without_skelbindingapi_follow_their_weights(tmp_path):
+    """Frame i (weights i/2) holds the rest points plus each blend shape's offsets times
+    its weight, exactly; a time inside the frame (the shutter's) its own weight; the
+    binding without SkelBindingAPI said (UsdSkel ignores it: pxr's bake alone left
+    the quad still)."""
+    path = _morphing(tmp_path / "morph.usda")
+    said = []
+    animation = UsdScene(path, warn=said.append)
+    assert [line for line in said if "SkelBindingAPI" in line] == [
+        f"stage {str(path)!r}: /Char/Body author UsdSkel bindings (skel:...) without "
+        f"SkelBindingAPI, which UsdSkel ignores since USD 23.08 (usdview shows them at "
+        f"rest); they are applied as authored: skinned, blend shapes weighted by their "
+        f"skeleton's animation"]
+    (body,) = animation.animated_ids()
+    rest = np.array([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)], dtype=np.float32)
+    lift = np.array([(0, 0, 1)] * 4, dtype=np.float32)
+    widen = np.array([(0, 0, 0), (0.5, 0, 0), (0.5, 0, 0), (0, 0, 0)], dtype=np.float32)
+    for i in range(3):
+        w = np.float32(i / 2)
+        points = np.asarray(animation.frame(i)[body].positions).reshape(-1, 3)
+        np.testing.assert_array_equal(points, rest + w * lift + w * widen)
+    points = np.asarray(animation.frame_at(0.5)[body].positions).reshape(-1, 3)
+    np.testing.assert_allclose(points, rest + 0.25 * (lift + widen), atol=1e-6)
+
+
 # ---- The scene digest and the texture cache ----------------------------------------------
 
 
