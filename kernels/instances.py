@@ -7,6 +7,11 @@ HLBVH's builder is made for (few primitives, rebuilt every frame).
 The result is a :class:`hlbvh.kernels.two_level.TwoLevel`: every geometry tree's slots,
 then the top level's, in one array (the trees' part packed once); the traversal enters an instance at its top-level
 leaf slot with the ray in the instance's object space.
+
+Instances moving inside the shutter (motion blur) come with a
+:class:`~hlbvh.kernels.srt.KeyTable`: their top-level boxes hold their whole motion
+(:func:`hlbvh.kernels.srt.swept_boxes`), and the traversal takes a ray into such an
+instance through its pose at the ray's time.
 """
 
 from __future__ import annotations
@@ -14,12 +19,14 @@ from __future__ import annotations
 import dataclasses
 
 import drjit as dr
+import numpy as np
 
 from .arrays import concat, namespace_of, plain
 from .build import build
 from .bvh import BVH, BuildConfig
 from .packing import arrays_key, packed_records
 from .slots import NODE_SLOTS, SLOT
+from .srt import KEY, KeyTable, inverse, swept_boxes
 from .two_level import GroupSlots, TwoLevel
 
 
@@ -80,7 +87,7 @@ def world_boxes(group_bvhs: list[BVH], instance_group, to_world, roots=None):
 
 def two_level(group_bvhs: list[BVH], instance_group, to_world,
               config: BuildConfig | None = None, previous: BVH | None = None,
-              kept: TwoLevel | None = None):
+              kept: TwoLevel | None = None, motion: KeyTable | None = None):
     """The two-level hierarchy of instances of ``group_bvhs``.
 
     Args:
@@ -91,6 +98,10 @@ def two_level(group_bvhs: list[BVH], instance_group, to_world,
         previous: last frame's top-level BVH, seeding its CSD sort.
         kept: last frame's result, whose geometry trees' slots are reused when
             ``group_bvhs`` are the same trees.
+        motion: the instances' keys over the shutter (an entry without keys is still
+            at ``to_world``), or None: no instance moves inside the shutter. A keyed
+            instance's ``to_world`` is not used by the traversal (its pose at the ray's
+            time is), and may be singular.
     Returns:
         ``(TwoLevel, top-level BVH)``. Face indices in the geometry trees count over
         ``group_bvhs`` in order (a hit's ``prim`` minus the faces of the trees before
@@ -100,9 +111,10 @@ def two_level(group_bvhs: list[BVH], instance_group, to_world,
             invertible or not finite.
     """
     groups = group_slots(group_bvhs, kept, dr.width(instance_group))
-    to_object, vertices, faces = _top_input(group_bvhs, groups, instance_group, to_world)
+    to_object, vertices, faces = _top_input(group_bvhs, groups, instance_group, to_world,
+                                            motion)
     top = build(vertices, faces, previous=previous, config=top_level_config(config))
-    return _assembled(top, groups, instance_group, to_object), top
+    return _assembled(top, groups, instance_group, to_object, motion), top
 
 
 def top_level_config(config: BuildConfig | None) -> BuildConfig:
@@ -114,7 +126,8 @@ def top_level_config(config: BuildConfig | None) -> BuildConfig:
 
 
 def refit_top_level(top: BVH, group_bvhs: list[BVH], instance_group, to_world,
-                    kept: TwoLevel | None = None) -> TwoLevel:
+                    kept: TwoLevel | None = None,
+                    motion: KeyTable | None = None) -> TwoLevel:
     """The two-level hierarchy with ``top``, the top level :func:`two_level` built over
     the same instances in the same order, refit in place to their new boxes (the same
     tree: cheaper than a build, slower to trace as the instances move away from where
@@ -125,20 +138,26 @@ def refit_top_level(top: BVH, group_bvhs: list[BVH], instance_group, to_world,
         BadTransform: as :func:`two_level`.
     """
     groups = group_slots(group_bvhs, kept, dr.width(instance_group))
-    to_object, vertices, _ = _top_input(group_bvhs, groups, instance_group, to_world)
+    to_object, vertices, _ = _top_input(group_bvhs, groups, instance_group, to_world,
+                                        motion)
     top.refit(vertices)
-    return _assembled(top, groups, instance_group, to_object)
+    return _assembled(top, groups, instance_group, to_object, motion)
 
 
-def _top_input(group_bvhs, groups: GroupSlots, instance_group, to_world) -> tuple:
+def _top_input(group_bvhs, groups: GroupSlots, instance_group, to_world,
+               motion: KeyTable | None = None) -> tuple:
     """``(world-to-object rows, vertices, faces)``: the inverse transforms, and one
-    proxy triangle an instance whose box is the instance's world box (the top level's
-    primitives)."""
+    proxy triangle an instance whose box is the instance's world box (over its whole
+    motion, for an instance with keys) (the top level's primitives)."""
     ns = namespace_of(instance_group)
     instance_group, to_world = plain(instance_group, "UInt32"), plain(to_world, "Float")
     M = dr.width(instance_group)
-    to_object = _inverse_rows(ns, to_world, M)  # first: it names a bad transform
+    segments = None if motion is None else np.array(motion.segments, np.int64)
+    still = None if motion is None else ns.Bool(segments == 0)
+    to_object = _inverse_rows(ns, to_world, M, still)  # first: it names a bad transform
     lo, hi = world_boxes(group_bvhs, instance_group, to_world, groups.roots_box)
+    if motion is not None:
+        lo, hi = _swept(ns, lo, hi, groups.roots_box, instance_group, motion, segments)
     vertices = dr.zeros(ns.Float, 9 * M)
     k = dr.arange(ns.UInt32, M)
     for v, p in enumerate((lo, hi, lo)):
@@ -148,7 +167,27 @@ def _top_input(group_bvhs, groups: GroupSlots, instance_group, to_world) -> tupl
     return to_object, vertices, faces
 
 
-def _assembled(top: BVH, groups: GroupSlots, instance_group, to_object) -> TwoLevel:
+def _swept(ns, lo, hi, roots, instance_group, motion: KeyTable, segments) -> tuple:
+    """``lo``, ``hi`` with each keyed instance's box replaced by the box of its whole
+    motion (:func:`hlbvh.kernels.srt.swept_boxes`, on the host: a few floats per key)."""
+    keyed = np.flatnonzero(segments)
+    base = np.array(motion.base, np.int64)
+    table = np.array(motion.keys, np.float64).reshape(-1, KEY)
+    which = np.array(instance_group, np.int64)[keyed]
+    object_lo = np.array(roots[0], np.float64).reshape(3, -1).T[which]
+    object_hi = np.array(roots[1], np.float64).reshape(3, -1).T[which]
+    keys = [table[base[i]:base[i] + segments[i] + 1] for i in keyed]
+    swept_lo, swept_hi = swept_boxes(keys, object_lo, object_hi)
+    at = ns.UInt32(keyed.astype(np.uint32))
+    lo, hi = ns.Array3f(lo), ns.Array3f(hi)
+    for box, swept in ((lo, swept_lo), (hi, swept_hi)):
+        for i in range(3):
+            dr.scatter(box[i], ns.Float(swept[:, i].astype(np.float32)), at)
+    return lo, hi
+
+
+def _assembled(top: BVH, groups: GroupSlots, instance_group, to_object,
+               motion: KeyTable | None = None) -> TwoLevel:
     """The slots: every geometry tree's (packed once), then the top level's, written
     into the room kept behind them (the trees' slots are not copied again)."""
     ns = namespace_of(instance_group)
@@ -162,7 +201,7 @@ def _assembled(top: BVH, groups: GroupSlots, instance_group, to_object) -> TwoLe
         records = concat([groups.records, records])
     dr.eval(records, group_root)
     return TwoLevel(records=records, root=root, top_base=groups.slots, to_object=to_object,
-                    group_root=group_root, groups=groups)
+                    group_root=group_root, groups=groups, motion=motion)
 
 
 def group_slots(group_bvhs: list[BVH], kept: TwoLevel | None = None,
@@ -215,28 +254,24 @@ def _apply(m, p, translate: bool):
                      for r in range(3)))
 
 
-def _inverse_rows(ns, to_world, M):
+def _inverse_rows(ns, to_world, M, checked=None):
     """Each instance's world-to-object rows (A⁻¹, -A⁻¹ b), as a Float (12·M).
 
     Raises:
-        ValueError: a transform whose matrix is singular or not finite."""
+        ValueError: a transform whose matrix is singular or not finite, among the
+            instances of ``checked`` (Bool per instance; all when None)."""
     m = _rows(ns, to_world, M)
-    a = [m[0:3], m[3:6], m[6:9]]
-    cof = [[a[(r + 1) % 3][(c + 1) % 3] * a[(r + 2) % 3][(c + 2) % 3]
-            - a[(r + 1) % 3][(c + 2) % 3] * a[(r + 2) % 3][(c + 1) % 3]
-            for c in range(3)] for r in range(3)]
-    det = a[0][0] * cof[0][0] + a[0][1] * cof[0][1] + a[0][2] * cof[0][2]
+    inv, det = inverse(m)
     finite = dr.all(dr.isfinite(ns.ArrayXf(m)), axis=0)
     bad = ~finite | (det == 0)
+    if checked is not None:
+        bad &= checked
     if dr.any(bad, axis=None):
         k = int(dr.compress(bad)[0])
         raise BadTransform(k, "not finite" if not finite[k] else "singular (a scale of 0)")
-    inv = [[cof[c][r] / det for c in range(3)] for r in range(3)]  # adjugate / det
-    b = m[9:12]
-    t = [-(inv[r][0] * b[0] + inv[r][1] * b[1] + inv[r][2] * b[2]) for r in range(3)]
     out = dr.zeros(ns.Float, 12 * M)
     k = dr.arange(ns.UInt32, M) * 12
-    for i, value in enumerate([inv[0][0], inv[0][1], inv[0][2], inv[1][0], inv[1][1],
-                               inv[1][2], inv[2][0], inv[2][1], inv[2][2], *t]):
+    for i, value in enumerate(inv):
         dr.scatter(out, value, k + i)
     return out
+

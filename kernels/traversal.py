@@ -26,6 +26,8 @@ instances. A ray reaching one takes the instance's object-space ray (world-to-ob
 transform, direction not normalised, so ``t`` stays the world ray's), pushes a return
 marker and the rest of the leaf, and descends into the instance's tree; popping the
 marker restores the world ray. The one-level kernel is the same as without this path.
+Instances with keys over the shutter (:attr:`TwoLevel.motion`) take the ray through
+their pose at the ray's time (``time=``); without keys the kernel is unchanged.
 
 A hit is reported at the smallest ``t`` with ``0 < t <= maxt``. Rays with a NaN or
 infinite component, a zero direction, ``maxt <= 0`` or ``maxt`` NaN are clean misses.
@@ -169,16 +171,18 @@ def occluded(bvh: Tree | Packed | TimedTree, ray, active: Bool | bool = True,
     return mi.Bool(any_hit(bvh, ray.o, ray.d, ray.maxt, active, time))
 
 
-def closest_instance_hit(two_level: TwoLevel, o, d, maxt, active=True):
+def closest_instance_hit(two_level: TwoLevel, o, d, maxt, active=True, time=None):
     """:func:`closest_hit` through a :class:`TwoLevel` hierarchy: a ray that enters an
     instance's box is transformed into the instance's object space (its direction not
     normalised, so ``t`` is the world ray's) and traced through the instance's tree.
+    ``time``: each ray's time normalised to the shutter, needed where instances have
+    keys (:attr:`TwoLevel.motion`: each is entered at its pose at that time).
 
     Returns:
         ``(t, u, v, prim, inst, valid)``: as :func:`closest_hit`, ``prim`` counted over
         the instanced trees' faces, and UInt32 ``inst`` the hit's instance.
     """
-    return _trace(two_level, o, d, maxt, active, any_hit=False)
+    return _trace(two_level, o, d, maxt, active, any_hit=False, time=time)
 
 
 # ---------------------------------------------------------------------------------------
@@ -225,6 +229,7 @@ class _Query:
     world_o: Any = None  # Array3f: the world rays' origins (two levels)
     world_d: Any = None  # Array3f: their directions (two levels)
     keys: Any = None  # a timed tree: what each ray reads (TimedTree.keys_at), or None
+    time: Any = None  # Float: each ray's normalised time (two levels with keyed instances)
 
     @property
     def Entry(self):
@@ -503,7 +508,8 @@ def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False, time=None):
     if not dr.is_array_v(o) or not dr.is_array_v(d):
         raise TypeError("ray origin and direction must be Dr.Jit Array3f/Point3f/Vector3f")
     keys_at = getattr(bvh, "keys_at", None)  # a TimedTree's
-    if keys_at is not None and time is None:
+    timed = keys_at is not None or (isinstance(bvh, TwoLevel) and bvh.motion is not None)
+    if timed and time is None:
         raise ValueError("a keyed tree is traced at each ray's time: pass time= (Float in "
                          "[0, 1] over the shutter)")
     ns = namespace_of(o)
@@ -537,7 +543,9 @@ def _trace(bvh, o, d, maxt, active, any_hit, count_steps=False, time=None):
         alive &= keys.known
     ray = ray_setup(o, d)
     query = _Query(records=records, n=n, any_hit=any_hit, no_t=dr.zeros(Float, n),
-                   two_level=two_level, world_o=o, world_d=d, keys=keys)
+                   two_level=two_level, world_o=o, world_d=d, keys=keys,
+                   time=_broadcast(time, "Float", ns, n)
+                   if two_level is not None and two_level.motion is not None else None)
     # Two levels: a tree under a tree, and the two entries an instance pushes.
     stack = _Stack(query.Entry, n, STACK_SIZE) if two_level is None else \
         _Stack(query.Entry, n, 2 * STACK_SIZE + 2, ordered=True)

@@ -1,7 +1,9 @@
 """Two levels in the traversal (rigid motion): the data a two-level trace reads
 (:class:`TwoLevel`, made by :func:`hlbvh.kernels.instances.two_level`) and the step that
 enters an instance, transforming the ray into its object space, and the one that leaves
-it (:mod:`hlbvh.kernels.traversal` calls them only when tracing two levels)."""
+it (:mod:`hlbvh.kernels.traversal` calls them only when tracing two levels). An
+instance with keys over the shutter (:attr:`TwoLevel.motion`) takes the ray through the
+inverse of its pose at the ray's time instead of its one world-to-object transform."""
 
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ import drjit as dr
 from .arrays import namespace_of
 from .ray_tests import Ray, ray_setup
 from .slots import LEAF_BIT, MAX_SLOTS, TRI_FACE, leaf_ref
+from .srt import KeyTable, inverse
 
 #: Two levels: ``inst`` of a ray at the top level (in no instance).
 NO_INSTANCE = 0xFFFFFFFF
@@ -40,6 +43,9 @@ class TwoLevel:
         to_object: Float (12·M): each instance's world-to-object transform, rows of a
             3x4 matrix (``p_object = A p + b``, A row-major then b).
         group_root: UInt32 (M): reference of each instance's geometry tree.
+        motion: the instances' keys over the shutter (an entry without keys: an
+            instance still at ``to_object``'s inverse), or None when none has keys; a
+            trace then takes each ray's time.
     """
 
     records: Any
@@ -48,6 +54,7 @@ class TwoLevel:
     to_object: Any
     group_root: Any
     groups: GroupSlots | None = None
+    motion: KeyTable | None = None
 
 
 @dataclass
@@ -82,10 +89,17 @@ def select_ray(mask, a: Ray, b: Ray) -> Ray:
                shear=tuple(pick(x, y) for x, y in zip(a.shear, b.shear)))
 
 
-def _object_ray(two_level: TwoLevel, world_o, world_d, k, mask) -> Ray:
-    """The world ray in the object space of instance ``k`` (lanes of ``mask``)."""
+def _object_ray(two_level: TwoLevel, world_o, world_d, k, mask, time=None) -> Ray:
+    """The world ray in the object space of instance ``k`` (lanes of ``mask``); an
+    instance with keys: through the inverse of its pose at the ray's ``time`` (Float in
+    [0, 1] over the shutter), a pose without inverse (a scale of 0 at that time) giving
+    a ray of NaN, which nothing hits."""
     ns = namespace_of(world_o.x)
     m = [dr.gather(ns.Float, two_level.to_object, k * 12 + i, mask) for i in range(12)]
+    if two_level.motion is not None:
+        keyed = two_level.motion.keyed(k, mask)
+        moved, _ = inverse(two_level.motion.rows_at(k, time, keyed))
+        m = [dr.select(keyed, a, b) for a, b in zip(moved, m)]
     o = ns.Array3f(*(dr.fma(m[3 * r], world_o.x, dr.fma(m[3 * r + 1], world_o.y,
                                                          dr.fma(m[3 * r + 2], world_o.z, m[9 + r])))
                      for r in range(3)))
@@ -107,7 +121,8 @@ def enter_instance(query, rec, s, at_instance, keys):
     k = dr.reinterpret_array(UInt32, rec[TRI_FACE])
     ray = dr.if_stmt(
         args=(k, at_instance), cond=at_instance,
-        true_fn=lambda k, mask: _object_ray(two, query.world_o, query.world_d, k, mask),
+        true_fn=lambda k, mask: _object_ray(two, query.world_o, query.world_d, k, mask,
+                                            query.time),
         false_fn=lambda k, mask: s.ray, arg_labels=("k", "mask"),
         label="hlbvh_enter_instance", mode="symbolic")
     s.ray = select_ray(at_instance, ray, s.ray)

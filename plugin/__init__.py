@@ -24,6 +24,7 @@ from hlbvh.kernels.bvh import BVH, BuildConfig, BuildStats  # noqa: E402
 from hlbvh.accel import (NativeAccel, SceneAccel, ShapeParameters,  # noqa: E402
                          clear_camera_keys, clear_motion_keys, make_accel, set_camera_keys,
                          set_motion_keys, traverse)
+from hlbvh.accel.keys import clear_instance_keys, set_instance_keys  # noqa: E402,F401
 from hlbvh.integrators import register  # noqa: E402
 
 register()

@@ -8,6 +8,11 @@ own shapes change (``params["group.mesh.vertex_positions"]``) has its BVH built 
 and the top level rebuilt. The moving-instances group of :class:`hlbvh.SceneAccel`
 with ``static="native"``.
 
+Instances given keys over the shutter (:func:`hlbvh.accel.keys.set_instance_keys`)
+carry them into the two-level tree (a :class:`~hlbvh.kernels.srt.KeyTable`): their
+top-level boxes hold their whole motion, and a ray enters each at its pose at the
+ray's time. New keys count as motion (the top level is refit or rebuilt).
+
 Mitsuba does not say which shape group an instance uses (an instance's parameters are
 its ``to_world`` alone), so it is found from what Mitsuba does say: the group whose box,
 through the instance's ``to_world``, is the instance's box, and whose primitive count is
@@ -27,8 +32,10 @@ from hlbvh.kernels.arrays import concat
 from hlbvh.kernels.build import build
 from hlbvh.kernels.bvh import BuildConfig
 from hlbvh.kernels.instances import BadTransform, refit_top_level, two_level
+from hlbvh.kernels.srt import KeyTable
 from hlbvh.accel.groups import Change, InstanceUpdate
 from hlbvh.accel.instance_shading import group_members, to_world_rows
+from hlbvh.accel.keys import instances_keys
 from hlbvh.accel.motion import member_states, members_changed
 from hlbvh.accel.policy import RefitOrRebuild
 from hlbvh.accel.scene_geometry import ShapeError, collect_geometry, describe_shape
@@ -79,6 +86,7 @@ class InstanceGroup:
         self._scene_index = None  # UInt32: each instance's index in scene.shapes()
         self._built_sah = None  # the top level's SAH cost at its last build
         self._policy = RefitOrRebuild()  # what "auto" remembers of past refits
+        self._keys = None  # the instances' keys at the last update (instances_keys)
         self.keep()
 
     @property
@@ -111,7 +119,10 @@ class InstanceGroup:
         shapes, indices, moved, rows_of = (change.shapes, tuple(change.indices),
                                            change.moved, self.rows_of)
         deformed = self._deformed()
-        if indices == self.indices and not moved and not deformed:
+        keys, shutter = instances_keys([shapes[i] for i in indices])
+        rekeyed = not _same_keys(keys, self._keys)
+        self._keys = keys
+        if indices == self.indices and not moved and not deformed and not rekeyed:
             self.keep()
             return
         start = clock_ms()
@@ -133,12 +144,13 @@ class InstanceGroup:
             rows = (rows_of(indices) if rows_of is not None else
                     concat([v for i in indices for v in to_world_rows(shapes[i])]))
             which = mi.UInt32([self._group_of[i] for i in indices])
+            motion = None if keys is None else KeyTable.of(mi, keys, shutter)
             try:
                 chosen, _, drift = self._policy.update(
                     change.policy,
                     not same_set or len(self._used) != groups_before,
-                    lambda seed: self._build_top(which, rows, seed),
-                    lambda: self._refit_top(which, rows))
+                    lambda seed: self._build_top(which, rows, seed, motion),
+                    lambda: self._refit_top(which, rows, motion))
             except BadTransform as error:
                 name = describe_shape(shapes[indices[error.index]])
                 raise ShapeError(name, f"{name}: its to_world is {error.what}") from None
@@ -156,18 +168,20 @@ class InstanceGroup:
         return [k for k, (members, states) in enumerate(zip(self._members, self._states))
                 if members_changed(members, states, self._handles)]
 
-    def _build_top(self, which, rows, seed: bool) -> bool:
+    def _build_top(self, which, rows, seed: bool, motion=None) -> bool:
         """A new top level (its CSD sort seeded with the last one's order when
-        ``seed``); whether the seed was used."""
+        ``seed``), over the instances' keys ``motion`` where they have some; whether
+        the seed was used."""
         previous = self._top if seed else None
         self.tree, self._top = two_level(self._bvhs, which, rows, self.config,
-                                         previous=previous, kept=self.tree)
+                                         previous=previous, kept=self.tree, motion=motion)
         self._built_sah = self._top.stats.sah_cost
         return bool(self._top.stats.csd_seeded)
 
-    def _refit_top(self, which, rows) -> float:
+    def _refit_top(self, which, rows, motion=None) -> float:
         """The top level refit to the instances' new boxes; its SAH drift."""
-        self.tree = refit_top_level(self._top, self._bvhs, which, rows, kept=self.tree)
+        self.tree = refit_top_level(self._top, self._bvhs, which, rows, kept=self.tree,
+                                    motion=motion)
         return self._top.stats.sah_cost / self._built_sah
 
     def hit_fields(self, prim, inst, valid):
@@ -210,6 +224,13 @@ class InstanceGroup:
         geometry = collect_geometry(members, list(range(len(members))))
         bvh = build(geometry.vertices, geometry.faces, config=self.config)
         return bvh, (geometry.prim_shape, geometry.prim_local), member_states(members, self._handles)
+
+
+def _same_keys(a, b) -> bool:
+    """Whether two :func:`instances_keys` lists hold the same keys objects."""
+    if a is None or b is None:
+        return a is b
+    return len(a) == len(b) and all(x is y for x, y in zip(a, b))
 
 
 def group_of(instance, groups: list, why: str = "is traced by hlbvh", matrix=None):

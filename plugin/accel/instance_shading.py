@@ -14,6 +14,12 @@ transform gathered per lane from a table, and each group shape called directly; 
 on any other shape is expanded by that shape's own call. The kernel then holds one
 expansion per distinct shape, however many instances there are; past a few shapes,
 as a switch, where each lane runs its own shape's expansion alone.
+
+An instance with keys over the shutter (:func:`hlbvh.accel.keys.set_instance_keys`) is
+expanded with its pose at the ray's time (:class:`hlbvh.kernels.srt.KeyTable`, the
+interpolation the traversal entered it with): position, normals and frames are where
+the instance is when the ray meets it. Lanes of other instances keep the table's
+transforms, bit for bit.
 """
 
 from __future__ import annotations
@@ -21,6 +27,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+
+from hlbvh.accel.keys import instances_keys
+from hlbvh.kernels.srt import KeyTable, inverse
 
 
 _NO_SLOT = 0xFFFFFFFF
@@ -123,6 +132,7 @@ class InstanceShading:
         self.usable = bool(instances)
         self._children, bases, where = [], [], {}
         self._handles = {i: to_world_handle(shapes[i]) for i in instances} if self.usable else {}
+        self._motion = None  # KeyTable by slot, where instances have keys (refresh)
         self._rows = _read(self._handles, instances) if self.usable else None
         if self.usable:
             table = np.array(self._rows, np.float64).reshape(-1, ROW)
@@ -143,8 +153,12 @@ class InstanceShading:
 
     def refresh(self, indices):
         """Read again the transforms of the instances ``shapes[i]``, ``i`` in
-        ``indices``."""
-        if not self.usable or not indices:
+        ``indices``, and every instance's keys over the shutter."""
+        if not self.usable:
+            return
+        keys, shutter = instances_keys([self.shapes[i] for i in self.slots])
+        self._motion = None if keys is None else KeyTable.of(mi, keys, shutter)
+        if not indices:
             return
         slots = np.array([self.slots[i] for i in indices], np.uint32)
         offsets = (ROW * slots[:, None] + np.arange(ROW, dtype=np.uint32)).ravel()
@@ -172,7 +186,7 @@ class InstanceShading:
         # ---- Hits inside instances: as Mitsuba's Instance expands them ----
         slot = dr.gather(mi.UInt32, self._slot_of_id,
                          dr.reinterpret_array(mi.UInt32, pi.instance), in_instance)
-        to_world = mi.AffineTransform4f(*self._matrices(slot, in_instance))
+        to_world = mi.AffineTransform4f(*self._matrices(slot, in_instance, ray.time))
         to_object = to_world.inverse()
         local_ray = to_object @ ray
         child = dr.gather(mi.UInt32, self._child_base, slot, in_instance) + pi.shape_index
@@ -188,19 +202,62 @@ class InstanceShading:
         si = dr.select(other, _expanded(self._others, which, ray, pi, flags, other), si)
         return _finalized(si, ray, flags, active)
 
-    def _matrices(self, slot, active) -> tuple:
+    def shutter_points(self, pi, si, active):
+        """Where hits on instances with keys are at the shutter's open and close (the
+        hit's object-space point through the poses there): ``(p_open, p_close, on,
+        shutter)``, ``on`` the lanes on such instances; None when no instance has
+        keys."""
+        if self._motion is None:
+            return None
+        motion = self._motion
+        on = mi.Bool(active) & pi.is_valid() & (pi.instance != None)  # noqa: E711
+        slot = dr.gather(mi.UInt32, self._slot_of_id,
+                         dr.reinterpret_array(mi.UInt32, pi.instance), on)
+        on = motion.keyed(slot, on)
+        now, _ = inverse(motion.rows_at(slot, motion.time(si.time), on))
+        p = _affine(now, si.p)
+        ends = [_affine(motion.rows_at(slot, dr.full(mi.Float, t, dr.width(p.x)), on), p)
+                for t in (0.0, 1.0)]
+        return ends[0], ends[1], on, motion.shutter
+
+    def _matrices(self, slot, active, time) -> tuple:
         """Each lane's instance's object-to-world matrix and its inverse transpose
-        (affine: the one's last row, the other's last column 0 0 0 1)."""
+        (affine: the one's last row, the other's last column 0 0 0 1); an instance with
+        keys: its pose at ``time`` (``ray.time``)."""
         m = [dr.gather(mi.Float, self._rows, slot * ROW + c, active) for c in range(ROW)]
-        t = m[12:]
-        return (mi.Matrix4f(m[0], m[1], m[2], m[9],
-                            m[3], m[4], m[5], m[10],
-                            m[6], m[7], m[8], m[11],
-                            0.0, 0.0, 0.0, 1.0),
-                mi.Matrix4f(t[0], t[1], t[2], 0.0,
-                            t[3], t[4], t[5], 0.0,
-                            t[6], t[7], t[8], 0.0,
-                            t[9], t[10], t[11], 1.0))
+        if self._motion is None:
+            return _matrix_pair(m)
+        keyed = self._motion.keyed(slot, active)
+        rows = self._motion.rows_at(slot, self._motion.time(time), keyed)
+        moved = [dr.select(keyed, a, b) for a, b in zip(rows, m[:12])]
+        transposed = _transposed(inverse(moved)[0])
+        return _matrix_pair(moved + [dr.select(keyed, a, b) for a, b in zip(transposed, m[12:])])
+
+
+def _matrix_pair(m: list) -> tuple:
+    """The table row ``m`` (:data:`ROW` Float) as ``(matrix, inverse transpose)``."""
+    t = m[12:]
+    return (mi.Matrix4f(m[0], m[1], m[2], m[9],
+                        m[3], m[4], m[5], m[10],
+                        m[6], m[7], m[8], m[11],
+                        0.0, 0.0, 0.0, 1.0),
+            mi.Matrix4f(t[0], t[1], t[2], 0.0,
+                        t[3], t[4], t[5], 0.0,
+                        t[6], t[7], t[8], 0.0,
+                        t[9], t[10], t[11], 1.0))
+
+
+def _transposed(inv: list) -> list:
+    """The inverse rows ``inv`` (12 Float: A⁻¹ row-major, then -A⁻¹ b) as the table's
+    inverse transpose entries (its 3x3 transposed, then its last row: -A⁻¹ b)."""
+    return [inv[0], inv[3], inv[6], inv[1], inv[4], inv[7], inv[2], inv[5], inv[8], *inv[9:]]
+
+
+def _affine(rows: list, p) -> mi.Point3f:
+    """``A p + b`` for the rows (12 Float) of an affine transform."""
+    return mi.Point3f(*[dr.fma(rows[3 * r], p.x, dr.fma(rows[3 * r + 1], p.y,
+                                                         dr.fma(rows[3 * r + 2], p.z, rows[9 + r])))
+                        for r in range(3)])
 
 
 #: Most group shapes expanded by a direct call each: every such call runs on every

@@ -10,7 +10,9 @@ emitter sampling and shading start from) and keeps the keys, tied to the vertex 
 it wrote. A later write of the mesh's positions without keys ends them, so keys given
 for one frame never blur the next. :func:`set_camera_keys` gives a sensor its poses at
 the keys: our integrators move each camera ray from the sensor's pose to the one at the
-ray's time (:func:`camera_ray`).
+ray's time (:func:`camera_ray`). :func:`set_instance_keys` gives an instance of a shape
+group its transforms at the keys (rigid motion blur): our two-level tree enters it at
+its pose at each ray's time, interpolated as :mod:`hlbvh.kernels.srt` says.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import mitsuba as mi
 import numpy as np
 
 from hlbvh.kernels.keyed import checked_keys, mid_shutter
+from hlbvh.kernels.srt import decompose, pose_at
 
 
 @dataclass(frozen=True)
@@ -233,3 +236,116 @@ def _pose(transform) -> tuple:
     """A transform's first three rows (a JIT transform's, width one) as host floats."""
     m = transform.matrix
     return tuple(float(dr.slice(m[r][c], 0)) for r in range(3) for c in range(4))
+
+
+@dataclass(frozen=True)
+class InstanceKeys:
+    """An instance's keys for one frame.
+
+    Attributes:
+        keys: ``(S + 1, KEY)`` numpy: each key's rotation, stretch and translation
+            (:func:`hlbvh.kernels.srt.decompose`); None where every key is the same
+            transform (the instance is still: traced as one).
+        shutter: ``(open, close)``, in the units of ``ray.time``.
+        written: the ``to_world`` :func:`set_instance_keys` wrote (held, so that its
+            matrix's variable stays its own while the keys are kept).
+    """
+
+    keys: object
+    shutter: tuple
+    written: object
+
+
+#: ``id(instance) -> InstanceKeys`` of the instances given keys (:func:`instance_keys`).
+_INSTANCES: dict = {}
+
+
+def set_instance_keys(instance, to_worlds, shutter) -> None:
+    """Give ``instance`` (a Mitsuba ``instance`` of a ``shapegroup``) its transforms at
+    ``len(to_worlds)`` evenly spaced times over ``shutter`` for the frame about to be
+    rendered. Its own ``to_world`` is set to its pose at the middle of the shutter (what
+    Mitsuba's box, shading and native render see); our traversal and shading take it at
+    each ray's time (rotation, stretch and translation interpolated per key segment).
+    A later write of its ``to_world`` without keys ends them.
+
+    Args:
+        instance: the scene's ``mi.Shape`` of class ``Instance``.
+        to_worlds: at least two affine object-to-world transforms (4x4 arrays or
+            ``mi.ScalarTransform4f``), one per key; a key may scale to nothing (the
+            instance is then missed at that time).
+        shutter: ``(open, close)`` in the units of ``ray.time``, ``close > open``.
+    Raises:
+        ValueError: a bad shutter, fewer than two keys, a key that is not a finite
+            affine 4x4, naming the instance and the key.
+    """
+    name = instance.id() or "<unnamed instance>"
+    if instance.class_name() != "Instance":
+        raise ValueError(f"shape {name!r} ({instance.class_name()}) is not an instance: "
+                         "give a mesh its keys with set_motion_keys")
+    open_, close = (float(v) for v in shutter)
+    if not (math.isfinite(open_) and math.isfinite(close) and close > open_):
+        raise ValueError(f"instance {name!r}: shutter ({open_}, {close}): expected finite "
+                         "open < close (a closed shutter needs no keys)")
+    matrices = [np.asarray(m.matrix if hasattr(m, "matrix") else m, np.float64)
+                for m in to_worlds]
+    if len(matrices) < 2:
+        raise ValueError(f"instance {name!r}: {len(matrices)} transform(s): expected at "
+                         "least two keys (S + 1 over the shutter, S >= 1)")
+    for k, m in enumerate(matrices):
+        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            raise ValueError(f"instance {name!r}: key {k} is not a finite 4x4 transform")
+        if np.any(m[3] != (0.0, 0.0, 0.0, 1.0)):
+            raise ValueError(f"instance {name!r}: key {k} is not affine (its last row is "
+                             f"{m[3].tolist()}, expected [0, 0, 0, 1])")
+    matrices = np.stack(matrices).astype(np.float32).astype(np.float64)
+    still = bool(np.all(matrices == matrices[0]))
+    params = mi.traverse(instance)
+    params["to_world"] = mi.ScalarAffineTransform4f(pose_at(matrices, 0.5).astype(np.float32))
+    params.update()
+    _INSTANCES[id(instance)] = InstanceKeys(None if still else decompose(matrices),
+                                            (open_, close), mi.traverse(instance)["to_world"])
+
+
+def instance_keys(instance) -> InstanceKeys | None:
+    """The keys :func:`set_instance_keys` gave ``instance``, while its ``to_world`` is
+    still the one written then (None otherwise, and the keys are dropped)."""
+    keys = _INSTANCES.get(id(instance))
+    if keys is None:
+        return None
+    if keys.written.matrix[0][0].index != mi.traverse(instance)["to_world"].matrix[0][0].index:
+        del _INSTANCES[id(instance)]
+        return None
+    return keys
+
+
+def moves_in_shutter(instance) -> bool:
+    """Whether ``instance`` has keys of more than one pose (:func:`instance_keys`)."""
+    keys = instance_keys(instance)
+    return keys is not None and keys.keys is not None
+
+
+def clear_instance_keys(instance) -> None:
+    """Forget ``instance``'s keys (its next frame renders unblurred)."""
+    _INSTANCES.pop(id(instance), None)
+
+
+def instances_keys(instances: list) -> tuple:
+    """``(keys, shutter)``: per instance of ``instances`` its keys (``(S + 1, KEY)``
+    numpy, None for an instance without keys or with equal ones), and the shutter they
+    share; ``(None, None)`` when none has keys.
+
+    Raises:
+        ValueError: keys over two different shutters, naming an instance of each.
+    """
+    given = [(instance, instance_keys(instance)) for instance in instances]
+    moving = [(instance, keys) for instance, keys in given
+              if keys is not None and keys.keys is not None]
+    if not moving:
+        return None, None
+    first, shutter = moving[0][0], moving[0][1].shutter
+    for instance, keys in moving:
+        if keys.shutter != shutter:
+            raise ValueError(f"instance {instance.id()!r}: keys over the shutter "
+                             f"{keys.shutter}, but instance {first.id()!r}'s over "
+                             f"{shutter}: give every instance keys over the same shutter")
+    return [None if k is None else k.keys for _, k in given], shutter

@@ -97,22 +97,31 @@ class InstanceTree:
     """The moving instances' two-level tree (an
     :class:`~hlbvh.accel.instance_group.InstanceGroup`): our top level over them, a ray
     entering an instance traced through its group's BVH; a hit reports the shape's
-    index in its group and the instance's index into ``scene.shapes()``."""
+    index in its group and the instance's index into ``scene.shapes()``. Instances with
+    keys over the shutter are entered at their pose at each ray's time."""
 
     def __init__(self, group):
         self.group = group
 
+    def time(self, ray) -> mi.Float | None:
+        """``ray.time`` normalised to the instances' keys' shutter (0 at open, 1 at
+        close); None when no instance has keys."""
+        motion = self.group.tree.motion
+        return None if motion is None else motion.time(ray.time)
+
     def closest(self, ray, active, hit, coherent, reorder):
         ray.maxt = hit.reach(ray.maxt)
         t, u, v, prim, inst, valid = closest_instance_hit(self.group.tree, ray.o, ray.d,
-                                                          ray.maxt, active)
+                                                          ray.maxt, active,
+                                                          time=self.time(ray))
         valid = mi.Bool(valid)
         local, in_group, instance = self.group.hit_fields(mi.UInt32(prim), mi.UInt32(inst),
                                                           valid)
         hit.take(*_distance_and_uv(t, u, v, valid), local, in_group, instance=instance)
 
     def occluded(self, ray, active, coherent) -> mi.Bool:
-        return mi.Bool(any_hit(self.group.tree, ray.o, ray.d, ray.maxt, active))
+        return mi.Bool(any_hit(self.group.tree, ray.o, ray.d, ray.maxt, active,
+                               time=self.time(ray)))
 
 
 class OwnRoutine:
