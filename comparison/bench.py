@@ -4,6 +4,7 @@ native builder or traversal measured side by side in one process, warm and cold.
     hlbvh bench build [--sizes 100000,1000000] [--repeats 5] [--json]
     hlbvh bench trace [--sizes 1000000] [--resolution 512] [--json]
     hlbvh bench frame [--scenes world,flock:birds=1000] [--no-native] [...]
+                      [--shutter 0.5 [--motion-keys S] [--sub-frames K] [--equal-error]]
                                       (see hlbvh.comparison.bench_frame)
 """
 
@@ -53,6 +54,18 @@ def configure(parser) -> None:
     parser.add_argument("--no-native", action="store_true",
                         help="bench frame: hlbvh's frames alone (native's render of "
                              "scenes of many instances takes minutes)")
+    parser.add_argument("--shutter", default=None,
+                        help="bench frame: motion blur too, the shutter as hlbvh render "
+                             "takes it (0.5, or --shutter=-0.25:0.25): our blurred frame "
+                             "against native's and our own sub-frame accumulation and our "
+                             "still frame")
+    parser.add_argument("--motion-keys", default=None,
+                        help="bench frame --shutter: key intervals over the shutter")
+    parser.add_argument("--sub-frames", default=None,
+                        help="bench frame --shutter: sub-frames of the accumulations")
+    parser.add_argument("--equal-error", action="store_true",
+                        help="bench frame --shutter: time to equal error against a "
+                             "256-spp reference (minutes on world)")
     parser.add_argument("--json", action="store_true", help="print JSON rows, not a table")
 
 
@@ -80,8 +93,11 @@ def run(args) -> int:
             raise UserError(f"--builder {args.builder!r}: bench {args.suite} takes one builder")
         kwargs["builder"] = builders[0]
     if args.suite != "frame" and (args.scenes is not None or args.no_native
-                                  or args.spp is not None or args.integrator is not None):
-        raise UserError(f"--scenes, --spp, --integrator and --no-native are for bench frame, "
+                                  or args.spp is not None or args.integrator is not None
+                                  or args.shutter is not None or args.motion_keys is not None
+                                  or args.sub_frames is not None or args.equal_error):
+        raise UserError(f"--scenes, --spp, --integrator, --no-native, --shutter, "
+                        f"--motion-keys, --sub-frames and --equal-error are for bench frame, "
                         f"not bench {args.suite}")
     if args.integrator is not None:
         kwargs["integrator"] = choice("--integrator", args.integrator, BENCH_INTEGRATORS)
@@ -93,6 +109,8 @@ def run(args) -> int:
     if args.no_native:
         kwargs["native"] = False
     module = importlib.import_module(_SUITES[args.suite])
+    if args.suite == "frame":
+        kwargs.update(module.blur_options(args))
     rows = module.run(**kwargs)
     print(json.dumps(rows, indent=1, default=str) if args.json else module.format_table(rows))
     return 0

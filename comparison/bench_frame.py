@@ -57,13 +57,35 @@ frame times (:func:`hlbvh.comparison.crossover.crossover_spp`: interpolated betw
 measured spp; ``None`` when native is faster at every measured spp or at none, the
 table says which).
 
+**Motion blur** (``--shutter``, as ``hlbvh render`` parses it; ``--motion-keys``,
+``--sub-frames``): each scene's frame with the shutter open, four ways side by side in
+one process, taking turns frame by frame (:func:`blur_runs`):
+
+- ``ours blurred``: our accelerator traces every ray at its time through the moving
+  meshes' keys (a build and a refit per key, :mod:`hlbvh.kernels.keyed`);
+- ``ours sub-frames`` and ``native sub-frames``: the mean of ``sub_frames`` renders of
+  the geometry at stratified times, the spp over the sub-frames each (an update of our
+  accelerator, or Mitsuba's whole-scene rebuild, per sub-frame): the same estimator
+  in expectation, what a Mitsuba user does today;
+- ``ours still``: the frame at its instant (shutter closed), at the same spp.
+
+Each time is a whole frame (geometry, keys, updates, render: everything between two
+images). The row gains the medians, ``native_sub_over_blurred`` (> 1: our blurred
+frame faster), ``own_sub_over_blurred``, ``blur_overhead`` (blurred over still), the
+keyed trees' memory over the still tree's (``keyed_memory_ratio``) and the keyed
+tree's SAH over the shutter over the still SAH at mid-shutter (``keyed_degradation``).
+With ``equal_error`` (``--equal-error``) each scene is also measured for time to
+equal error (:func:`time_to_equal_error`).
+
 Run: ``hlbvh bench frame [--sizes ...] [--resolution 512|1920x1080] [--spp 1,4,16]
-[--repeats N]``, or
+[--repeats N] [--shutter 0.5 [--motion-keys S] [--sub-frames K] [--equal-error]]``, or
 ``python -m hlbvh.comparison.bench_frame --help`` for every knob.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import os
 import statistics
 
@@ -72,11 +94,13 @@ import mitsuba as mi
 import numpy as np
 
 import hlbvh
+from hlbvh.cli.options import shutter_settings
 from hlbvh.comparison.crossover import crossover_spp, describe
 from hlbvh.errors import UserError
 from hlbvh.accel.instance_group import group_of
 from hlbvh.accel.instance_shading import group_members, is_instance
 from hlbvh.kernels.instances import refit_top_level, two_level
+from hlbvh.kernels.packing import packed_records
 from hlbvh.accel.native_group import shape_groups
 from hlbvh.accel.scene_geometry import collect_geometry
 from hlbvh.scenes import get as get_scene, parse as parse_scene
@@ -106,10 +130,23 @@ ROW_KEYS = (
     "moving_accel",
 )
 
+#: The ways a frame with an open shutter is timed (``--shutter``), in the order they
+#: take turns (see the module docstring).
+BLUR_WAYS = ("ours blurred", "ours sub-frames", "native sub-frames", "ours still")
+
+#: Keys a row gains with ``--shutter`` (times in ms, medians over the warm frames).
+BLUR_KEYS = (
+    "shutter", "motion_keys", "sub_frames", "blurred_min_ms", "blurred_median_ms",
+    "own_sub_frames_median_ms", "native_sub_frames_median_ms", "still_median_ms",
+    "native_sub_over_blurred", "own_sub_over_blurred", "blur_overhead",
+    "keyed_memory_ratio", "keyed_degradation",
+)
+
 
 def run(repeats: int = 3, sizes=(1_000_000,), resolution=512, builder: str = "hlbvh",
         scenes=SCENES, spps=SPPS, drift_frames: int = 100, max_depth: int = 8,
-        native: bool = True, integrator: str | None = None) -> list[dict]:
+        native: bool = True, integrator: str | None = None, shutter=None,
+        motion_keys: int = 1, sub_frames: int = 16, equal_error: bool = False) -> list[dict]:
     """Measure build, refit, SAH drift and frame time per scene, size and spp.
 
     Args:
@@ -129,9 +166,15 @@ def run(repeats: int = 3, sizes=(1_000_000,), resolution=512, builder: str = "hl
         integrator: the ``--integrator`` choice both accelerators render with
             (``"path"``, ``"direct"``, ``"volpath"``); None: the one the scene's own
             integrator runs as, else ``"path"``.
+        shutter: ``(open, close)`` in frames, open (``open < close``): the motion blur
+            runs too (module docstring), ``motion_keys`` intervals between keys,
+            ``sub_frames`` sub-frames; None (or closed): not.
+        equal_error: with ``shutter``, each scene's time to equal error
+            (:func:`time_to_equal_error`) in its rows under ``equal_error``.
     Returns:
         One dict per (scene, size, spp) with the keys :data:`ROW_KEYS` (build and drift
-        values repeat over a scene's spp rows; times in ms).
+        values repeat over a scene's spp rows; times in ms), and :data:`BLUR_KEYS` with
+        an open ``shutter``.
     Raises:
         ValueError: an unknown scene or builder, or counts out of range.
     """
@@ -159,6 +202,13 @@ def run(repeats: int = 3, sizes=(1_000_000,), resolution=512, builder: str = "hl
             crossover = (_crossover(spps, frames["hlbvh"], frames["native"])
                          if "native" in renderers else None)
             instances = sum(is_instance(s) for s in scene.shapes())
+            blurred = error = None
+            if shutter is not None and shutter[1] > shutter[0]:
+                ways = blur_renderers(animation, resolution, shutter, motion_keys, sub_frames,
+                                      max_depth, builder, kind, native)
+                blurred = blur_runs(ways, spps, repeats)
+                if equal_error:
+                    error = time_to_equal_error(ways)
             for spp in spps:
                 ours, native = frames["hlbvh"][spp], frames["native"][spp]
                 rows.append({
@@ -183,7 +233,183 @@ def run(repeats: int = 3, sizes=(1_000_000,), resolution=512, builder: str = "hl
                     "native_motion_overhead": _overhead(native["median_ms"], native),
                     "moving_accel": ours["moving_accel"],
                 })
+                if blurred is not None:
+                    rows[-1].update(blur_row(blurred, spp, shutter, motion_keys, sub_frames))
+                if error is not None:
+                    rows[-1]["equal_error"] = error
     return rows
+
+
+def blur_renderers(animation, resolution, shutter, motion_keys: int, sub_frames: int,
+                   max_depth: int = 8, builder: str = "hlbvh", integrator: str = "path",
+                   native: bool = True) -> dict:
+    """``{way: FrameRenderer}`` of :data:`BLUR_WAYS` (``native sub-frames`` left out
+    where native refuses the scene or is not asked for)."""
+    base = dict(resolution=tuple(resolution), max_depth=max_depth, integrator=integrator,
+                build_options={"builder": builder})
+    blur = dict(shutter=tuple(shutter), motion_keys=motion_keys, sub_frames=sub_frames)
+    settings = {
+        "ours blurred": RenderSettings(**base, **blur, moving_accel="hlbvh"),
+        "ours sub-frames": RenderSettings(**base, **blur, moving_accel="hlbvh"),
+        "native sub-frames": RenderSettings(**base, **blur, accel="native"),
+        "ours still": RenderSettings(**base),
+    }
+    renderers = {}
+    for way in BLUR_WAYS:
+        if way == "native sub-frames" and not native:
+            continue
+        try:
+            renderers[way] = FrameRenderer(animation, settings[way])
+        except UserError:
+            if way != "native sub-frames":
+                raise
+    return renderers
+
+
+def _blur_frame(renderer, way: str, i: int, spp: int):
+    """``(ms, image)``: frame ``i`` rendered the way ``way`` renders it, timed whole."""
+    if way == "ours sub-frames":
+        ms, image = timed(lambda: renderer.accumulated(i, renderer.settings.seed + i, spp))
+    else:
+        ms, (image, _) = timed(lambda: renderer.render(i, spp=spp))
+    dr.eval(image)
+    return ms, image
+
+
+def blur_runs(renderers: dict, spps, repeats: int, first: int = 0) -> dict:
+    """``{"times": {spp: {way: [ms, ...]}}, "keyed_memory_ratio", "keyed_degradation"}``:
+    each way of ``renderers`` timed on ``repeats`` warm frames per spp (after one that
+    compiles), frames ``first ..``, the ways taking turns frame by frame."""
+    times = {spp: {way: [] for way in renderers} for spp in spps}
+    frame = first
+    for spp in spps:
+        for k in range(repeats + 1):
+            for way, renderer in renderers.items():
+                ms, _ = _blur_frame(renderer, way, frame, spp)
+                if k:  # the first frame compiles
+                    times[spp][way].append(ms)
+            frame += 1
+    group = renderers["ours blurred"].integrator.scene_accel.dynamic
+    ratio = degradation = None
+    if group.keyed is not None:
+        keyed = dr.width(group.keyed.records) + dr.width(group.key_points)
+        ratio = keyed / dr.width(packed_records(group.keyed.bvh)[0])
+        degradation = group.keyed.degradation
+    return {"times": times, "keyed_memory_ratio": ratio, "keyed_degradation": degradation}
+
+
+def blur_row(blurred: dict, spp: int, shutter, motion_keys: int, sub_frames: int) -> dict:
+    """The :data:`BLUR_KEYS` of one spp's row."""
+    times = blurred["times"][spp]
+    median = {way: statistics.median(ms) if ms else None
+              for way, ms in ((w, times.get(w)) for w in BLUR_WAYS)}
+    ours = median["ours blurred"]
+
+    def over(way):
+        return None if median[way] is None else median[way] / ours
+
+    return {
+        "shutter": list(shutter), "motion_keys": motion_keys, "sub_frames": sub_frames,
+        "blurred_min_ms": min(times["ours blurred"]), "blurred_median_ms": ours,
+        "own_sub_frames_median_ms": median["ours sub-frames"],
+        "native_sub_frames_median_ms": median["native sub-frames"],
+        "still_median_ms": median["ours still"],
+        "native_sub_over_blurred": over("native sub-frames"),
+        "own_sub_over_blurred": over("ours sub-frames"),
+        "blur_overhead": ours / median["ours still"],
+        "keyed_memory_ratio": blurred["keyed_memory_ratio"],
+        "keyed_degradation": blurred["keyed_degradation"],
+    }
+
+
+#: :func:`time_to_equal_error`'s defaults: our blurred frame's spp levels, native's
+#: accumulation's (over its sub-frames, at least one sample each), and the reference's
+#: spp (two renders of half of it).
+ERROR_SPPS = (4, 16, 64)
+NATIVE_ERROR_SPPS = (16, 32, 64)
+REFERENCE_SPP = 256
+
+
+def time_to_equal_error(renderers: dict, frame: int = 0, spps=ERROR_SPPS,
+                native_spps=NATIVE_ERROR_SPPS, reference_spp: int = REFERENCE_SPP) -> dict:
+    """Time to equal error against a high-spp reference, for our blurred frame and
+    native's sub-frame accumulation, on frame ``frame``.
+
+    The reference is our blurred frame at ``reference_spp`` (two renders of half of it,
+    other seeds): of the two estimators of the same image it is the one that converges
+    to the shutter's time integral itself (native's ``K`` sub-frames converge to the
+    mean of ``K`` instants, a strobed image whose difference is a floor on its error),
+    and at ``reference_spp`` it costs seconds where native's would cost minutes of
+    rebuilds. The reference's own noise is taken out of each RMSE: the squared RMSE of
+    an image against the reference, less the reference's variance (a quarter of the
+    mean squared difference of its two halves), is the image's own squared error.
+
+    For each method and spp level: the whole frame's time and the RMSE (over pixels and
+    R, G, B). Each method's time to reach a common RMSE is interpolated on log-log axes
+    between its two levels around it (extrapolated from its two nearest where it never
+    reached it: ``extrapolated`` says so); the common RMSE is the geometric mean of the
+    range both methods' levels span (where they overlap; else the lower of the two
+    methods' least RMSEs).
+
+    Returns:
+        ``{"reference_spp", "reference_noise_rmse", "levels": {way: [{"spp", "ms",
+        "rmse"}, ...]}, "target_rmse", "time_ms": {way: ms}, "extrapolated": {way: bool},
+        "native_over_ours"}`` (native's entries absent where it is not in ``renderers``).
+    """
+    ours = renderers["ours blurred"]
+    base = ours.settings
+    halves = []
+    for seed in (base.seed + 1_000_003, base.seed + 2_000_003):  # other seeds than the levels'
+        ours.settings = dataclasses.replace(base, seed=seed)
+        halves.append(np.asarray(_blur_frame(ours, "ours blurred", frame, reference_spp // 2)[1],
+                                 np.float64)[..., :3])
+    ours.settings = base
+    reference = 0.5 * (halves[0] + halves[1])
+    noise = 0.25 * float(np.mean((halves[0] - halves[1]) ** 2))
+    levels = {}
+    for way, spp_levels in (("ours blurred", spps), ("native sub-frames", native_spps)):
+        if way not in renderers:
+            continue
+        _blur_frame(renderers[way], way, frame, spp_levels[0])  # compiles
+        levels[way] = []
+        for spp in spp_levels:
+            ms, image = _blur_frame(renderers[way], way, frame, spp)
+            mse = float(np.mean((np.asarray(image, np.float64)[..., :3] - reference) ** 2))
+            levels[way].append({"spp": spp, "ms": ms,
+                                "rmse": math.sqrt(max(mse - noise, 0.0))})
+    target = _common_rmse([[p["rmse"] for p in points] for points in levels.values()])
+    time_ms, extrapolated = {}, {}
+    for way, points in levels.items():
+        time_ms[way], extrapolated[way] = _time_at(points, target)
+    result = {"reference_spp": reference_spp, "reference_noise_rmse": math.sqrt(noise),
+              "levels": levels, "target_rmse": target, "time_ms": time_ms,
+              "extrapolated": extrapolated}
+    if "native sub-frames" in time_ms:
+        result["native_over_ours"] = time_ms["native sub-frames"] / time_ms["ours blurred"]
+    return result
+
+
+def _common_rmse(per_way: list) -> float:
+    """The RMSE the methods are compared at (see :func:`time_to_equal_error`)."""
+    low = max(min(r) for r in per_way)
+    high = min(max(r) for r in per_way)
+    return math.sqrt(low * high) if low <= high else min(min(r) for r in per_way)
+
+
+def _time_at(points: list, rmse: float) -> tuple[float, bool]:
+    """The time at which a method's RMSE is ``rmse``, interpolated log-log between its
+    levels (by falling RMSE), and whether it had to be extrapolated."""
+    ordered = sorted(points, key=lambda p: -p["rmse"])
+    rmses = [p["rmse"] for p in ordered]
+    inside = rmses[-1] <= rmse <= rmses[0]
+    j = next((k for k in range(len(ordered) - 1) if rmses[k + 1] <= rmse), len(ordered) - 2)
+    a, b = ordered[max(j, 0)], ordered[max(j, 0) + 1]
+    if a["rmse"] <= 0 or b["rmse"] <= 0 or a["rmse"] == b["rmse"]:
+        return (a["ms"] if abs(a["rmse"] - rmse) <= abs(b["rmse"] - rmse) else b["ms"]), \
+            not inside
+    slope = (math.log(b["ms"]) - math.log(a["ms"])) / (math.log(b["rmse"]) - math.log(a["rmse"]))
+    return math.exp(math.log(a["ms"]) + slope * (math.log(rmse) - math.log(a["rmse"]))), \
+        not inside
 
 
 #: Keys of :func:`_frame_runs`' result per accelerator and spp.
@@ -435,7 +661,64 @@ def format_table(rows: list[dict]) -> str:
             f"{mi.variant()}, {os.cpu_count()} cores, load average "
             f"{os.getloadavg()[0]:.1f} at the end"
         )
+    lines += blur_table(rows)
     return "\n".join(lines)
+
+
+def blur_table(rows: list[dict]) -> list[str]:
+    """The motion-blur lines of ``rows`` measured with a shutter (none without): per
+    scene and spp, the four ways' median frames and the ratios; then each scene's time
+    to equal error."""
+    blurred = [r for r in rows if r.get("blurred_median_ms") is not None]
+    if not blurred:
+        return []
+    w = max([9] + [len(r["scene"]) for r in blurred])
+    first = blurred[0]
+    head = (f"{'scene':{w}} {'tris':>8} {'spp':>4} | {'blurred':>8} {'own sub':>8} "
+            f"{'nat. sub':>9} {'still':>8} | {'nat/blur':>8} {'own/blur':>8} "
+            f"{'blur/still':>10} | {'memory':>6} {'SAH/still':>9}")
+    lines = ["", f"motion blur (ms a whole frame, median): shutter "
+             f"{first['shutter'][0]:g}:{first['shutter'][1]:g} of a frame, "
+             f"S={first['motion_keys']} key intervals, K={first['sub_frames']} sub-frames",
+             head, "-" * len(head)]
+    for r in blurred:
+        lines.append(
+            f"{r['scene']:{w}} {r['triangles']:>8} {r['spp']:>4} | "
+            f"{r['blurred_median_ms']:8.1f} {_number(r['own_sub_frames_median_ms'], 8)} "
+            f"{_number(r['native_sub_frames_median_ms'], 9)} {r['still_median_ms']:8.1f} | "
+            f"{_ratio(r['native_sub_over_blurred'])} {_ratio(r['own_sub_over_blurred'])} "
+            f"{r['blur_overhead']:10.2f} | {_times(r['keyed_memory_ratio'], 6)} "
+            f"{_times(r['keyed_degradation'], 9)}")
+    lines.append("blurred = ours, each ray at its time through the moving meshes' keys; own "
+                 "sub / nat. sub = the mean of K sub-frames, our accelerator updated / "
+                 "Mitsuba's rebuilt per sub-frame; still = ours, shutter closed. nat/blur, "
+                 "own/blur: > 1, the blurred frame faster. memory = keyed tree and keys over "
+                 "the still tree; SAH/still = the keyed tree's SAH over the shutter over the "
+                 "still tree's at mid-shutter")
+    seen = set()
+    for r in blurred:
+        error = r.get("equal_error")
+        if error is None or r["scene"] in seen:
+            continue
+        seen.add(r["scene"])
+        parts = []
+        for way, points in error["levels"].items():
+            at = ", ".join(f"{p['spp']} spp {p['ms']:.0f} ms RMSE {p['rmse']:.4f}"
+                           for p in points)
+            parts.append(f"  {way}: {at}; RMSE {error['target_rmse']:.4f} in "
+                         f"{error['time_ms'][way]:.0f} ms"
+                         + (" (extrapolated)" if error["extrapolated"][way] else ""))
+        ratio = error.get("native_over_ours")
+        lines += [f"{r['scene']}: time to equal error against our blurred frame at "
+                  f"{error['reference_spp']} spp (its own noise RMSE "
+                  f"{error['reference_noise_rmse']:.4f}, taken out)"
+                  + (f": native's accumulation takes {ratio:.1f}x ours" if ratio else ""),
+                  *parts]
+    return lines
+
+
+def _times(value, width: int) -> str:
+    return f"{'-':>{width}}" if value is None else f"{value:{width - 1}.2f}x"
 
 
 def _slash(*values, digits: int = 1) -> str:
@@ -451,6 +734,22 @@ def _ratio(value) -> str:
     """``nat/ours``, or that there is none (native refused the scene's instances, or
     was not run)."""
     return f"{'no nat.':>8}" if value is None else f"{value:7.2f}x"
+
+
+def blur_options(args) -> dict:
+    """``--shutter``, ``--motion-keys``, ``--sub-frames`` (parsed as ``hlbvh render``
+    parses them: :func:`hlbvh.cli.options.shutter_settings`) and ``--equal-error`` as
+    :func:`run`'s keywords.
+
+    Raises:
+        UserError: a malformed value, or ``--equal-error`` without an open shutter.
+    """
+    fields = shutter_settings(args)
+    if args.equal_error and not (fields.get("shutter") and
+                                 fields["shutter"][1] > fields["shutter"][0]):
+        raise UserError("--equal-error: it times blurred frames; give an open --shutter "
+                        "(0.5, or OPEN:CLOSE) too")
+    return {**fields, **({"equal_error": True} if args.equal_error else {})}
 
 
 def main(argv=None) -> int:
@@ -473,6 +772,12 @@ def main(argv=None) -> int:
     parser.add_argument("--no-native", action="store_true",
                         help="hlbvh's frames alone, the moving meshes traced by our BVH "
                              "(native's render of some instanced scenes takes minutes)")
+    parser.add_argument("--shutter", default=None,
+                        help="motion blur too: a length in frames (0.5) or OPEN:CLOSE")
+    parser.add_argument("--motion-keys", default=None, help="key intervals (with --shutter)")
+    parser.add_argument("--sub-frames", default=None, help="sub-frames (with --shutter)")
+    parser.add_argument("--equal-error", action="store_true",
+                        help="with --shutter: time to equal error against a 256-spp reference")
     parser.add_argument("--json", action="store_true", help="print JSON rows")
     args = parser.parse_args(argv)
     width, _, height = args.resolution.partition("x")
@@ -480,7 +785,7 @@ def main(argv=None) -> int:
                resolution=(int(width), int(height or width)),
                builder=args.builder, scenes=args.scenes.split(","), spps=args.spp,
                drift_frames=args.drift_frames, max_depth=args.max_depth,
-               native=not args.no_native)
+               native=not args.no_native, **blur_options(args))
     print(json.dumps(rows, indent=1) if args.json else format_table(rows))
     return 0
 

@@ -25,25 +25,41 @@ ms/key`` is :func:`~hlbvh.kernels.keyed.keyed_tree`'s time over its key count (a
 and the copy into the keyed layout), beside ``BVH.refit``'s for one pose; ``MB/key`` the
 slots of one key.
 
-Run: ``python -m hlbvh.comparison.bench_keyed [--size N] [--resolution R] [--repeats K]``.
+**Topology A/B** (``--topology-ab SCENE``, :func:`topology_ab`): a procedural scene's
+moving meshes keyed over a wide shutter as a blurred frame keys them, the keyed tree
+built over the mid-shutter pose and over each triangle's box over the shutter
+(:func:`hlbvh.kernels.keyed.build_keyed`'s ``"mid"`` and ``"union"``), each tree's SAH
+over the shutter beside its closest- and any-hit time on the same rays (the scene's
+camera rays through every pixel, then a cosine bounce from each primary hit, each at a
+uniform random time), the trees taking turns on every repeat: which topology traces
+faster, and whether the SAH over the shutter says so (docs/decisions.md#keyed-topology).
+
+Run: ``python -m hlbvh.comparison.bench_keyed [--size N] [--resolution R] [--repeats K]``,
+or ``python -m hlbvh.comparison.bench_keyed --topology-ab cloth [--shutter 1]
+[--triangles N] [--resolution WxH] [--motion-keys S]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
 import time
 
 import drjit as dr
 import mitsuba as mi
 
 import hlbvh
-from hlbvh.comparison.bench_trace import _grid_sensor, displaced_grid, mesh_scene, primary_rays
+from hlbvh import scenes
+from hlbvh.comparison.bench_trace import (_grid_sensor, displaced_grid, mesh_scene,
+                                          primary_rays, secondary_rays)
 from hlbvh.comparison.machine import cpu_model
-from hlbvh.kernels.keyed import keyed_tree
+from hlbvh.kernels.keyed import build_keyed, keyed_tree
 from hlbvh.kernels.packing import packed_records
 from hlbvh.kernels.slots import SLOT
 from hlbvh.kernels.traversal import any_hit, closest_hit, steps
+from hlbvh.render.frame import FrameRenderer
+from hlbvh.render.settings import RenderSettings
 from hlbvh.timing import timed_cpu
 
 
@@ -122,6 +138,68 @@ def run(size: int = 1_000_000, resolution: int = 512, repeats: int = 7, leaf_siz
             "cpu": cpu_model(), "rows": rows}
 
 
+def topology_ab(scene: str, triangles: int = 1_000_000, shutter: float = 1.0,
+                motion_keys: int = 1, resolution: tuple = (480, 270), repeats: int = 5) -> dict:
+    """The keyed tree of ``scene``'s moving meshes over a shutter of ``shutter`` frames
+    around frame 1, built over the mid-shutter pose and over the triangles' boxes over
+    the shutter, traced on the same rays in turn; see the module docstring."""
+    animation = scenes.get(scene, triangles=triangles, frames=3)
+    renderer = FrameRenderer(animation, RenderSettings(
+        resolution=resolution, spp=1, shutter=(-shutter / 2, shutter / 2),
+        motion_keys=motion_keys, moving_accel="hlbvh"))
+    renderer.render(1)  # keys the moving meshes as a blurred frame does
+    group = renderer.integrator.scene_accel.dynamic
+    size = dr.width(group.key_points) // group.keyed.keys
+    points = [dr.gather(mi.Float, group.key_points, dr.arange(mi.UInt32, size) + k * size)
+              for k in range(group.keyed.keys)]
+    faces = group.geometry.faces
+    primary = primary_rays(renderer.scene)
+    rays = [primary, secondary_rays(renderer.scene, primary)]
+    o, d = (mi.Vector3f(*(dr.concat([getattr(r, f)[c] for r in rays]) for c in range(3)))
+            for f in ("o", "d"))
+    maxt = dr.concat([r.maxt for r in rays])
+    n = dr.width(o)
+    time_ = mi.PCG32(n, 11).next_float32()
+    dr.eval(o, d, maxt, time_)
+    trees = {t: build_keyed(points, faces, topology=t, config=group.bvh.config)
+             for t in ("mid", "union")}
+    rows = []
+    for query, fn in (("closest", closest_hit), ("any", any_hit)):
+        calls = {t: (lambda tree=tree: fn(tree, o, d, maxt, time=time_))
+                 for t, tree in trees.items()}
+        for call in calls.values():
+            _run(call)  # compile
+        best = {t: (math.inf, math.inf) for t in calls}
+        for _ in range(repeats):  # in turn: both see the same load
+            for t, call in calls.items():
+                best[t] = tuple(map(min, best[t], _run(call)))
+        for t, tree in trees.items():
+            count = steps(tree, o, d, maxt, any_hit=query == "any", time=time_)
+            rows.append({"query": query, "topology": t, "sah": tree.sah,
+                         "degradation": tree.degradation,
+                         "ns_per_ray": 1e6 * best[t][0] / n,
+                         "cpu_ns_per_ray": 1e6 * best[t][1] / n,
+                         "cpu_vs_mid": best[t][1] / best["mid"][1],
+                         "steps": dr.mean(mi.Float(count))[0]})
+    return {"scene": scene, "triangles": len(faces) // 3, "rays": n, "shutter": shutter,
+            "motion_keys": motion_keys, "cpu": cpu_model(), "rows": rows,
+            "load": os.getloadavg()[0]}
+
+
+def format_topology_ab(result: dict) -> str:
+    lines = ["| query | topology | SAH over shutter | / still SAH at mid | ns/ray (wall) | "
+             "CPU ns/ray | CPU / mid | steps/ray |", "|---|---|---|---|---|---|---|---|"]
+    for r in result["rows"]:
+        lines.append(f"| {r['query']} | {r['topology']} | {r['sah']:.3f} | "
+                     f"{r['degradation']:.3f} | {r['ns_per_ray']:.0f} | "
+                     f"{r['cpu_ns_per_ray']:.0f} | {r['cpu_vs_mid']:.2f}× | {r['steps']:.1f} |")
+    lines.append(f"\n{result['scene']}: {result['triangles']} moving triangles, shutter "
+                 f"{result['shutter']} frame, S={result['motion_keys']}, {result['rays']} rays "
+                 f"(camera and one bounce); {result['cpu']}; load average "
+                 f"{result['load']:.1f}")
+    return "\n".join(lines)
+
+
 def format_table(result: dict) -> str:
     lines = ["| query | tree | ns/ray (wall) | / still | CPU ns/ray | / still | steps/ray "
              "| keying ms/key (wall / CPU) | MB/key |", "|---|---|---|---|---|---|---|---|---|"]
@@ -145,10 +223,22 @@ def main(argv=None) -> int:
     parser.add_argument("--resolution", type=int, default=512)
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--amplitude", type=float, default=0.05)
+    parser.add_argument("--topology-ab", metavar="SCENE", default=None,
+                        help="the mid-shutter against the union-box topology on SCENE")
+    parser.add_argument("--triangles", type=int, default=1_000_000)
+    parser.add_argument("--shutter", type=float, default=1.0, help="frames, centred")
+    parser.add_argument("--motion-keys", type=int, default=1)
+    parser.add_argument("--frame-resolution", default="480x270", help="WxH (--topology-ab)")
     args = parser.parse_args(argv)
     start = time.perf_counter()
-    print(format_table(run(args.size, args.resolution, args.repeats,
-                           amplitude=args.amplitude)))
+    if args.topology_ab:
+        width, height = (int(v) for v in args.frame_resolution.split("x"))
+        print(format_topology_ab(topology_ab(args.topology_ab, args.triangles, args.shutter,
+                                             args.motion_keys, (width, height),
+                                             args.repeats)))
+    else:
+        print(format_table(run(args.size, args.resolution, args.repeats,
+                               amplitude=args.amplitude)))
     print(f"({time.perf_counter() - start:.0f} s)")
     return 0
 

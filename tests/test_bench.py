@@ -328,3 +328,74 @@ def test07c_bench_frame_renders_every_scene_with_the_integrator_asked(capsys, mo
                         (["build", "--integrator", "direct"], "bench frame")):
         status, _, errors = run_cli(capsys, "bench", *argv)
         assert status == 2 and len(errors) == 1 and named in errors[0]
+
+
+# ---------------------------------------------------------------------------------------
+# bench frame --shutter: motion blur
+# ---------------------------------------------------------------------------------------
+
+
+def test10_bench_frame_with_a_shutter_times_a_blurred_frame_four_ways(capsys, monkeypatch):
+    """``--shutter`` (parsed as ``hlbvh render`` parses it) adds, per scene and spp, our
+    blurred frame, our own and native's sub-frame accumulations and our still frame,
+    their ratios, the keyed trees' memory and SAH over the shutter, in the JSON rows and
+    in a table of their own; ``--motion-keys``/``--sub-frames`` reach them; the flags on
+    another suite, or ``--equal-error`` with a closed shutter, are one line."""
+    seen = {}
+    real = bench_frame.run
+
+    def small(**kwargs):
+        seen.update(kwargs)
+        return real(scenes=("twist",), spps=(2,), drift_frames=2, **kwargs)
+
+    monkeypatch.setattr(bench_frame, "run", small)
+    status, text, errors = run_cli(capsys, "bench", "frame", "--sizes", "600", "--repeats",
+                                   "1", "--resolution", "8", "--shutter=-0.5:0.5",
+                                   "--motion-keys", "2", "--sub-frames", "2", "--json")
+    assert status == 0 and not errors
+    assert seen["shutter"] == (-0.5, 0.5) and seen["motion_keys"] == 2 \
+        and seen["sub_frames"] == 2
+    [row] = strict_json(text)
+    assert set(row) == set(bench_frame.ROW_KEYS) | set(bench_frame.BLUR_KEYS)
+    assert row["shutter"] == [-0.5, 0.5] and row["motion_keys"] == 2 and row["sub_frames"] == 2
+    for key in ("blurred_median_ms", "own_sub_frames_median_ms", "native_sub_frames_median_ms",
+                "still_median_ms", "native_sub_over_blurred", "own_sub_over_blurred",
+                "blur_overhead", "keyed_degradation"):
+        assert positive(row[key]), key
+    # three keys' slots and positions over one pose's slots
+    assert 3 <= row["keyed_memory_ratio"] < 6
+    table = bench_frame.format_table([row])
+    blur = table[table.index("motion blur"):].splitlines()
+    assert "shutter -0.5:0.5 of a frame, S=2 key intervals, K=2 sub-frames" in blur[0]
+    assert blur[1].split()[:9] == ["scene", "tris", "spp", "|", "blurred", "own", "sub",
+                                   "nat.", "sub"]
+    cells = blur[3].split()
+    assert cells[0] == "twist" and cells[2] == "2"
+    for argv, named in ((["build", "--shutter", "0.5"], "bench frame"),
+                        (["frame", "--shutter", "1:0"], "--shutter '1:0'"),
+                        (["frame", "--motion-keys", "2"], "--motion-keys 2"),
+                        (["frame", "--equal-error"], "--equal-error")):
+        status, _, errors = run_cli(capsys, "bench", *argv)
+        assert status == 2 and len(errors) == 1 and named in errors[0], errors
+
+
+def test11_time_to_equal_error_interpolates_each_methods_time_at_one_rmse():
+    """Our blurred frame and native's accumulation at a few spp against our blurred
+    frame at a high spp (its own noise taken out): each RMSE falls as its spp rises,
+    and each method's time at the common RMSE lies on its log-log line."""
+    animation = scenes.get("twist", triangles=600, frames=2)
+    ways = bench_frame.blur_renderers(animation, (12, 8), (-0.5, 0.5), 1, 2, max_depth=2)
+    result = bench_frame.time_to_equal_error(ways, spps=(1, 4, 16), native_spps=(2, 8, 32),
+                                             reference_spp=256)
+    assert set(result["levels"]) == {"ours blurred", "native sub-frames"}
+    for points in result["levels"].values():
+        rmse = [p["rmse"] for p in points]
+        assert rmse[0] > rmse[-1] > 0 and all(positive(p["ms"]) for p in points)
+    assert positive(result["target_rmse"]) and positive(result["native_over_ours"])
+    assert 0 < result["reference_noise_rmse"] < result["levels"]["ours blurred"][-1]["rmse"]
+    # the interpolation of hand-made points: time 10 ms at RMSE 0.1, 40 ms at 0.05
+    points = [{"ms": 10.0, "rmse": 0.1}, {"ms": 40.0, "rmse": 0.05}]
+    assert bench_frame._time_at(points, 0.05 * 2 ** 0.5) == (pytest.approx(20.0), False)
+    assert bench_frame._time_at(points, 0.025) == (pytest.approx(160.0), True)
+    assert bench_frame._common_rmse([[0.1, 0.05], [0.08, 0.02]]) == pytest.approx(
+        (0.05 * 0.08) ** 0.5)
