@@ -15,6 +15,7 @@ from hlbvh import scenes
 from hlbvh.accel import moving
 from hlbvh.accel.choice import CostModel, RayBudget, queries_per_sample
 from hlbvh.accel.moving import native_moving_possible
+from hlbvh.accel.preparation import PROBE_RUN, query_ns, render_sample, time_structures
 from hlbvh.scenes.animated import apply_frame
 
 #: The native moving group needs a second Mitsuba scene in a kernel (not on OptiX).
@@ -109,12 +110,11 @@ def test05c_the_probe_traces_runs_of_neighbouring_pixels_as_a_render_does():
     trace neighbouring pixels; rays through random pixels made our traversal look two
     to four times dearer than in the renders): neighbouring rays of a run are about a
     pixel apart. The timing's half keeps whole runs."""
-    from hlbvh.integrators.common import PROBE_RUN, probe
     animation, scene = _world()
     accel = hlbvh.SceneAccel(scene, moving=["flag"])
     sensor = scene.sensors()[0]
     n = 4 * PROBE_RUN
-    rays = probe(accel, sensor, n=n).rays
+    rays = render_sample(accel, sensor, n=n).rays
     d = np.array(rays.d).T[:n]
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     width = int(sensor.film().size()[0])
@@ -123,7 +123,7 @@ def test05c_the_probe_traces_runs_of_neighbouring_pixels_as_a_render_does():
     angles = np.arccos(np.clip((runs[:, 1:] * runs[:, :-1]).sum(-1), -1, 1))
     assert np.median(angles) < 2.5 * fov / width  # random pixels: ~fov/3 apart
     seen = []
-    moving.query_ns(lambda r: seen.append(np.array(r.d).T) or accel.ray_intersect_preliminary(r),
+    query_ns(lambda r: seen.append(np.array(r.d).T) or accel.ray_intersect_preliminary(r),
                     rays, run=PROBE_RUN)
     halves = [x for x in seen if len(x) == n]  # 2n rays in all: the half is n
     assert halves and np.array_equal(halves[0][:PROBE_RUN], np.array(rays.d).T[:PROBE_RUN])
@@ -162,7 +162,7 @@ def _world_and_native():
 def _inject(accel):
     """The test's costs in place of measured ones (no probe, updates not recorded)."""
     accel.moving_meshes.costs = _costs(UPDATE, QUERY)
-    accel.costs.record_update = lambda structure, ms: None
+    accel.moving_meshes.costs.record_update = lambda structure, ms: None
     accel.moving_meshes.probed = True
 
 
@@ -228,16 +228,15 @@ def test06b_our_update_cost_is_a_frames_refit_not_the_first_build(update):
     built, build_ms = group.last, group.last.ms
     arrays = {k: np.array(getattr(group.bvh, k)) for k in ("node_min", "node_max", "prim_ids")}
     sensor = scene.sensors()[0]
-    from hlbvh.integrators.common import PROBE_RUN, probe
-    accel.probe(probe(accel, sensor))
+    time_structures(accel, render_sample(accel, sensor))
     assert group.last is built and group.bvh is not None
     for name, before in arrays.items():
         assert np.array_equal(np.array(getattr(group.bvh, name)), before)
     if update == "rebuild":
-        assert group.refits == 0 and accel.costs.update_ms["hlbvh"] == build_ms
+        assert group.refits == 0 and accel.moving_meshes.costs.update_ms["hlbvh"] == build_ms
     else:
         assert group.refits == moving.MEASURED_REFITS
-        assert accel.costs.update_ms["hlbvh"] != build_ms
+        assert accel.moving_meshes.costs.update_ms["hlbvh"] != build_ms
         apply_frame(scene, hlbvh.traverse(scene), animation.frame(1))
         assert accel.update().last_update["groups"]["dynamic"]["decision"] == "refit"
 
@@ -444,7 +443,8 @@ def test13_the_whole_scene_after_the_native_group_sees_every_motion():
     integrator = scene.integrator()
     accel = integrator.update_accel(scene, spp=1)
     _inject(accel)
-    accel.costs.update_ms["scene"] = 300.0  # the whole scene wins at a large budget only
+    # the whole scene wins at a large budget only
+    accel.moving_meshes.costs.update_ms["scene"] = 300.0
     chosen, written = [], None
     # frame 3 again at a final frame's budget: no write since the native group's build
     for frame, spp in ((2, 512), (3, 512), (3, 1_000_000), (4, 1_000_000)):
@@ -507,7 +507,7 @@ def test14_the_whole_scene_sees_motion_whatever_another_scene_built(other):
         np.testing.assert_array_equal(np.array(mi.render(a, seed=frame)),
                                       np.array(mi.render(reference, seed=frame)))
     assert a.integrator().scene_accel.moving_structure == "scene"
-    assert b.integrator().scene_accel.costs.update_ms.get("native") is not None
+    assert b.integrator().scene_accel.moving_meshes.costs.update_ms.get("native") is not None
 
 
 @needs_native_moving

@@ -78,7 +78,7 @@ _NEW = 0.5
 
 @dataclass(frozen=True)
 class Probe:
-    """A sample of a render's own rays (:func:`hlbvh.integrators.common.probe`):
+    """A sample of a render's own rays (:func:`hlbvh.accel.preparation.render_sample`):
     ``rays`` (camera rays, then as many bounces), and the fractions of its camera rays
     and of its bounces that met a surface."""
 

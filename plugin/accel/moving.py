@@ -13,7 +13,6 @@ from hlbvh.accel.choice import STRUCTURES, CostModel, RayBudget
 from hlbvh.accel.groups import Change
 from hlbvh.accel.mesh_group import MeshGroup
 from hlbvh.accel.native_group import NativeGroup
-from hlbvh.timing import clock_ms
 
 
 #: Refits :meth:`MovingMeshes.measure_ours` makes to time one as a frame makes it.
@@ -222,32 +221,6 @@ def native_moving_possible() -> bool:
     still world's: a kernel traces one OptiX scene at most (Dr.Jit disables the queries
     of a second, leaving rays unanswered), so not on CUDA; Embree takes any number."""
     return dr.backend_v(mi.Float) != dr.JitBackend.CUDA
-
-
-def query_ns(query, ray, run: int = 64) -> float:
-    """Nanoseconds a closest-hit ``query(ray)`` costs per ray, without the launch's
-    fixed cost: the slope between the whole of ``ray`` and its half (every other block
-    of ``run`` consecutive rays, so rays traced side by side stay side by side), each
-    the fastest of two runs after one that may compile (the device synchronised); the
-    mean over the whole where noise makes the slope meaningless."""
-    n = dr.width(ray)
-    run = max(min(run, n // 2), 1)
-    i = dr.arange(mi.UInt32, (n // (2 * run)) * run)
-    half = dr.gather(type(ray), ray, (i // run) * (2 * run) + i % run)
-
-    def fastest(r) -> float:
-        best = float("inf")
-        for _ in range(2):
-            start = clock_ms()
-            pi = query(r)
-            dr.eval(pi.t, pi.prim_index, pi.shape_index)
-            best = min(best, clock_ms() - start)
-        return best
-
-    fastest(half)  # compiles what the runs below launch
-    whole, part = fastest(ray), fastest(half)
-    slope = (whole - part) * 1e6 / max(n - dr.width(half), 1)
-    return slope if slope > 0 else whole * 1e6 / max(n, 1)
 
 
 def still_share(shapes, moving: tuple) -> float:

@@ -33,7 +33,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from hlbvh.accel.choice import CostModel, Probe, RayBudget
+from hlbvh.accel.choice import RayBudget
 from hlbvh.accel.hits import NearestHit
 from hlbvh.accel.instance_group import InstanceGroup, group_of
 from hlbvh.accel.instance_shading import InstanceShading, is_instance
@@ -41,10 +41,11 @@ from hlbvh.accel.mesh_group import MeshGroup, joined_sah_cost
 from hlbvh.accel.keyed_shading import at_ray_time, shutter_points
 from hlbvh.accel.keys import motion_keys
 from hlbvh.accel.motion import MeshState, shape_states
-from hlbvh.accel.moving import MovingMeshes, query_ns, still_share
+from hlbvh.accel.moving import MovingMeshes, still_share
 from hlbvh.accel.groups import Change
 from hlbvh.accel.native_group import NativeGroup, shape_groups
 from hlbvh.accel.policy import ACCELS, DECISIONS, UpdatePolicy, split_options
+from hlbvh.accel.preparation import Prepared, rebuild_scene, render_sample, time_structures
 from hlbvh.accel.queries import NativeAccel, SceneQueries, checked_scene
 from hlbvh.accel.scene_geometry import (declared_indices, describe_shape, scene_shapes,
                                         unmovable_error)
@@ -89,8 +90,8 @@ class SceneAccel(SceneQueries):
         moving_structure: what traces the moving meshes now: ``"hlbvh"`` (:attr:`dynamic`),
             ``"native"`` (:attr:`native_moving`) or ``"scene"`` (the whole scene through
             Mitsuba's own accelerator, which the integrator then queries instead of this
-            object); forced by ``moving_accel`` or chosen per render by :meth:`plan`.
-        costs: the :class:`hlbvh.accel.choice.CostModel` that chooses it.
+            object); forced by ``moving_accel`` or chosen per render by :meth:`prepare`.
+        prepared: what the last :meth:`prepare` did (:class:`Prepared`; None before one).
         instances: the moving instances' :class:`InstanceGroup` (``static="native"``;
             None with ``"hlbvh"``).
         last_update: what the last :meth:`update` (or the construction) did:
@@ -102,7 +103,7 @@ class SceneAccel(SceneQueries):
             triangles in our BVHs), ``moving`` (ids of the moving shapes), and
             ``groups``: ``{"static": ..., "dynamic": ..., "native_moving": ...}``, each
             group's ``last``; ``moving_accel``: ``chosen`` (:attr:`moving_structure`),
-            ``estimates_ms`` (each structure's estimated frame at the last :meth:`plan`,
+            ``estimates_ms`` (each structure's estimated frame at the last choice,
             None before one), ``update_ms`` and ``query_ns`` (the measured costs) and
             ``queries_per_sample``.
     """
@@ -111,6 +112,7 @@ class SceneAccel(SceneQueries):
 
     def __init__(self, scene, *, policy: UpdatePolicy | None = None,
                  config: BuildConfig | None = None, **options):
+        start = clock_ms()
         checked_scene(scene)
         if policy is None or config is None:
             policy, config = split_options(options)
@@ -148,7 +150,10 @@ class SceneAccel(SceneQueries):
         self._keyed = None  # the group traced at each ray's time (motion keys), if any
         self._keyed_tree = self._keyed_faces = None  # its MeshTree, each shape's first face
         self._structures = []  # what queries ask, in order (hlbvh.accel.structures)
+        self._sample = None  # a render's rays the probe times structures with, made once
+        self.prepared = None
         self.update()
+        self._construction_ms = clock_ms() - start  # counted in the first prepare()
 
     def is_for(self, scene) -> bool:
         """Whether this accelerator was built over ``scene``'s shapes."""
@@ -251,84 +256,80 @@ class SceneAccel(SceneQueries):
         """What traces the moving meshes now (:attr:`MovingMeshes.structure`)."""
         return self.moving_meshes.structure
 
-    @property
-    def costs(self) -> CostModel:
-        """The measured costs that choose it (:attr:`MovingMeshes.costs`)."""
-        return self.moving_meshes.costs
+    def prepare(self, scene, budget: RayBudget, sensor=None) -> Prepared:
+        """Bring the accelerator up to date with ``scene`` (this accelerator's scene) for
+        a render of ``budget`` through ``sensor``, and choose what traces the moving
+        meshes (:mod:`hlbvh.accel.choice`): the one call an integrator makes before a
+        render. In turn: the choice by the costs measured so far and the update that
+        follows it (the construction's own update, for the first call); the probe, while
+        the choice has structures left to time (:func:`time_structures`, over a sample
+        of ``sensor``'s rays made once, :func:`render_sample`); the choice again, and
+        the newly chosen structure's catch-up update; the whole scene's rebuild when it
+        traces the moving meshes and missed motion (:func:`rebuild_scene`). Returns the
+        record, also kept in :attr:`prepared`.
 
-    def plan(self, budget: RayBudget, probe: Probe | None = None) -> str:
-        """Choose what traces the moving meshes for a render of ``budget`` (the
-        integrator calls this after :meth:`update`, and updates again when the choice
-        moved), by the measured costs of :mod:`hlbvh.accel.choice`; ``probe`` (a sample
-        of the render's own rays) times each structure's queries when they were not
-        timed yet. Returns :attr:`moving_structure`."""
-        if self.moving_meshes.needs_probe and probe is not None:
-            self.probe(probe)
-        return self.moving_meshes.plan(budget, self.shapes)
+        Raises:
+            ValueError: as :meth:`update`.
+        """
+        start = clock_ms()
+        moving = self.moving_meshes
+        first, self._construction_ms = self._construction_ms, None
+        if first is None:  # (the construction's update chose nothing: it had no budget)
+            moving.plan(budget, self.shapes)
+            self.update()
+        chosen, done = moving.structure, self.last_update
+        probed = moving.needs_probe and sensor is not None and self._current \
+            and self.static.native
+        if probed:
+            if self._sample is None:
+                self._sample = render_sample(self, sensor)
+            time_structures(self, self._sample)
+        if moving.plan(budget, self.shapes) != chosen:
+            self.update()  # the newly chosen structure catches up
+            self._absorb(done)
+        rebuilt = None
+        if moving.structure == "scene" and moving.scene_behind:
+            timed = "scene" not in moving.costs.query_ns and self._sample is not None
+            rebuilt = rebuild_scene(scene, self.shapes, self.moving, moving,
+                                    self._sample.rays if timed else None)
+        decision = self.last_update["decision"]
+        self.prepared = Prepared(
+            ms=(first or 0.0) + clock_ms() - start,
+            decision="native" if rebuilt is not None and decision == "kept" else decision,
+            sah_cost=self.last_update["sah_cost"], traced_by=moving.structure,
+            scene_rebuild_ms=rebuilt, probed=bool(probed))
+        return self.prepared
 
-    def probe(self, probe: Probe):
-        """Time the closest-hit queries of ``probe``'s rays through the still world alone
-        and through it with each structure of the moving meshes (ours and the native
-        sub-scene, each brought up to date first), and record them and the probe's hit
-        fractions in :attr:`costs`."""
-        if not self._current or not self.static.native:
-            return
-        moving, ray = self.moving_meshes, probe.rays
-        costs, current = moving.costs, moving.structure
-        costs.hit_fractions = (probe.camera_hits, probe.bounce_hits)
-        costs.record_build_rate(self.static.build_ms, self.static.triangles)
-        for structure in [s for s in ("hlbvh", "native") if s in moving.allowed()]:
-            moving.structure = structure
-            if structure == "hlbvh":
-                if self.dynamic.bvh is None or moving.behind("hlbvh"):
-                    moving.update_ours(self.shapes, self._states, self._states, [],
-                                       self.config, self.policy)
-                moving.measure_ours(self.shapes, self.config, self.policy)
-            else:
-                moving.update_native(self.shapes)
-            self._join([self.dynamic] if structure == "hlbvh" and self.dynamic.bvh else [])
-            costs.record_queries(structure, query_ns(self.ray_intersect_preliminary, ray))
-        moving.structure = "still"  # neither: the still world alone
-        self._join([])
-        costs.record_queries("still", query_ns(self.ray_intersect_preliminary, ray))
-        moving.structure = current
-        self._join([self.dynamic] if current == "hlbvh" and self.dynamic.bvh else [])
-        moving.probed = True
+    def query_through(self, structure: str):
+        """The closest-hit query (a function of a ray) through the still world and
+        ``structure`` tracing the moving meshes (``"hlbvh"``, ``"native"``; ``"still"``:
+        the still world alone), brought up to date first (ours: built when it has no
+        tree or missed motion, and its refit timed, :meth:`MovingMeshes.measure_ours`),
+        for the probe to time. What traces the moving meshes now is left as it was."""
+        moving = self.moving_meshes
+        if structure == "hlbvh":
+            if self.dynamic.bvh is None or moving.behind("hlbvh"):
+                moving.update_ours(self.shapes, self._states, self._states, [],
+                                   self.config, self.policy)
+            moving.measure_ours(self.shapes, self.config, self.policy)
+        elif structure == "native":
+            moving.update_native(self.shapes)
+        ours = structure == "hlbvh" and self.dynamic.bvh is not None
+        structures = scene_structures(
+            self.static if self.static.native else None, MeshTree.joined_groups([self.dynamic]) if ours else None, None,
+            self.native_moving if structure == "native" else None, self.instances,
+            self._routine_shapes())
+        return lambda ray: self._closest(structures, ray, False, True, (False, 0, 0))
 
     def record_render(self, ms: float, samples: int):
         """A render of ``samples`` samples through :attr:`moving_structure` took ``ms``
         (the integrator times its renders; the costs learn from them)."""
-        self.costs.record_render(self.moving_structure, ms, samples)
+        self.moving_meshes.costs.record_render(self.moving_structure, ms, samples)
 
-    def rebuild_scene(self, scene, rays=None):
-        """Rebuild ``scene``'s own accelerator over its shapes as they are now, for the
-        whole scene to trace the moving meshes (``"scene"``), and record its cost;
-        ``rays``: a probe's rays to time a query through it with, when not timed yet.
-
-        The shapes are told first that they changed, from our own record of motion, not
-        from Mitsuba's marks: any Mitsuba (sub-)scene built over a shape since its last
-        write (the moving meshes' native group, or another scene holding the same mesh)
-        cleared the mark that write left, and the scene would rebuild nothing. At the
-        first rebuild every shape is told (writes made before this accelerator existed
-        are in no record of ours), the moving ones after. A mesh is told its positions
-        and normals changed, so it keeps the normals it was given; telling one costs
-        about a millisecond per million triangles (its box)."""
-        told = (self.moving if self.moving_meshes.scene_rebuilt_once
-                else range(len(self.shapes)))
-        start = clock_ms()
-        for i in told:
-            shape = self.shapes[i]
-            shape.parameters_changed(["vertex_positions", "vertex_normals"]
-                                     if shape.is_mesh() else [])
-        scene.parameters_changed([])
-        ms = clock_ms() - start
-        ns = query_ns(scene.ray_intersect_preliminary, rays) if rays is not None else None
-        self.moving_meshes.scene_rebuilt(ms, ns)
-
-    def absorb(self, earlier: dict):
+    def _absorb(self, earlier: dict):
         """Make :attr:`last_update` tell what ``earlier`` (the update just before it, in
-        the same frame: before :meth:`plan` moved the choice) did too: the most work of
-        both, their time together, and each group's record of the one that did more."""
+        the same preparation: before the choice moved) did too: the most work of both,
+        their time together, and each group's record of the one that did more."""
         now = self.last_update
         rank = DECISIONS.index
         now["decision"] = max(now["decision"], earlier["decision"], key=rank)
@@ -336,17 +337,6 @@ class SceneAccel(SceneQueries):
         for name, group in earlier["groups"].items():
             if rank(group["decision"]) > rank(now["groups"][name]["decision"]):
                 now["groups"][name] = group
-
-    @property
-    def needs_probe(self) -> bool:
-        """Whether :meth:`plan` would still time the structures."""
-        return self.moving_meshes.needs_probe
-
-    @property
-    def scene_behind(self) -> bool:
-        """Whether the scene's own accelerator misses motion since its last rebuild (the
-        ``"scene"`` structure: a rebuild is due before it is queried)."""
-        return self.moving_meshes.scene_behind
 
     def surface_interaction(self, pi, ray, ray_flags=mi.RayFlags.All, active=True):
         """``pi.compute_surface_interaction(ray, ray_flags, active)``; in a scene with
@@ -363,13 +353,22 @@ class SceneAccel(SceneQueries):
 
     def points_over_shutter(self, pi, si, active=True):
         """Where each hit is at the shutter's open and close (a hit on a mesh with
-        motion keys: its barycentric point on the first and the last key's triangle;
-        any other: the hit itself), and the keys' shutter length (1 without keys)."""
+        motion keys: its barycentric point on the first and the last key's triangle; on
+        an instance with keys: its object-space point through the poses there; any
+        other: the hit itself), and the keys' shutter length (1 without keys; the
+        meshes' where both have keys)."""
+        p_open, p_close, length = si.p, si.p, 1.0
+        moved = None if self.shading is None else self.shading.shutter_points(pi, si, active)
+        if moved is not None:
+            ends, on, (open_, close) = moved[:2], moved[2], moved[3]
+            p_open, p_close = (dr.select(on, p, si.p) for p in ends)
+            length = close - open_
         if self._keyed is None:
-            return si.p, si.p, 1.0
-        p_open, p_close, on = shutter_points(pi, self._keyed, self._keyed_faces, active)
+            return p_open, p_close, length
+        ends = shutter_points(pi, self._keyed, self._keyed_faces, active)
         open_, close = self._keyed.shutter
-        return dr.select(on, p_open, si.p), dr.select(on, p_close, si.p), close - open_
+        return (dr.select(ends[2], ends[0], p_open), dr.select(ends[2], ends[1], p_close),
+                close - open_)
 
     def _check_movable(self, i: int):
         """Refuse a change this accelerator cannot follow: a shape that cannot be traced
@@ -473,11 +472,15 @@ class SceneAccel(SceneQueries):
         :meth:`NearestHit.take` breaks them); each looks no further than the nearest
         hit so far (it narrows the ray's ``maxt``, on a copy of the ray)."""
         self._check_current()
+        return self._closest(self._structures, ray, coherent, active, reorder)
+
+    def _closest(self, structures, ray, coherent, active, reorder):
+        """The nearest of ``structures``' closest hits (:meth:`_preliminary`)."""
         n = dr.width(ray)
         active = mi.Bool(active) & dr.full(mi.Bool, True, n)
         hit = NearestHit.none(n)
         ray = mi.Ray3f(ray)
-        for structure in self._structures:
+        for structure in structures:
             structure.closest(ray, active, hit, coherent, reorder)
         return hit.preliminary(active, self.shapes_dr)
 

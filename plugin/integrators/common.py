@@ -14,11 +14,9 @@ import contextlib
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
 from hlbvh.accel import NativeAccel, SceneAccel
-from hlbvh.accel.choice import Probe, RayBudget
-from hlbvh.kernels.arrays import concat
+from hlbvh.accel.choice import RayBudget
 from hlbvh.timing import clock_ms
 from hlbvh.accel.policy import ACCELS, BUILD_OPTIONS, UPDATE_OPTIONS, split_options
 
@@ -65,7 +63,6 @@ class AccelIntegrator(mi.SamplingIntegrator):
         self._policy, self._config = split_options(self.accel_options)  # parsed once
         self._accel = None
         self._budget = None  # the ray budget of the render being prepared (update_accel)
-        self._probe_rays = None  # the rays the accelerator's structures are timed with
         self._rendering = False  # inside render (see render)
         self._updated = False  # inside updated() (see render)
 
@@ -76,32 +73,23 @@ class AccelIntegrator(mi.SamplingIntegrator):
         ``"native"``: a :class:`~hlbvh.NativeAccel`, made per call (it costs nothing,
         and a cached one would keep the scene alive through the scene's reference to
         this integrator). ``"hlbvh"``: a :class:`~hlbvh.SceneAccel`, built on the first
-        call for a scene, built anew for another scene, otherwise updated (only the
-        meshes whose buffers changed; a look at each mesh's buffers when none did), so
-        its ``last_update`` says what this call did. Its :meth:`~SceneAccel.plan` then
-        chooses what traces the moving meshes for this render's ray budget (film,
-        samples, depth); when that is the whole scene (``"scene"``), the scene's own
-        accelerator is rebuilt here if anything moved, and :meth:`accel` hands out the
-        scene's own queries.
+        call for a scene, built anew for another scene, and asked to prepare for this
+        render (:meth:`~SceneAccel.prepare`: only the meshes whose buffers changed
+        updated, a look at each mesh's buffers when none did; what traces the moving
+        meshes chosen for this render's ray budget of film, samples and depth; where
+        that is the whole scene, ``"scene"``, the scene's own accelerator rebuilt if
+        anything moved, and :meth:`accel` hands out the scene's own queries); its
+        ``prepared`` says what this call did.
         """
         if self.accel_name == "native":
             return NativeAccel(scene)
         self._budget = self.ray_budget(scene, sensor, spp)
         if self._accel is None or not self._accel.is_for(scene):
             self._accel = SceneAccel(scene, policy=self._policy, config=self._config)
-            self._probe_rays = None
-        else:
-            self._accel.plan(self._budget)  # by the costs measured so far
-            self._accel.update()
-        accel = self._accel
-        chosen, done = accel.moving_structure, accel.last_update
-        if accel.plan(self._budget, self._probe(scene, sensor)) != chosen:
-            accel.update()  # the newly chosen structure catches up
-            accel.absorb(done)
-        if accel.moving_structure == "scene" and accel.scene_behind:
-            timed_once = "scene" not in accel.costs.query_ns and self._probe_rays is not None
-            accel.rebuild_scene(scene, self._probe_rays.rays if timed_once else None)
-        return accel
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor] if scene.sensors() else None
+        self._accel.prepare(scene, self._budget, sensor)
+        return self._accel
 
     def accel(self, scene):
         """The intersector of ``scene`` as the last :meth:`update_accel` left it (the one
@@ -136,18 +124,6 @@ class AccelIntegrator(mi.SamplingIntegrator):
         depth = getattr(self, "max_depth", 1)
         return RayBudget(samples=int(size[0]) * int(size[1]) * int(spp),
                          depth=-1 if depth >= 0xFFFFFFFF else int(depth))
-
-    def _probe(self, scene, sensor):
-        """A sample of a render's own rays to time each structure with (made once per
-        accelerator, only while the choice has structures left to time): camera rays
-        through runs of neighbouring pixels of ``sensor`` and a bounce from where they
-        land (:func:`probe`)."""
-        if self._probe_rays is None and self._accel.needs_probe:
-            if isinstance(sensor, int):
-                sensor = scene.sensors()[sensor] if scene.sensors() else None
-            if sensor is not None:
-                self._probe_rays = probe(self._accel, sensor)
-        return self._probe_rays
 
     def sample_accel(self, scene):
         """The intersector a ``sample()`` traces: inside this integrator's
@@ -187,7 +163,6 @@ class AccelIntegrator(mi.SamplingIntegrator):
             dr.eval(image)  # what Mitsuba evaluates right after: timed for the choice
             accel.record_render(clock_ms() - start, self._budget.samples)
         return image
-        return image
 
     @contextlib.contextmanager
     def updated(self):
@@ -203,50 +178,6 @@ class AccelIntegrator(mi.SamplingIntegrator):
     def _options_string(self) -> str:
         options = "".join(f", {k}={v!r}" for k, v in self.accel_options.items())
         return f"accel={self.accel_name!r}{options}"
-
-
-#: Camera rays (and as many bounces) a probe of the moving meshes' structures traces:
-#: its query times only seed the choice (the renders decide), so few: 50-60 ms warm on
-#: `world` at 480x270 on 2 EPYC cores, once per accelerator.
-PROBE_RAYS = 4096
-#: Consecutive pixels of a probe's run (a render's lanes are consecutive pixels too).
-PROBE_RUN = 64
-
-
-def probe(accel, sensor, n: int = PROBE_RAYS) -> Probe:
-    """A sample of what a render of ``sensor`` traces, fixed by a seed: ``n`` camera
-    rays in runs of :data:`PROBE_RUN` consecutive pixels (in the film's row order, from
-    random starts; a random position inside each pixel), and from where each lands
-    (through ``accel``) a bounce in a cosine-distributed direction about the surface's
-    normal on the camera's side (a diffuse bounce; a camera ray that missed bounces
-    again from the camera), with the fractions of each that meet a surface. In runs, as
-    a render's lanes are: neighbouring lanes trace neighbouring pixels, and their
-    bounces start near each other. Rays through random pixels made our traversal's
-    packets diverge as no render's do, and put its cost per query at two to four times
-    what the renders showed."""
-    width, height = (int(v) for v in sensor.film().size())
-    run = min(PROBE_RUN, width * height)
-    rng = np.random.default_rng(7)
-    starts = rng.integers(0, width * height - run + 1, max(n // run, 1))
-    pixel = (starts[:, None] + np.arange(run)[None, :]).ravel()
-    n = pixel.size
-    u = rng.random((4, n)).astype(np.float32)
-    film = mi.Point2f(mi.Float(((pixel % width) + u[0]) / width),
-                      mi.Float(((pixel // width) + u[1]) / height))
-    camera, _ = sensor.sample_ray(0.0, 0.5, film, mi.Point2f(0.5, 0.5))
-    si = accel.ray_intersect(camera)
-    local = mi.warp.square_to_cosine_hemisphere(mi.Point2f(mi.Float(u[2]), mi.Float(u[3])))
-    frame = mi.Frame3f(dr.select(dr.dot(si.n, camera.d) > 0, -si.n, si.n))
-    bounce = si.spawn_ray(frame.to_world(local))
-    valid = si.is_valid()
-    origins = dr.select(valid, bounce.o, camera.o)
-    directions = dr.select(valid, bounce.d, camera.d)
-    bounced = accel.ray_intersect_preliminary(mi.Ray3f(origins, directions)).is_valid() & valid
-    rays = mi.Ray3f(mi.Point3f(*[concat([camera.o[k], origins[k]]) for k in range(3)]),
-                    mi.Vector3f(*[concat([camera.d[k], directions[k]]) for k in range(3)]))
-    camera_hits, bounce_hits = dr.count(valid)[0], dr.count(bounced)[0]
-    dr.eval(rays)
-    return Probe(rays, camera_hits / n, bounce_hits / max(camera_hits, 1))
 
 
 #: The largest value of a Mitsuba integer property (``max_depth``, ``rr_depth``): Mitsuba

@@ -13,14 +13,14 @@ import mitsuba as mi
 
 from hlbvh import scenes
 from hlbvh.accel.instance_shading import is_instance
-from hlbvh.accel.keys import set_camera_keys, set_motion_keys
+from hlbvh.accel.keys import set_camera_keys, set_instance_keys, set_motion_keys
 from hlbvh.accel.parameters import traverse
 from hlbvh.accel.policy import UpdatePolicy
 from hlbvh.accel.scene_geometry import ShapeError, scene_shapes
 from hlbvh.errors import UserError
 from hlbvh.render.settings import RenderSettings
 from hlbvh.scenes.animated import FrameSensor
-from hlbvh.timing import clock_ms, timed
+from hlbvh.timing import clock_ms
 
 #: Columns of ``stats.csv``, and keys of every row of ``stats.json``.
 STATS_FIELDS = ("frame", "accel", "triangles", "seed", "geometry_ms", "mitsuba_update_ms",
@@ -153,10 +153,10 @@ class FrameRenderer:
         return image, row
 
     def _key_motion(self, i: int):
-        """Give every animated mesh its positions, and a moving camera its poses, at the
-        shutter's keys around frame ``i`` (:meth:`~hlbvh.scenes.AnimatedScene.frame_at`;
-        ``settings.motion_keys`` intervals), so that our integrators trace each ray at
-        its time."""
+        """Give every animated mesh its positions, every moving instance its transforms,
+        and a moving camera its poses, at the shutter's keys around frame ``i``
+        (:meth:`~hlbvh.scenes.AnimatedScene.frame_at`; ``settings.motion_keys``
+        intervals), so that our integrators trace each ray at its time."""
         open_, close = self.settings.shutter
         count = self.settings.motion_keys
         times = [i + open_ + k * (close - open_) / count for k in range(count + 1)]
@@ -166,6 +166,9 @@ class FrameRenderer:
             if all(isinstance(g, scenes.FrameGeometry) and g.positions is not None
                    and g.faces is None for g in given):
                 set_motion_keys(shape, [mi.Float(g.positions) for g in given], (open_, close))
+            elif all(isinstance(g, scenes.FrameGeometry) and g.to_world is not None
+                     for g in given):
+                set_instance_keys(shape, [g.to_world for g in given], (open_, close))
         for sensor in self.scene.sensors():
             given = [frame.get(sensor.id()) for frame in frames]
             if all(isinstance(g, FrameSensor) for g in given):
@@ -193,15 +196,11 @@ class FrameRenderer:
     def _update_accel(self, spp: int) -> tuple[float, float | None, str, str]:
         """Bring our accelerator up to date with the frame, for a render at ``spp`` (0:
         the scene's), before the render (whose own update then finds nothing changed):
-        (ms, SAH cost, decision, what traced the moving meshes), the last three as the
-        accelerator reports them (``last_update``; the whole scene's rebuild, when it
-        traces them, is in the ms and said ``"native"``)."""
-        ms, accel = timed(self.integrator.update_accel, self.scene, 0, spp)
-        chosen = accel.moving_structure
-        decision = accel.last_update["decision"]
-        if chosen == "scene" and accel.costs.update_ms.get("scene") is not None:
-            decision = "native" if decision == "kept" else decision
-        return ms, accel.last_update["sah_cost"], decision, chosen
+        (ms, SAH cost, decision, what traced the moving meshes) as the accelerator's
+        preparation reports them (:class:`hlbvh.accel.preparation.Prepared`; the whole
+        scene's rebuild, when it traces them, is in the ms and said ``"native"``)."""
+        prepared = self.integrator.update_accel(self.scene, 0, spp).prepared
+        return prepared.ms, prepared.sah_cost, prepared.decision, prepared.traced_by
 
     def triangle_count(self) -> int:
         """Triangles of every mesh of the scene as it is now, an instance's counted as
