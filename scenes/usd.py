@@ -29,7 +29,9 @@ Cameras (``UsdGeom.Camera``)
 Lights (``UsdLux``)
     In UsdLux's units, each type as the nearest Mitsuba emitter (:mod:`.usd_lights`).
 Materials
-    ``UsdPreviewSurface``, else ``displayColor``, else grey (:mod:`.usd_materials`).
+    ``UsdPreviewSurface``, else ``displayColor``, else grey (:mod:`.usd_materials`);
+    a MaterialX-only surface and a referenced ``.mtlx`` file (which usd-core does not
+    read) are said. Every surface renders from both sides, as Storm draws it.
 Point instancers (``UsdGeom.PointInstancer``)
     Each point an instance of its prototype's shape groups (:mod:`.usd_instances`).
 Not supported
@@ -84,7 +86,8 @@ from .usd_prims import (DEFAULT_INTEGRATOR, DEFAULT_SPP, Sdf, UNSUPPORTED, Usd, 
                         _mitsuba_mesh, _open, _print_warning, _root_transform,
                         _unresolved_arcs, _visibility_varies)
 from .usd_skinning import bake_skinning
-from .usd_said import grouped_arcs, nothing_renderable, usd_quiet
+from .usd_said import (grouped_arcs, materialx_arcs, materialx_line,
+                        nothing_renderable, usd_quiet)
 from .usd_time import (MAX_FRAMES, frame_range, sample_times as _sample_times,
                        transform_attributes)
 
@@ -427,12 +430,15 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
     @usd_quiet
     def _collect(self) -> list[str]:
         """Walks the stage once (through instance proxies): meshes, lights, and a
-        warning for each prim that will not render. Returns the prim paths whose
-        reference or payload does not resolve."""
+        warning for each prim that will not render, and one for each MaterialX document
+        usd-core could not read (naming the materials meshes are bound to in it).
+        Returns the prim paths whose reference or payload does not resolve."""
         stats = _Stats()
         time = Usd.TimeCode(self._start)
         cache = UsdGeom.XformCache(time)
-        unresolved = grouped_arcs(_unresolved_arcs(self.stage))
+        self._materialx, arcs = materialx_arcs(_unresolved_arcs(self.stage))
+        self._unbuilt: set[str] = set()  # bound materials that are not on the stage
+        unresolved = grouped_arcs(arcs)
         for path, said in unresolved:
             self._warn(f"{self._where}: {path}: a reference or payload does not resolve "
                        f"({said}); what it would bring is not rendered")
@@ -464,6 +470,9 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             elif kind == "Skeleton" and not self._skinned:
                 self._warn(f"{self._where}: {prim.GetPath()}: UsdSkel skinning is not "
                            f"applied (bake it into points); its meshes render at rest")
+        for who, file in self._materialx.items():
+            self._warn(materialx_line(self._where, who, file, sorted(
+                bound for bound in self._unbuilt if Sdf.Path(bound).HasPrefix(Sdf.Path(who)))))
         for line in stats_lines(stats, self._where):
             self._warn(line)
         return [f"{path} ({said})" for path, said in unresolved]
@@ -491,7 +500,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         path, motion, point_count = read.path, read.motion, len(read.points)
         transform = self._placements.of(prim, cache)
         parts = [(part, chosen, *self._material(
-                    part, read.mesh, read.double_sided, time, point_count,
+                    part, read.mesh, time, point_count,
                     None if read.topology_varies else read.source_faces[chosen]))
                  for part, chosen in self._material_parts(prim, read.mesh, time,
                                                           read.topology_varies,
@@ -514,7 +523,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             prim, read.mesh, time, wanted, point_count, read.corners, read.topology_varies)
         if uv is None:  # no texture coordinates: bitmaps give way to authored values
             parts = [(part, chosen, *self._material(
-                        part, read.mesh, read.double_sided, time, point_count, None,
+                        part, read.mesh, time, point_count, None,
                         textures=False)[:2], attributes, st) if st is not None
                      else (part, chosen, bsdf, emission, attributes, st)
                      for part, chosen, bsdf, emission, attributes, st in parts]

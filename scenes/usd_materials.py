@@ -23,7 +23,11 @@ read: one value, or per point or face a Mitsuba mesh attribute (``vertex_color``
 its mean when it varies (said: Mitsuba's area emitter samples one radiance or a
 texture, not a mesh attribute, and a cutout is not an interpolated opacity). Other
 connected inputs keep their authored value (said once per material, naming them).
-Without a material the ``displayColor`` primvar gives a diffuse colour, else grey.
+Without a material the ``displayColor`` primvar gives a diffuse colour, else grey. So
+does a material whose surface is MaterialX only (``outputs:mtlx:surface``; a material
+with ``outputs:surface`` too renders that UsdPreviewSurface), and a binding to a
+material of a referenced ``.mtlx`` file, which does not compose: usd-core reads no
+MaterialX (said, naming the material and the file).
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ import numpy as np
 
 from .usd_prims import (GREY, PREVIEW_DEFAULTS, UsdGeom, UsdShade, _array, _checked,
                         _connected_shader, _input_value, _interface_value, _local_asset,
-                        _two_sided, _unreadable_image, _written_once)
+                        _unreadable_image, _written_once)
 
 #: UsdPreviewSurface inputs whose ``UsdUVTexture`` becomes a Mitsuba ``bitmap``, and
 #: what each reads of the image (see :func:`_texture_image`).
@@ -129,7 +133,7 @@ class _Materials:
         rest = ~taken[source_faces]
         return ([(prim, rest)] if rest.any() else []) + parts
 
-    def _material(self, prim, mesh, double_sided: bool, time, point_count: int,
+    def _material(self, prim, mesh, time, point_count: int,
                   source_faces, textures: bool = True) -> tuple:
         """``(bsdf, emission, attributes, st)``: the mesh's BSDF dict, its emission
         (``None``: none; an RGB radiance, or a bitmap's dict for a textured
@@ -150,9 +154,20 @@ class _Materials:
         """
         material, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
         shader = None
-        if material:
+        if not material:
+            self._unbuilt.update(_bound_paths(prim))
+        else:
             source = material.ComputeSurfaceSource()
             shader = source[0] if source and source[0] else None
+            materialx = material.GetSurfaceOutput("mtlx")
+            if shader is None and materialx and materialx.HasConnectedSource():
+                kind = _connected_shader(materialx)
+                self._warn_once(f"{self._where}: {material.GetPath()}: its surface is "
+                                f"MaterialX only (outputs:mtlx:surface, "
+                                f"{kind.GetIdAttr().Get() if kind else 'a connection'!s}), "
+                                f"whose definitions (.mtlx) usd-core does not read, and it "
+                                f"has no UsdPreviewSurface (outputs:surface) to fall back "
+                                f"on; its meshes render their displayColor, else grey")
             if shader is not None and shader.GetIdAttr().Get() != "UsdPreviewSurface":
                 self._warn(f"{self._where}: {material.GetPath()}: surface shader "
                            f"{shader.GetIdAttr().Get()!r} is not a UsdPreviewSurface; "
@@ -162,7 +177,7 @@ class _Materials:
             color = self._primvar(prim, mesh, time, point_count, source_faces) or GREY
             reflectance, attributes = _texture_of(color)
             bsdf = {"type": "diffuse", "reflectance": reflectance}
-            return (_two_sided(bsdf) if double_sided else bsdf), None, attributes, None
+            return bsdf, None, attributes, None
         values, connected = {}, []
         for name, default in PREVIEW_DEFAULTS.items():
             shader_input = shader.GetInput(name)
@@ -223,8 +238,6 @@ class _Materials:
                 "metallic": mapped.get("metallic") or min(max(values["metallic"], 0.0), 1.0)}
         if "normal" in mapped:
             bsdf = {"type": "normalmap", "normalmap": mapped["normal"], "bsdf": bsdf}
-        if double_sided:
-            bsdf = _two_sided(bsdf)
         opacity = min(max(values["opacity"], 0.0), 1.0)
         if values["opacityThreshold"] > 0:
             opacity = 1.0 if opacity >= values["opacityThreshold"] else 0.0
@@ -324,6 +337,17 @@ class _Materials:
                    f"{'' if single is None else f' ({single})'}; its mean "
                    f"{_shown(mean)} is used")
         return mean
+
+
+def _bound_paths(prim) -> list[str]:
+    """The material paths ``prim``'s direct ``material:binding``, or the nearest
+    ancestor's, targets (the binding that did not compute a material)."""
+    while prim and not prim.IsPseudoRoot():
+        targets = UsdShade.MaterialBindingAPI(prim).GetDirectBindingRel().GetTargets()
+        if targets:
+            return [str(path) for path in targets]
+        prim = prim.GetParent()
+    return []
 
 
 def _connected_output(shader_input) -> str:

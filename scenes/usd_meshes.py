@@ -10,7 +10,8 @@ through every ancestor's transform at each time code; polygons are triangulated 
 other than ``none`` renders the control cage with smooth vertex normals (said once per
 stage). Authored vertex normals are used on meshes that do not move (a moving mesh's
 normals are recomputed every frame by :func:`hlbvh.scenes.apply_frame`);
-``doubleSided`` wraps the BSDF in ``twosided``.
+every mesh's BSDF is seen from both sides, ``doubleSided`` or not, as Storm draws it
+(:func:`~.usd_prims._two_sided`).
 
 Motion, from the time samples: *deforming* (its points are time-sampled, or moved by
 time-sampled ``velocities``), *rigid* (only a transform, its own or an ancestor's, is),
@@ -52,7 +53,6 @@ class MeshPrim:
     polygon_count: int
     scheme: object  # the subdivision scheme token, or None
     normals: np.ndarray | None  # (V, 3) authored vertex normals
-    double_sided: bool
 
 
 def check_finite(where: str, path, what: str, values: np.ndarray, at: str) -> None:
@@ -152,8 +152,7 @@ def read_mesh(prim, time, where: str, warn, skinned: bool, group_only: bool,
     if scheme not in (None, UsdGeom.Tokens.none):
         stats.subdivided.append(str(path))
     return MeshPrim(mesh, path, motion, topology_varies, points, faces, source_faces,
-                    corners, len(counts), scheme, normals,
-                    bool(mesh.GetDoubleSidedAttr().Get()))
+                    corners, len(counts), scheme, normals)
 
 
 def shading_normals(read: MeshPrim, transform: np.ndarray, instanced: bool,

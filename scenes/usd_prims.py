@@ -419,14 +419,28 @@ def _input_value(shader_input, time):
     return _interface_value(shader_input, time)[1]
 
 def _two_sided(bsdf: dict) -> dict:
+    """``bsdf`` seen from both sides: wrapped in ``twosided``, inside its ``mask``
+    where it has one (``twosided`` takes no BSDF that transmits, and a mask passes
+    light through).
+
+    Every USD surface renders so, ``doubleSided`` or not, as Storm (usdview) draws it:
+    Storm culls no back faces unless its "Cull Backfaces" view setting is on (off by
+    default; UsdGeom's ``doubleSided = false`` only allows a renderer to cull them),
+    and shades a single-sided back face with the material, not black. Mitsuba's BSDFs
+    are one-sided (a back face reflects nothing: the opaque black the single-sided
+    sides of DCC exports rendered as). Storm keeps the front's normal on that back
+    face, lit from the front's side; ``twosided`` lights it from the side it faces."""
+    if bsdf["type"] == "mask":
+        return {**bsdf, "bsdf": _two_sided(bsdf["bsdf"])}
     return {"type": "twosided", "material": bsdf}
 
 def _mitsuba_mesh(mesh: _Mesh, points: np.ndarray, faces: np.ndarray) -> mi.Mesh:
-    """A Mitsuba mesh holding ``points`` (world space) and ``faces``, its BSDF, an area
+    """A Mitsuba mesh holding ``points`` (world space) and ``faces``, its BSDF (seen
+    from both sides, :func:`_two_sided`), an area
     emitter when the material emits, and vertex normals when smooth (authored ones
     where given, else computed bit-reproducibly)."""
     props = mi.Properties()
-    props["bsdf"] = mi.load_dict(mesh.bsdf)
+    props["bsdf"] = mi.load_dict(_two_sided(mesh.bsdf))
     if mesh.emission is not None:
         radiance = mesh.emission if isinstance(mesh.emission, dict) else {
             "type": "rgb", "value": [float(c) for c in mesh.emission]}

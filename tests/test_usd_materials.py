@@ -125,7 +125,9 @@ def test01_an_opacity_texture_cut_by_its_threshold_renders_as_geometry_cut_there
     stage.GetRootLayer().Save()
     cutout, cut = _render(tmp_path / "cutout.usda"), _render(tmp_path / "cut.usda")
     assert cut[:, :8, 1].max() == 0 and cut[:, 8:, 1].min() > 0.99  # the judge itself
-    np.testing.assert_allclose(cutout, cut, atol=1e-3)
+    # The backdrop's specular sees the leaf's back (both sides render): a few
+    # thousandths of interreflection, noise that differs where rays pass the cutout.
+    np.testing.assert_allclose(cutout, cut, atol=5e-3)
 
 
 def test02_partial_opacity_from_an_8_bit_alpha_lets_that_share_through(tmp_path):
@@ -217,3 +219,74 @@ def test05_a_bad_texture_transform_is_one_line_naming_the_shader(tmp_path):
     stage.GetRootLayer().Save()
     with pytest.raises(ValueError, match=r"/Looks/Tiles/Transform: inputs:rotation is nan"):
         UsdScene(tmp_path / "bad.usda", warn=lambda line: None)
+
+
+def _turned(path, degrees):
+    """A quad with a red UsdPreviewSurface, single-sided (doubleSided's fallback),
+    turned ``degrees`` about Y (180: its back toward the camera), under a white dome."""
+    stage = _stage(path)
+    quad = _quad(stage, "/Card")
+    quad.AddRotateYOp().Set(degrees)
+    _material(stage, quad, "/Looks/Card", {"diffuseColor": (0.8, 0.1, 0.1)})
+    UsdLux.DomeLight.Define(stage, "/Sky")
+    stage.GetRootLayer().Save()
+    return path
+
+
+def test06_a_single_sided_quad_seen_from_behind_shows_its_material_as_storm_draws_it(
+        tmp_path):
+    """Storm (usdview's defaults) neither culls a single-sided back face nor draws it
+    black: its back, under a uniform dome, is its front's colour within noise (it
+    rendered black)."""
+    front = _render(_turned(tmp_path / "front.usda", 0.0), spp=64).mean(axis=(0, 1))
+    back = _render(_turned(tmp_path / "back.usda", 180.0), spp=64).mean(axis=(0, 1))
+    assert front[0] > 0.5 and front[1] < 0.2  # the red card fills the view
+    np.testing.assert_allclose(back, front, rtol=0.02)
+
+
+def _materialx_surface(stage, material, colour):
+    """A MaterialX standard surface of base colour ``colour`` on ``material``'s
+    ``outputs:mtlx:surface``, as MaterialX-aware DCCs export it."""
+    shader = UsdShade.Shader.Define(stage, f"{material.GetPath()}/Standard")
+    shader.CreateIdAttr("ND_standard_surface_surfaceshader")
+    shader.CreateInput("base_color", Sdf.ValueTypeNames.Color3f).Set(colour)
+    material.CreateSurfaceOutput("mtlx").ConnectToSource(
+        shader.CreateOutput("out", Sdf.ValueTypeNames.Token))
+
+
+def test07_materialx_falls_back_to_the_preview_surface_else_is_said(tmp_path):
+    """A material with both surfaces renders its UsdPreviewSurface, unsaid; one with
+    only MaterialX's is one line naming it; a reference to a .mtlx file, which usd-core
+    cannot read, is one line naming the file and the material bound in it (not "does
+    not resolve": the file is there)."""
+    (tmp_path / "look.mtlx").write_text('<?xml version="1.0"?>\n<materialx version="1.38">'
+                                        '<surfacematerial name="M_Wood"/></materialx>\n')
+    path = tmp_path / "mtlx.usda"
+    stage = _stage(path)
+    UsdLux.DomeLight.Define(stage, "/Sky")
+    both = _material(stage, _quad(stage, "/Both", -1.0, -0.4), "/Looks/Both",
+                     {"diffuseColor": (0.9, 0.1, 0.1)})
+    _materialx_surface(stage, both, (0.1, 0.9, 0.1))
+    only = UsdShade.Material.Define(stage, "/Looks/Only")
+    _materialx_surface(stage, only, (0.1, 0.1, 0.9))
+    UsdShade.MaterialBindingAPI.Apply(_quad(stage, "/Only", -0.3, 0.3).GetPrim()).Bind(only)
+    stage.DefinePrim("/Wood", "Scope").GetReferences().AddReference(
+        "./look.mtlx", "/MaterialX/Materials")
+    wood = UsdShade.MaterialBindingAPI.Apply(_quad(stage, "/Table", 0.4, 1.0).GetPrim())
+    wood.GetPrim().CreateRelationship("material:binding").SetTargets(["/Wood/M_Wood"])
+    stage.GetRootLayer().Save()
+    said = []
+    animation = UsdScene(path, warn=said.append)
+    meshes = {mesh.id: mesh for mesh in animation._meshes}
+    assert meshes["Both"].bsdf["base_color"]["value"] == pytest.approx([0.9, 0.1, 0.1])
+    assert meshes["Only"].bsdf["reflectance"]["value"] == [0.5, 0.5, 0.5]
+    where = f"stage {str(path)!r}"
+    assert said == [
+        f"{where}: /Looks/Only: its surface is MaterialX only (outputs:mtlx:surface, "
+        f"ND_standard_surface_surfaceshader), whose definitions (.mtlx) usd-core does not "
+        f"read, and it has no UsdPreviewSurface (outputs:surface) to fall back on; its "
+        f"meshes render their displayColor, else grey",
+        f"{where}: /Wood: MaterialX file 'look.mtlx' is not read: usd-core reads no .mtlx "
+        f"(no MaterialX file format in pxr's wheels), so /Wood/M_Wood, bound to meshes, "
+        f"does not exist on the stage and has no UsdPreviewSurface to fall back on; those "
+        f"meshes render their displayColor, else grey"], said
