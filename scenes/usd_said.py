@@ -1,11 +1,14 @@
 """What a USD stage says, said once: USD's own diagnostics (multi-line C++ output on
 stderr) as one warning line per distinct message, and references or payloads that do
-not resolve as one line per missing asset."""
+not resolve as one line per missing asset, MaterialX documents (which usd-core cannot
+read) as one line per file naming the materials bound there."""
 
 from __future__ import annotations
 
 import functools
+import re
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -26,6 +29,33 @@ def grouped_arcs(arcs: list[tuple[str, str]]) -> list[tuple[str, str]]:
         who = paths[0] if len(paths) == 1 else f"{paths[0]} and {len(paths) - 1} other prims"
         result.append((who, said))
     return result
+
+
+def materialx_arcs(arcs: list[tuple[str, str]]) -> tuple[dict[str, str], list]:
+    """``({prim path: .mtlx file}, the other arcs)`` of ``(prim path, what USD said)``
+    arcs: a
+    reference to a MaterialX document that exists does not compose because usd-core
+    (pxr's wheels) has no ``.mtlx`` file format (pxr built without MaterialX), not
+    because the file is missing; it is said as such (:func:`materialx_line`)."""
+    found, others = {}, []
+    for who, said in arcs:
+        match = re.search(r"@([^@]*\.mtlx)@", said)
+        if match and Path(match.group(1)).is_file():
+            found[who] = match.group(1)
+        else:
+            others.append((who, said))
+    return found, others
+
+
+def materialx_line(where: str, who: str, file: str, bound: list[str]) -> str:
+    """The line for a reference (on prim ``who``) to MaterialX document ``file``,
+    naming the materials meshes are bound to under it (``bound``)."""
+    named = (f"{bound[0]}{f' and {len(bound) - 1} more' if len(bound) > 1 else ''}, "
+             f"bound to meshes," if bound else "what it defines")
+    return (f"{where}: {who}: MaterialX file {Path(file).name!r} is not read: usd-core "
+            f"reads no .mtlx (no MaterialX file format in pxr's wheels), so {named} "
+            f"does not exist on the stage and has no UsdPreviewSurface to fall back on; "
+            f"those meshes render their displayColor, else grey")
 
 
 def usd_quiet(method):
