@@ -117,6 +117,25 @@ def apply_bindings(stage, where: str) -> list[str]:
             f"weighted by their skeleton's animation"]
 
 
+def unweighted_lines(stage, where: str) -> list[str]:
+    """One line (naming ``where``, the stage, the first mesh and how many others) for
+    the meshes that author blend shapes (``skel:blendShapes``) with no Skeleton bound
+    to them under a SkelRoot: UsdSkel weighs blend shapes by a bound skeleton's
+    animation (``blendShapeWeights``), so pxr leaves them at rest; none when every
+    such mesh has one. Read after :func:`apply_bindings`, whose schema the inherited
+    binding needs."""
+    meshes = [prim.GetPath() for prim in stage.Traverse() if prim.IsA(UsdGeom.Mesh)
+              and UsdSkel.BindingAPI(prim).GetBlendShapesAttr().HasAuthoredValue()
+              and not (UsdSkel.Root.Find(prim)
+                       and UsdSkel.BindingAPI(prim).GetInheritedSkeleton())]
+    if not meshes:
+        return []
+    others = f" and {len(meshes) - 1} other meshes" if len(meshes) > 1 else ""
+    return [f"{where}: {meshes[0]}{others}: blend shapes (skel:blendShapes) are not "
+            f"applied: UsdSkel weighs them by the animation of a Skeleton bound to the "
+            f"mesh (skel:skeleton) under a SkelRoot, and none is; the rest points render"]
+
+
 def _animation_attributes(stage) -> list:
     """The attributes whose time samples pxr's bake follows: every skeleton
     animation's, and the transforms of the skeletons and skinned meshes."""
@@ -161,15 +180,18 @@ def bake_skinning(stage, first: float, last: float, where: str) -> tuple[bool, l
     Returns:
         ``(baked, lines)``: False when the stage has no skeleton, or this USD build has no
         ``UsdSkelBakeSkinning`` or it fails (the rest points then render, said by the
-        mesh loader); the lines to say (:func:`apply_bindings`, :func:`check_bindings`; pxr's own diagnostics,
+        mesh loader); the lines to say (:func:`apply_bindings`, :func:`unweighted_lines`,
+        :func:`check_bindings`; pxr's own diagnostics,
         once each, those on joint indices left to :func:`check_bindings`'s line).
     Raises:
         ValueError: see :func:`check_bindings`.
     """
-    if UsdSkel is None or not hasattr(UsdSkel, "BakeSkinning") or not any(
-            prim.IsA(UsdSkel.Skeleton) for prim in stage.Traverse()):
+    if UsdSkel is None or not hasattr(UsdSkel, "BakeSkinning"):
         return False, []
-    lines = apply_bindings(stage, where) + check_bindings(stage, where)
+    if not any(prim.IsA(UsdSkel.Skeleton) for prim in stage.Traverse()):
+        return False, unweighted_lines(stage, where)
+    lines = apply_bindings(stage, where)
+    lines += unweighted_lines(stage, where) + check_bindings(stage, where)
     low, high = bake_span(_animation_attributes(stage), first, last)
     baked = [prim.GetPath() for prim in stage.Traverse() if prim.IsA(UsdGeom.Mesh)
              and UsdGeom.Mesh(prim).GetPointsAttr().GetNumTimeSamples() > 1]

@@ -179,6 +179,27 @@ def test08_blend_shapes_bound_without_skelbindingapi_follow_their_weights(tmp_pa
     np.testing.assert_allclose(points, rest + 0.25 * (lift + widen), atol=1e-6)
 
 
+def test09_blend_shapes_with_no_skeleton_bound_are_said_and_rest(tmp_path):
+    """skel:blendShapes on a mesh that no Skeleton binds (none on the stage): one line
+    naming it (UsdSkel has no weights for them), the quad still (nothing said before)."""
+    path = tmp_path / "unbound.usda"
+    stage = _stage(path, 0, 2)
+    UsdLux.DomeLight.Define(stage, "/Sky")
+    lift = UsdSkel.BlendShape.Define(stage, "/Quad/Lift")
+    lift.CreateOffsetsAttr([Gf.Vec3f(0, 0, 1)] * 4)
+    binding = UsdSkel.BindingAPI(stage.GetPrimAtPath("/Quad"))  # as converters: not applied
+    binding.CreateBlendShapesAttr(["lift"])
+    binding.CreateBlendShapeTargetsRel().SetTargets([lift.GetPath()])
+    stage.GetRootLayer().Save()
+    said = []
+    animation = UsdScene(path, warn=said.append)
+    assert [line for line in said if "blend" in line] == [
+        f"stage {str(path)!r}: /Quad: blend shapes (skel:blendShapes) are not applied: "
+        f"UsdSkel weighs them by the animation of a Skeleton bound to the mesh "
+        f"(skel:skeleton) under a SkelRoot, and none is; the rest points render"]
+    assert animation.animated_ids() == []
+
+
 # ---- The scene digest and the texture cache ----------------------------------------------
 
 
