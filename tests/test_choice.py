@@ -245,7 +245,7 @@ def test06b_our_update_cost_is_a_frames_refit_not_the_first_build(update):
 def test06c_moving_meshes_that_are_nearly_the_whole_scene_choose_ours_or_the_scene():
     """When less than NATIVE_MIN_STILL_SHARE of the triangles stay still (the cloth),
     the native moving group is no candidate (it would rebuild nearly what the whole
-    scene rebuilds and trace two structures): the probe does not build it; the world's
+    scene rebuilds and trace two structures): a probe does not build it; the world's
     flag (nine tenths of it still) keeps all three."""
     for name, expected in (("cloth", ("hlbvh", "scene")), ("world", moving.STRUCTURES)):
         animation = scenes.get(name, triangles=20_000, frames=4)
@@ -254,6 +254,7 @@ def test06c_moving_meshes_that_are_nearly_the_whole_scene_choose_ours_or_the_sce
             integrator={"type": "hlbvh_path", "max_depth": 3,
                         "moving": ",".join(animation.animated_ids())}))
         accel = scene.integrator().update_accel(scene, spp=1)
+        time_structures(accel, render_sample(accel, scene.sensors()[0]))
         share = accel.moving_meshes.still_share
         assert (share < moving.NATIVE_MIN_STILL_SHARE) == (name == "cloth"), share
         assert accel.moving_meshes.allowed() == expected
@@ -533,3 +534,45 @@ def test15_a_decal_on_a_still_floor_shows_the_same_surface_under_ours_and_the_na
     ours, native = shape_ids("hlbvh"), shape_ids("native")
     np.testing.assert_array_equal(ours, native)
     assert (ours == 0).sum() > 300  # the decal, index 0, wins its ties: a whole square
+
+
+# ---------------------------------------------------------------------------------------
+# The first frames: the probe only where it could move the choice
+# ---------------------------------------------------------------------------------------
+
+
+def test16_the_probe_waits_for_a_timed_render_and_a_structure_that_could_win():
+    """No probe before a render through the current structure was timed (the first
+    compiles); then only when another structure's update alone, at the build rate the
+    still world's sub-scene showed, leaves MIN_SAVING_MS below the current frame."""
+    model = CostModel()
+    model.record_update("hlbvh", 5.0)
+    model.record_build_rate(ms=900.0, triangles=1_000_000)  # 0.9 us a triangle
+    triangles = {"native": 100_000, "scene": 1_100_000}  # 90 ms, 990 ms
+    preview, final = RayBudget(130_000, 8), RayBudget(16 * 130_000, 8)
+
+    def worth(budget):
+        return model.worth_probing(budget, "hlbvh", moving.STRUCTURES, triangles)
+
+    assert not worth(preview) and not worth(final)  # nothing rendered yet
+    model.record_render("hlbvh", 900.0, preview.samples)  # compiles: not timed
+    assert not worth(preview)
+    model.record_render("hlbvh", 57.0, preview.samples)
+    assert not worth(preview)  # 62 ms a frame: no Mitsuba update fits below it
+    model.record_render("hlbvh", 900.0, final.samples)
+    assert worth(final)  # 905 ms: the native group's 90 ms update leaves room
+    assert not model.worth_probing(final, "hlbvh", ("hlbvh",), triangles)
+
+
+def test17_the_first_frames_pay_no_probe():
+    """An animation's first two frames through the integrator: neither is probed (the
+    native group not built, no query timed), and what traced them is our HLBVH."""
+    animation, scene = _world()
+    params = hlbvh.traverse(scene)
+    integrator = scene.integrator()
+    for frame in (0, 1):
+        apply_frame(scene, params, animation.frame(frame))
+        mi.render(scene, seed=frame)
+        accel = integrator.scene_accel
+        assert not accel.prepared.probed and accel.prepared.traced_by == "hlbvh"
+    assert accel.native_moving.builds == 0 and not accel.moving_meshes.costs.query_ns

@@ -49,6 +49,16 @@ uses, all measured on this machine and this scene:
 A structure replaces the current one only when its estimated frame is at least
 :data:`SWITCH_MARGIN` and :data:`MIN_SAVING_MS` cheaper, so noise in the measurements
 does not flip the choice from frame to frame.
+
+The probe is paid only where it could move the choice (:meth:`CostModel.worth_probing`,
+docs/decisions.md#first-frames): it builds the native group, times our refit and
+traces its rays through each structure, about a steady frame's time or more, while
+the first frame already pays the still world's sub-scene build. So the first frames
+are traced by our HLBVH unmeasured, and the probe waits for a render of it to be
+timed (the first render compiles its kernel and is not), then runs only if another
+structure's update alone, at Mitsuba's build rate measured on the still world's
+sub-scene, leaves room below that frame: where it does not, no speed of its rays can
+make it win.
 """
 
 from __future__ import annotations
@@ -189,6 +199,18 @@ class CostModel:
         probe's hit fractions (every ray meeting a surface before a probe)."""
         camera, bounce = self.hit_fractions or (1.0, 1.0)
         return queries_per_sample(camera, bounce, budget.depth)
+
+    def worth_probing(self, budget: RayBudget, current: str, allowed, triangles: dict) -> bool:
+        """Whether timing the other structures' queries could move the choice for a
+        render of ``budget`` (see the module docstring): once a render through
+        ``current`` was timed, when another of ``allowed`` has an update alone (as
+        measured, else at the build rate) at least :data:`MIN_SAVING_MS` below
+        ``current``'s estimated frame. ``triangles`` as :meth:`frame_ms`."""
+        if not self.renders.get(current):
+            return False
+        frame = self.frame_ms(current, budget, triangles)
+        return any(self.update_estimate(s, triangles) < frame - MIN_SAVING_MS
+                   for s in allowed if s != current)
 
     def frame_ms(self, structure: str, budget: RayBudget, triangles: dict) -> float | None:
         """Estimated frame time through ``structure`` (its update and its render), None

@@ -178,18 +178,24 @@ class MovingMeshes:
         if len(allowed) == 1:
             self.structure = allowed[0]
         elif self.indices or self.instances:
-            triangles = {"native": sum(shapes[i].face_count() for i in self.indices),
-                         "scene": sum(s.face_count() for s in shapes if s.is_mesh())}
             self.structure, self.estimates = self.costs.choose(
-                budget, self.structure, allowed, triangles)
+                budget, self.structure, allowed, self._triangles(shapes))
         return self.structure
 
-    @property
-    def needs_probe(self) -> bool:
-        """Whether :meth:`plan` still wants a probe (a choice among several structures,
-        moving meshes to trace, no probe yet)."""
-        return (not self.probed and len(self.allowed()) > 1
-                and bool(self.indices or self.instances))
+    def needs_probe(self, budget: RayBudget, shapes) -> bool:
+        """Whether :meth:`plan` wants a probe for a render of ``budget``: a choice among
+        several structures, moving meshes to trace, no probe yet, and one that could
+        move the choice (:meth:`CostModel.worth_probing`)."""
+        allowed = self.allowed()
+        return (not self.probed and len(allowed) > 1 and bool(self.indices or self.instances)
+                and self.costs.worth_probing(budget, self.structure, allowed,
+                                             self._triangles(shapes)))
+
+    def _triangles(self, shapes) -> dict:
+        """The triangles each Mitsuba structure rebuilds: ``"native"`` the moving
+        meshes', ``"scene"`` the whole scene's."""
+        return {"native": sum(shapes[i].face_count() for i in self.indices),
+                "scene": sum(s.face_count() for s in shapes if s.is_mesh())}
 
     def behind(self, structure: str) -> bool:
         """Whether ``structure`` misses motion since it last traced the moving meshes."""

@@ -89,13 +89,11 @@ def time_structures(accel, sample: Probe):
     """Time the closest-hit queries of ``sample``'s rays through the still world alone
     and through it with each structure that may trace the moving meshes (ours and the
     native sub-scene, each brought up to date first, :meth:`SceneAccel.query_through`),
-    and record them, the sample's hit fractions and Mitsuba's build rate (the still
-    world's sub-scene build) in the moving meshes' costs. What traces the moving meshes
-    now is left as it was."""
+    and record them and the sample's hit fractions in the moving meshes' costs. What
+    traces the moving meshes now is left as it was."""
     moving = accel.moving_meshes
     costs = moving.costs
     costs.hit_fractions = (sample.camera_hits, sample.bounce_hits)
-    costs.record_build_rate(accel.static.build_ms, accel.static.triangles)
     for structure in [s for s in ("hlbvh", "native") if s in moving.allowed()]:
         costs.record_queries(structure, query_ns(accel.query_through(structure), sample.rays))
     costs.record_queries("still", query_ns(accel.query_through("still"), sample.rays))

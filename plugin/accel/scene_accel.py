@@ -262,8 +262,9 @@ class SceneAccel(SceneQueries):
         meshes (:mod:`hlbvh.accel.choice`): the one call an integrator makes before a
         render. In turn: the choice by the costs measured so far and the update that
         follows it (the construction's own update, for the first call); the probe, while
-        the choice has structures left to time (:func:`time_structures`, over a sample
-        of ``sensor``'s rays made once, :func:`render_sample`); the choice again, and
+        the choice has structures left to time and timing them could move it
+        (:meth:`MovingMeshes.needs_probe`; :func:`time_structures`, over a sample of
+        ``sensor``'s rays made once, :func:`render_sample`); the choice again, and
         the newly chosen structure's catch-up update; the whole scene's rebuild when it
         traces the moving meshes and missed motion (:func:`rebuild_scene`). Returns the
         record, also kept in :attr:`prepared`.
@@ -278,8 +279,10 @@ class SceneAccel(SceneQueries):
             moving.plan(budget, self.shapes)
             self.update()
         chosen, done = moving.structure, self.last_update
-        probed = moving.needs_probe and sensor is not None and self._current \
-            and self.static.native
+        if self.static.native:  # Mitsuba's build rate, from its still world's sub-scene
+            moving.costs.record_build_rate(self.static.build_ms, self.static.triangles)
+        probed = (sensor is not None and self._current and self.static.native
+                  and moving.needs_probe(budget, self.shapes))
         if probed:
             if self._sample is None:
                 self._sample = render_sample(self, sensor)
