@@ -139,15 +139,17 @@ def run(size: int = 1_000_000, resolution: int = 512, repeats: int = 7, leaf_siz
 
 
 def topology_ab(scene: str, triangles: int = 1_000_000, shutter: float = 1.0,
-                motion_keys: int = 1, resolution: tuple = (480, 270), repeats: int = 5) -> dict:
+                motion_keys: int = 1, resolution: tuple = (480, 270), repeats: int = 5,
+                frame: int = 1, builder: str = "hlbvh") -> dict:
     """The keyed tree of ``scene``'s moving meshes over a shutter of ``shutter`` frames
-    around frame 1, built over the mid-shutter pose and over the triangles' boxes over
-    the shutter, traced on the same rays in turn; see the module docstring."""
-    animation = scenes.get(scene, triangles=triangles, frames=3)
+    around frame ``frame``, built by ``builder`` over the mid-shutter pose and over the
+    triangles' boxes over the shutter, traced on the same rays in turn; see the module
+    docstring."""
+    animation = scenes.get(scene, triangles=triangles, frames=frame + 2)
     renderer = FrameRenderer(animation, RenderSettings(
         resolution=resolution, spp=1, shutter=(-shutter / 2, shutter / 2),
         motion_keys=motion_keys, moving_accel="hlbvh"))
-    renderer.render(1)  # keys the moving meshes as a blurred frame does
+    renderer.render(frame)  # keys the moving meshes as a blurred frame does
     group = renderer.integrator.scene_accel.dynamic
     size = dr.width(group.key_points) // group.keyed.keys
     points = [dr.gather(mi.Float, group.key_points, dr.arange(mi.UInt32, size) + k * size)
@@ -161,7 +163,7 @@ def topology_ab(scene: str, triangles: int = 1_000_000, shutter: float = 1.0,
     n = dr.width(o)
     time_ = mi.PCG32(n, 11).next_float32()
     dr.eval(o, d, maxt, time_)
-    trees = {t: build_keyed(points, faces, topology=t, config=group.bvh.config)
+    trees = {t: build_keyed(points, faces, topology=t, builder=builder)
              for t in ("mid", "union")}
     rows = []
     for query, fn in (("closest", closest_hit), ("any", any_hit)):
@@ -181,7 +183,8 @@ def topology_ab(scene: str, triangles: int = 1_000_000, shutter: float = 1.0,
                          "cpu_ns_per_ray": 1e6 * best[t][1] / n,
                          "cpu_vs_mid": best[t][1] / best["mid"][1],
                          "steps": dr.mean(mi.Float(count))[0]})
-    return {"scene": scene, "triangles": len(faces) // 3, "rays": n, "shutter": shutter,
+    return {"scene": scene, "frame": frame, "builder": builder, "triangles": len(faces) // 3, "rays": n,
+            "shutter": shutter,
             "motion_keys": motion_keys, "cpu": cpu_model(), "rows": rows,
             "load": os.getloadavg()[0]}
 
@@ -193,8 +196,9 @@ def format_topology_ab(result: dict) -> str:
         lines.append(f"| {r['query']} | {r['topology']} | {r['sah']:.3f} | "
                      f"{r['degradation']:.3f} | {r['ns_per_ray']:.0f} | "
                      f"{r['cpu_ns_per_ray']:.0f} | {r['cpu_vs_mid']:.2f}× | {r['steps']:.1f} |")
-    lines.append(f"\n{result['scene']}: {result['triangles']} moving triangles, shutter "
-                 f"{result['shutter']} frame, S={result['motion_keys']}, {result['rays']} rays "
+    lines.append(f"\n{result['scene']} frame {result['frame']}, {result['builder']} builder: "
+                 f"{result['triangles']} moving "
+                 f"triangles, shutter {result['shutter']} frame, S={result['motion_keys']}, {result['rays']} rays "
                  f"(camera and one bounce); {result['cpu']}; load average "
                  f"{result['load']:.1f}")
     return "\n".join(lines)
@@ -228,6 +232,8 @@ def main(argv=None) -> int:
     parser.add_argument("--triangles", type=int, default=1_000_000)
     parser.add_argument("--shutter", type=float, default=1.0, help="frames, centred")
     parser.add_argument("--motion-keys", type=int, default=1)
+    parser.add_argument("--frame", type=int, default=1, help="the frame (--topology-ab)")
+    parser.add_argument("--builder", default="hlbvh", help="the builder (--topology-ab)")
     parser.add_argument("--frame-resolution", default="480x270", help="WxH (--topology-ab)")
     args = parser.parse_args(argv)
     start = time.perf_counter()
@@ -235,7 +241,7 @@ def main(argv=None) -> int:
         width, height = (int(v) for v in args.frame_resolution.split("x"))
         print(format_topology_ab(topology_ab(args.topology_ab, args.triangles, args.shutter,
                                              args.motion_keys, (width, height),
-                                             args.repeats)))
+                                             args.repeats, args.frame, args.builder)))
     else:
         print(format_table(run(args.size, args.resolution, args.repeats,
                                amplitude=args.amplitude)))

@@ -56,11 +56,15 @@ corners). The expected SAH cost of a ray at a uniform time is the weighted sum o
 integrals over the root's integral (a uniform scaling of the mesh over the shutter
 leaves it unchanged). Over the still SAH of a tree built at mid-shutter, it is the
 degradation of keying: 1 where the mesh moves rigidly, large where the motion scrambles
-the triangles that the mid-shutter tree put together. Where it passes a tolerance,
-``topology="auto"`` also builds over each triangle's box over the whole shutter (the
-union of its key boxes: triangles that stay together through the motion end up
-together) and keeps whichever of the two has the lower SAH over the shutter
-(docs/decisions.md#keyed-topology).
+the triangles that the mid-shutter tree put together. Where it passes a tolerance and
+the builder is ``"sah"``, ``topology="auto"`` also builds over each triangle's box over
+the whole shutter (the union of its key boxes, whose areas the binned SAH weighs: it
+keeps apart triangles whose paths cross) and keeps whichever of the two has the lower
+SAH over the shutter. The Morton builders (``"hlbvh"``, ``"lbvh"``) order triangles by
+their box centres, which for a linear motion are the mid-shutter centres: over the
+union boxes they build the mid-shutter topology again (up to the top level's splits),
+so ``"auto"`` does not pay for a second build there (the A/B:
+docs/decisions.md#keyed-topology).
 """
 
 from __future__ import annotations
@@ -301,8 +305,9 @@ def _keyed(bvh: Tree, points: list) -> KeyedTree:
 
 #: What :func:`build_keyed` builds a keyed tree's topology over: ``"mid"``, the
 #: mid-shutter pose; ``"union"``, each triangle's box over the whole shutter;
-#: ``"auto"``, the mid-shutter pose, and the union too where the mid-shutter tree's SAH
-#: over the shutter degrades past a tolerance, the better of the two kept.
+#: ``"auto"``, the mid-shutter pose, and with the ``"sah"`` builder the union too where
+#: the mid-shutter tree's SAH over the shutter degrades past a tolerance, the better of
+#: the two kept (module docstring).
 TOPOLOGIES = ("auto", "mid", "union")
 
 
@@ -318,8 +323,9 @@ def build_keyed(keys, faces, topology: str = "mid", tolerance: float = 1.05,
         topology: one of :data:`TOPOLOGIES`.
         tolerance: with ``"auto"``, the degradation (SAH over the shutter over the
             still SAH at mid-shutter) the mid-shutter topology may reach before the
-            union topology is built too (the update policy's ``refit_tolerance``: the
-            same bound on a tree's drift from a fresh build).
+            union topology is built too, with the ``"sah"`` builder (the update
+            policy's ``refit_tolerance``: the same bound on a tree's drift from a fresh
+            build).
         options: ``hlbvh.build``'s (``builder``, ``leaf_size``, ``config``, ...).
     Returns:
         a :class:`KeyedTree` with ``sah``, ``still_sah`` and ``topology`` set.
@@ -335,7 +341,7 @@ def build_keyed(keys, faces, topology: str = "mid", tolerance: float = 1.05,
     kept = None
     if topology != "union":
         kept = _measured(_keyed(mid, points), points, still_sah, "mid")
-        if topology == "mid" or kept.degradation <= tolerance:
+        if topology == "mid" or kept.degradation <= tolerance or mid.config.builder != "sah":
             return kept
     other = _measured(_keyed(union_tree(points, faces, **options), points), points,
                       still_sah, "union")

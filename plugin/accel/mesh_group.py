@@ -153,9 +153,9 @@ class MeshGroup:
 
         Under the ``"auto"`` policy, a mid-shutter tree whose SAH over the shutter
         passes ``refit_tolerance`` times the still tree's (the drift ``"auto"`` accepts
-        of a refit tree) is built again over the triangles' boxes over the shutter,
-        the better kept (``topology="auto"``); the other policies keep the
-        mid-shutter tree."""
+        of a refit tree) is built again over the triangles' boxes over the shutter
+        with the ``"sah"`` builder, the better kept (``topology="auto"``); the other
+        policies keep the mid-shutter tree."""
         given = [k for k in keys if k is not None]
         first = given[0]
         for i, k in zip(self.indices, keys):
