@@ -7,6 +7,7 @@ Usage::
     hlbvh compare cloth --frames 0:8 --resolution 320x180 --spp 4 --out out/compare/cloth
     hlbvh compare fracture --triangles 1000000 --frames 4 --builder lbvh --update refit
     hlbvh compare scene.xml --frames-dir frames/ --frames 0:10
+    hlbvh compare world --frames 0:12 --spp 4 --blur-frame 6 --shutter 0.5 --sub-frames 4
 
 ``SCENE``, ``--frames``, ``--resolution``, ``--spp``, ``--triangles``, the builder
 options, ``--update``, ``--max-depth`` and ``--seed`` mean what they mean for
@@ -33,6 +34,14 @@ compare resumes, and a directory holding frames of other settings is refused):
                     native render, the price of telling a Monte Carlo sample from a
                     defect
 ==================  =====================================================================
+
+``--blur-frame N`` renders the frames still (the shutter closed) and frame ``N`` once
+more with the shutter open (``--shutter``, 0.5 of a frame when not given; its
+``--motion-keys``, ``--sub-frames``): a whole compare of that frame into ``blur/`` (ours
+blurred through the moving meshes' keys, native's mean of sub-frames, each judged
+against native's noise as any frame), whose pair and difference the report shows
+beside frame ``N``'s still pair, whose judgement the verdict states and the exit
+status includes, and whose numbers frame ``N``'s row holds under ``blur``.
 
 What is compared, per frame
 ---------------------------
@@ -135,7 +144,7 @@ _NOISE_COLUMNS = ("passed", "largest_z", "largest_z_block", "image_z", "blocks_o
 
 def compare_animation(animation, frames, out_dir, settings: RenderSettings,
                       source: dict | None = None, tolerance: float = TOLERANCE,
-                      progress: bool = True) -> dict:
+                      progress: bool = True, blur: tuple | None = None) -> dict:
     """Render ``frames`` of ``animation`` with both accelerators, compare them and write
     the report (see the module docstring).
 
@@ -147,6 +156,9 @@ def compare_animation(animation, frames, out_dir, settings: RenderSettings,
         source: what identifies the scene (JSON values), recorded with the settings.
         tolerance: the figure ``fraction_within_tolerance``'s (see :data:`TOLERANCE`).
         progress: progress bars on stderr.
+        blur: ``(frame, RenderSettings)``: that frame (one of ``frames``) compared once
+            more with those settings' open shutter into ``blur/``, shown beside its
+            still pair (the module docstring); None: not.
     Returns:
         ``{"rows": [one dict per frame], "files": {"md": ..., "html": ..., "json": ...,
         "csv": ...}, "plots": [...]}``.
@@ -200,6 +212,11 @@ def compare_animation(animation, frames, out_dir, settings: RenderSettings,
         pictures[i] = {"native": out / "native" / f"{frame_name(i)}.png",
                        "hlbvh": out / "hlbvh" / f"{frame_name(i)}.png", "diff": difference}
 
+    captions = {}
+    if blur is not None:
+        captions = _blurred_pair(animation, out, rows, pictures, blur, source, tolerance,
+                                 progress)
+
     # ---- Plots and report ----
     per_frame = [
         plots.plot_per_frame(
@@ -221,10 +238,57 @@ def compare_animation(animation, frames, out_dir, settings: RenderSettings,
                + (f"log scale, black = {low:.0e} or less (or identical), pale yellow = "
                   f"{scale:.3g}" if low else f"black = identical, pale yellow = {scale:.3g}")
                + "; cyan = NaN/inf in one render only")
+    if blur is not None:
+        recorded["blur_frame"] = blur[0]
+        recorded["blur_shutter"] = list(blur[1].shutter)
     files = report.write_report(out, f"hlbvh compare: {animation.name}", rows, pictures,
                                 recorded, plots=per_frame, verdict=verdict(rows),
-                                captions={"diff": caption})
+                                captions={"diff": caption, **captions})
     return {"rows": rows, "files": files, "plots": per_frame}
+
+
+def _blurred_pair(animation, out: Path, rows: list, pictures: dict, blur: tuple, source,
+                  tolerance: float, progress: bool) -> dict:
+    """Frame ``blur[0]`` compared with the open shutter of ``blur[1]`` into ``blur/``
+    (:func:`compare_animation` of that frame): its images added to the frame's
+    pictures, its numbers to the frame's row under ``blur``. Returns the captions of
+    the images added."""
+    i, settings = blur
+    inner = compare_animation(animation, range(i, i + 1), out / "blur", settings, source, tolerance,
+                              progress)["rows"][0]
+    row = next(r for r in rows if r["frame"] == i)
+    row["blur"] = {"shutter": inner["shutter"], "frame_ms": inner["frame_ms"],
+                   "passed": inner["noise"]["passed"],
+                   "largest_z": inner["noise"]["largest_z"],
+                   "max_abs_diff": inner["image"]["max_abs_diff"],
+                   "report": "blur/report.html"}
+    name = f"{frame_name(i)}.png"
+    pictures[i].update({"native blurred": out / "blur" / "native" / name,
+                        "hlbvh blurred": out / "blur" / "hlbvh" / name,
+                        "diff blurred": out / "blur" / "diff" / name})
+    shutter = inner["shutter"]
+    return {"native blurred": f"native, shutter {shutter['open']:g}..{shutter['close']:g}: "
+                              f"the mean of {shutter['sub_frames']} sub-frames",
+            "hlbvh blurred": "hlbvh (ours), blurred: each ray at its time",
+            "diff blurred": "difference of the blurred pair (its own scale: blur/report.html)"}
+
+
+def blur_verdict(rows: list[dict]) -> str:
+    """The verdict's sentence on the blurred pair of ``--blur-frame`` (empty without
+    one): each frame time, and whether ours is within noise of native's accumulation."""
+    row = next((r for r in rows if r.get("blur")), None)
+    if row is None:
+        return ""
+    blur = row["blur"]
+    ours, native = blur["frame_ms"]["hlbvh"], blur["frame_ms"]["native"]
+    judged = (f"within Monte Carlo noise of native's (largest block |z| "
+              f"{abs(blur['largest_z']):.2f})" if blur["passed"] else
+              f"NOT within Monte Carlo noise of native's (largest block |z| "
+              f"{abs(blur['largest_z']):.1f}, limit {NOISE_LIMIT:g})")
+    return (f" Frame {row['frame']} blurred (shutter {blur['shutter']['open']:g}.."
+            f"{blur['shutter']['close']:g}, beside its still pair; blur/report.html): "
+            f"hlbvh {ours:.1f} ms, native's {blur['shutter']['sub_frames']} sub-frames "
+            f"{native:.1f} ms ({native / ours:.1f}x); ours is {judged}.")
 
 
 def noise_seed(seed: int) -> int:
@@ -375,7 +439,7 @@ def verdict(rows: list[dict]) -> str:
         f"{min(identical):.1f}-{max(identical):.1f}% a frame; largest pixel difference "
         f"{max(m['max_abs_diff'] for m in image):.3g}. Camera rays hit the same primitive "
         f"first on at least {100 * min(r['hits']['fraction_agree'] for r in rows):.3f}% "
-        f"of pixels."
+        f"of pixels.{blur_verdict(rows)}"
     )
 
 
@@ -396,6 +460,11 @@ def configure(parser) -> None:
                         help=f"per-channel difference under which a pixel counts in the "
                              f"report's figure 'pixels within tolerance' (default "
                              f"{TOLERANCE}); the verdict is judged by noise, not by it")
+    parser.add_argument("--blur-frame", default=None, metavar="N",
+                        help="render the frames still, and frame N once more with the "
+                             "shutter open (--shutter, 0.5 when not given; --motion-keys, "
+                             "--sub-frames), judged the same way, shown beside its still "
+                             "pair (a whole compare of it in OUT/blur)")
 
 
 def run(args) -> int:
@@ -403,17 +472,41 @@ def run(args) -> int:
     hlbvh's images are within Monte Carlo noise of native's on every frame, 1 when not."""
     settings = render_settings(args)
     tolerance = _tolerance(args.tolerance)
+    # --blur-frame: the frames still, the shutter (0.5 when not given) for the blurred pair
+    shutter = settings.shutter if settings.shutter_open or args.blur_frame is None \
+        else BLUR_SHUTTER
     animation, source, frames = open_animation(SceneSpec.of(
-        args.scene, args.frames_dir, args.triangles, args.frames, args.topology,
-        settings.shutter))
+        args.scene, args.frames_dir, args.triangles, args.frames, args.topology, shutter))
     settings = with_scene_integrator(args, animation, settings, "compare")
     check_seed(settings.seed, frames)
+    blur = None
+    if args.blur_frame is not None:
+        blur = (_blur_frame(args.blur_frame, frames), replace(settings, shutter=shutter))
+        settings = replace(settings, shutter=(0.0, 0.0))
     out = output_directory(out_flag(args.out, Path("out/compare") / Path(args.scene).stem))
     result = compare_animation(animation, frames, out, settings, source, tolerance,
-                               progress=not args.quiet)
+                               progress=not args.quiet, blur=blur)
     print(f"{result['files']['html']}: frames {frames_text(frames)} of "
           f"{animation.name}, native vs hlbvh. {verdict(result['rows'])}")
-    return 0 if all(row["noise"]["passed"] for row in result["rows"]) else 1
+    return 0 if all(row["noise"]["passed"] and row.get("blur", {}).get("passed", True)
+                    for row in result["rows"]) else 1
+
+
+#: The shutter of ``--blur-frame``'s pair where ``--shutter`` is not given: half a frame
+#: centred on it (a 180-degree shutter).
+BLUR_SHUTTER = (-0.25, 0.25)
+
+
+def _blur_frame(text: str, frames) -> int:
+    """``--blur-frame``: one of the frames compared."""
+    try:
+        frame = int(text)
+    except ValueError:
+        frame = None
+    if frame not in list(frames):
+        raise UserError(f"--blur-frame {text!r}: expected one of the frames compared "
+                        f"({frames_text(frames)})")
+    return frame
 
 
 def _tolerance(text: str) -> float:

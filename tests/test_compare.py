@@ -278,3 +278,44 @@ def test09_verdict_says_what_traced_the_moving_meshes_and_what_that_compares():
             "(Mitsuba's own accelerator, rebuilt) on 1 of 4: the native group's frames do not "
             "compare our BVH on the moving meshes; the whole scene's frames compare Mitsuba "
             "with itself; --moving-accel hlbvh forces our BVH") in mixed
+
+
+def test10_blur_frame_shows_a_blurred_pair_beside_the_still_one(tmp_path, capsys):
+    """``--blur-frame N`` renders the frames still and frame N once more with the
+    shutter open (a whole compare into blur/): the report shows its native accumulation,
+    our blurred frame and their difference beside frame N's still pair, frame N's row
+    holds its numbers under ``blur``, the verdict says its times and judgement; a frame
+    not compared is one line."""
+    out = tmp_path / "main"
+    status, printed, errors = hlbvh(capsys, "compare", "twist", *TINY, "--blur-frame", "1",
+                                    "--shutter", "0.5", "--sub-frames", "2", "--out", out)
+    assert status == 0 and not errors
+    results = read_results(out / "results.json")
+    assert "shutter" not in results["settings"]  # the frames themselves still
+    assert results["settings"]["blur_frame"] == 1
+    assert results["settings"]["blur_shutter"] == [-0.25, 0.25]
+    still, blurred = results["rows"]
+    assert "blur.passed" not in still and blurred["blur.passed"] is True
+    assert blurred["blur.shutter.sub_frames"] == 2
+    inner = read_results(out / "blur" / "results.json")
+    assert [r["frame"] for r in inner["rows"]] == [1]
+    assert inner["settings"]["shutter"] == [-0.25, 0.25]
+    assert blurred["blur.frame_ms.hlbvh"] == inner["rows"][0]["frame_ms.hlbvh"]
+    assert blurred["blur.largest_z"] == inner["rows"][0]["noise.largest_z"]
+    roles = results["images"]["1"]
+    assert list(roles) == ["native", "hlbvh", "diff", "native blurred", "hlbvh blurred",
+                           "diff blurred"]
+    assert roles["hlbvh blurred"] == "blur/hlbvh/frame_0001.png"
+    assert list(results["images"]["0"]) == ["native", "hlbvh", "diff"]
+    page = (out / "report.html").read_text()
+    sources = _Sources()
+    sources.feed(page)
+    assert "blur/native/frame_0001.png" in sources.sources
+    assert "the mean of 2 sub-frames" in page
+    verdict = (out / "report.md").read_text().split("\n\n")[1]
+    assert "Frame 1 blurred (shutter -0.25..0.25" in verdict
+    assert "ours is within Monte Carlo noise of native's" in verdict.split("Frame 1 blurred")[1]
+    assert "Frame 1 blurred" in printed
+    status, _, errors = hlbvh(capsys, "compare", "twist", *TINY, "--blur-frame", "5",
+                              "--out", tmp_path / "other")
+    assert status == 2 and len(errors) == 1 and "--blur-frame '5'" in errors[0]
