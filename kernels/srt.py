@@ -45,6 +45,11 @@ KEY = 13
 #: Largest rotation (radians) between two samples of a segment in :func:`swept_boxes`:
 #: the padding then stays below 0.5% of the object's reach for any turn.
 SAMPLE_ANGLE = np.pi / 16
+#: A pose whose determinant is below this times the cube of its 3x3 part's Frobenius
+#: norm (flattened to about a millionth of its size along some direction, or exactly
+#: scaled to nothing, where float rounding leaves a determinant of a few ulps) is
+#: taken as scaled to nothing: rays miss the instance at that time.
+FLAT = 2.0 ** -20
 #: Relative margin added to each swept box: the per-lane float interpolation may place
 #: a corner a few ulps from where the double one on the host does.
 FLOAT_MARGIN = 1e-5
@@ -273,6 +278,15 @@ def inverse(m: list) -> tuple:
     t = [-(inv[r][0] * b[0] + inv[r][1] * b[1] + inv[r][2] * b[2]) for r in range(3)]
     return [inv[0][0], inv[0][1], inv[0][2], inv[1][0], inv[1][1], inv[1][2],
             inv[2][0], inv[2][1], inv[2][2], *t], det
+
+
+def inverse_or_nan(m: list) -> list:
+    """:func:`inverse` of the rows ``m``, NaN where the pose is flat (:data:`FLAT`) or
+    not finite: a ray taken through it hits nothing."""
+    inv, det = inverse(m)
+    norm2 = sum(x * x for x in m[:9])
+    flat = ~(dr.abs(det) > FLAT * norm2 * dr.sqrt(norm2))
+    return [dr.select(flat, dr.nan, x) for x in inv]
 
 
 def _slerp(a: list, b: list, f) -> list:

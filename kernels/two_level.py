@@ -15,7 +15,7 @@ import drjit as dr
 from .arrays import namespace_of
 from .ray_tests import Ray, ray_setup
 from .slots import LEAF_BIT, MAX_SLOTS, TRI_FACE, leaf_ref
-from .srt import KeyTable, inverse
+from .srt import KeyTable, inverse_or_nan
 
 #: Two levels: ``inst`` of a ray at the top level (in no instance).
 NO_INSTANCE = 0xFFFFFFFF
@@ -93,12 +93,12 @@ def _object_ray(two_level: TwoLevel, world_o, world_d, k, mask, time=None) -> Ra
     """The world ray in the object space of instance ``k`` (lanes of ``mask``); an
     instance with keys: through the inverse of its pose at the ray's ``time`` (Float in
     [0, 1] over the shutter), a pose without inverse (a scale of 0 at that time) giving
-    a ray of NaN, which nothing hits."""
+    a ray of NaN, which nothing hits (:data:`hlbvh.kernels.srt.FLAT`)."""
     ns = namespace_of(world_o.x)
     m = [dr.gather(ns.Float, two_level.to_object, k * 12 + i, mask) for i in range(12)]
     if two_level.motion is not None:
         keyed = two_level.motion.keyed(k, mask)
-        moved, _ = inverse(two_level.motion.rows_at(k, time, keyed))
+        moved = inverse_or_nan(two_level.motion.rows_at(k, time, keyed))
         m = [dr.select(keyed, a, b) for a, b in zip(moved, m)]
     o = ns.Array3f(*(dr.fma(m[3 * r], world_o.x, dr.fma(m[3 * r + 1], world_o.y,
                                                          dr.fma(m[3 * r + 2], world_o.z, m[9 + r])))

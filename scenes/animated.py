@@ -24,6 +24,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from hlbvh.kernels.srt import pose_at
+
 from .normals import vertex_normals
 
 #: The most triangles a scene's mesh may have (``--triangles``, ``bench --sizes``): its
@@ -168,9 +170,11 @@ class AnimatedScene(abc.ABC):
         """The geometry at ``time`` in frames, between two frames too (a shutter's keys),
         clamped to the animation's first and last frame. By default a mesh's positions
         are interpolated linearly between the frames around ``time`` (mesh sequences
-        between their files); a mesh whose triangles the frames give (its topology may
-        change), an instance and the camera take the nearer frame's. A scene that knows
-        its motion between frames may override it."""
+        between their files), an instance's ``to_world`` as instances are moved inside
+        the shutter (:mod:`hlbvh.kernels.srt`: rotation by slerp, stretch and
+        translation linearly); a mesh whose triangles the frames give (its topology may
+        change) and the camera take the nearer frame's. A scene that knows its motion
+        between frames may override it."""
         time = min(max(float(time), 0.0), float(self.frame_count - 1))
         i = min(int(time), self.frame_count - 1)
         f = time - i
@@ -199,6 +203,9 @@ def _between(before, after, f: float):
                     and before.vertex_count == after.vertex_count)
     if interpolated:
         return FrameGeometry(positions=before.positions * (1.0 - f) + after.positions * f)
+    if (isinstance(before, FrameGeometry) and isinstance(after, FrameGeometry)
+            and before.to_world is not None and after.to_world is not None):
+        return FrameGeometry(to_world=pose_at([before.to_world, after.to_world], f))
     return before if f < 0.5 or after is None else after
 
 

@@ -16,6 +16,7 @@ from .animated import FrameGeometry
 from .procedural import (
     DEFAULT_FRAMES,
     DEFAULT_TRIANGLES,
+    FPS,
     Part,
     ProceduralScene,
     View,
@@ -249,6 +250,15 @@ class Rigid(ProceduralScene):
 
     def frame(self, i: int) -> dict[str, FrameGeometry]:
         return self._transform_frame(i) if self.instanced else super().frame(i)
+
+    def frame_at(self, time: float) -> dict[str, FrameGeometry]:
+        """See :meth:`AnimatedScene.frame_at`; instanced: every body's exact pose at
+        ``time`` (its path and spin at a fractional frame, not an interpolation)."""
+        if not self.instanced:
+            return super().frame_at(time)
+        time = min(max(float(time), 0.0), float(self.frame_count - 1))
+        return {shape_id: FrameGeometry(to_world=m)
+                for shape_id, m in zip(self.animated_ids(), self.transforms(time / FPS))}
 
     def scene_dict(self, resolution=None, spp=None, integrator=None) -> dict:
         """See :meth:`ProceduralScene.scene_dict`; instanced: the shape groups

@@ -29,7 +29,7 @@ import mitsuba as mi
 import numpy as np
 
 from hlbvh.accel.keys import instances_keys
-from hlbvh.kernels.srt import KeyTable, inverse
+from hlbvh.kernels.srt import KeyTable, inverse_or_nan
 
 
 _NO_SLOT = 0xFFFFFFFF
@@ -214,7 +214,7 @@ class InstanceShading:
         slot = dr.gather(mi.UInt32, self._slot_of_id,
                          dr.reinterpret_array(mi.UInt32, pi.instance), on)
         on = motion.keyed(slot, on)
-        now, _ = inverse(motion.rows_at(slot, motion.time(si.time), on))
+        now = inverse_or_nan(motion.rows_at(slot, motion.time(si.time), on))
         p = _affine(now, si.p)
         ends = [_affine(motion.rows_at(slot, dr.full(mi.Float, t, dr.width(p.x)), on), p)
                 for t in (0.0, 1.0)]
@@ -230,7 +230,7 @@ class InstanceShading:
         keyed = self._motion.keyed(slot, active)
         rows = self._motion.rows_at(slot, self._motion.time(time), keyed)
         moved = [dr.select(keyed, a, b) for a, b in zip(rows, m[:12])]
-        transposed = _transposed(inverse(moved)[0])
+        transposed = _transposed(inverse_or_nan(moved))
         return _matrix_pair(moved + [dr.select(keyed, a, b) for a, b in zip(transposed, m[12:])])
 
 

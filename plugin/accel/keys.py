@@ -247,8 +247,9 @@ class InstanceKeys:
             (:func:`hlbvh.kernels.srt.decompose`); None where every key is the same
             transform (the instance is still: traced as one).
         shutter: ``(open, close)``, in the units of ``ray.time``.
-        written: the ``to_world`` :func:`set_instance_keys` wrote (held, so that its
-            matrix's variable stays its own while the keys are kept).
+        written: the first entry of the ``to_world`` :func:`set_instance_keys` wrote
+            (a Float held, so that its variable stays its own while the keys are kept;
+            a later write gives the instance another).
     """
 
     keys: object
@@ -303,7 +304,7 @@ def set_instance_keys(instance, to_worlds, shutter) -> None:
     params["to_world"] = mi.ScalarAffineTransform4f(pose_at(matrices, 0.5).astype(np.float32))
     params.update()
     _INSTANCES[id(instance)] = InstanceKeys(None if still else decompose(matrices),
-                                            (open_, close), mi.traverse(instance)["to_world"])
+                                            (open_, close), _first_entry(instance))
 
 
 def instance_keys(instance) -> InstanceKeys | None:
@@ -312,10 +313,16 @@ def instance_keys(instance) -> InstanceKeys | None:
     keys = _INSTANCES.get(id(instance))
     if keys is None:
         return None
-    if keys.written.matrix[0][0].index != mi.traverse(instance)["to_world"].matrix[0][0].index:
+    if keys.written.index != _first_entry(instance).index:
         del _INSTANCES[id(instance)]
         return None
     return keys
+
+
+def _first_entry(instance) -> mi.Float:
+    """The first entry of ``instance``'s ``to_world`` as Mitsuba holds it now (a
+    handle on its variable, not a copy of its value)."""
+    return mi.Float(mi.traverse(instance)["to_world"].matrix[0][0])
 
 
 def moves_in_shutter(instance) -> bool:
