@@ -39,7 +39,8 @@ fi
 
 case "$job" in
   setup) .venv/bin/hlbvh doctor ;;
-  main)  .venv/bin/hlbvh compare world --frames 0:12 --resolution 480x270 --spp 4 --out out/main ;;
+  main)  .venv/bin/hlbvh compare world --frames 0:12 --resolution 480x270 --spp 4 \
+           --blur-frame 6 --shutter 0.5 --sub-frames 4 --out out/main ;;
   test)  .venv/bin/python -m pytest -q -m "slow or not slow" tests ;;
   *) echo "run.sh: unknown job '$job' (expected main, test or setup)" >&2; exit 2 ;;
 esac
