@@ -5,7 +5,7 @@ For each mesh (a displaced 1M grid, a 1M random soup, a rounded box subdivided t
 triangles, a 100k grid; or every mesh at the ``sizes`` given):
 
 - **ready** (the headline): ``hlbvh.build`` plus
-  :func:`hlbvh.kernels.packing.packed_records` (what traversal reads), each timed,
+  :func:`hlbvh.kernels.layout.packing.packed_records` (what traversal reads), each timed,
   and their sum; cold (the first of the process: kernels compiled or loaded from Dr.Jit's
   disk cache) and warm (min and median over repeats), kernel launches of a warm call
   (counted on an extra, untimed call: Dr.Jit's kernel history slows every launch);
@@ -37,9 +37,9 @@ import numpy as np
 import hlbvh
 from hlbvh.comparison.bench_trace import displaced_grid, mesh_scene
 from hlbvh.comparison.machine import cpu_model
-from hlbvh.kernels.packing import packed_records
-from hlbvh.timing import timed, timed_cpu
+from hlbvh.kernels.layout.packing import packed_records
 from hlbvh.scenes import meshes as scene_meshes
+from hlbvh.timing import timed, timed_cpu
 
 
 def random_soup(triangles: int, seed: int = 7, size: float = 0.02):

@@ -94,19 +94,19 @@ import mitsuba as mi
 import numpy as np
 
 import hlbvh
+from hlbvh.accel.instance_group import group_of
+from hlbvh.accel.instance_shading import group_members, is_instance
+from hlbvh.accel.native_group import shape_groups
+from hlbvh.accel.policy import UpdatePolicy
+from hlbvh.accel.scene_geometry import collect_geometry
 from hlbvh.cli.options import shutter_settings
 from hlbvh.comparison.crossover import crossover_spp, describe
 from hlbvh.errors import UserError
-from hlbvh.accel.instance_group import group_of
-from hlbvh.accel.instance_shading import group_members, is_instance
 from hlbvh.kernels.instances import refit_top_level, two_level
-from hlbvh.kernels.packing import packed_records
-from hlbvh.accel.native_group import shape_groups
-from hlbvh.accel.scene_geometry import collect_geometry
-from hlbvh.scenes import get as get_scene, parse as parse_scene
+from hlbvh.kernels.layout.packing import packed_records
 from hlbvh.render.frame import FrameRenderer
-from hlbvh.accel.policy import UpdatePolicy
 from hlbvh.render.settings import INTEGRATORS, SCENE_INTEGRATORS, RenderSettings
+from hlbvh.scenes import get as get_scene, parse as parse_scene
 from hlbvh.timing import timed
 
 #: The accelerator's default per-frame policy, which the hlbvh frames run under.

@@ -55,8 +55,8 @@ from hlbvh.comparison.bench_trace import (_grid_sensor, displaced_grid, mesh_sce
                                           primary_rays, secondary_rays)
 from hlbvh.comparison.machine import cpu_model
 from hlbvh.kernels.keyed import build_keyed, keyed_tree
-from hlbvh.kernels.packing import packed_records
-from hlbvh.kernels.slots import SLOT
+from hlbvh.kernels.layout.packing import packed_records
+from hlbvh.kernels.layout.slots import SLOT
 from hlbvh.kernels.traversal import any_hit, closest_hit, steps
 from hlbvh.render.frame import FrameRenderer
 from hlbvh.render.settings import RenderSettings

@@ -24,8 +24,8 @@ import numpy as np
 from .arrays import concat, namespace_of, plain
 from .build import build
 from .bvh import BVH, BuildConfig
-from .packing import arrays_key, packed_records
-from .slots import NODE_SLOTS, SLOT
+from .layout.packing import arrays_key, packed_records
+from .layout.slots import NODE_SLOTS, SLOT
 from .srt import KEY, KeyTable, inverse, swept_boxes
 from .two_level import GroupSlots, TwoLevel
 

@@ -80,9 +80,9 @@ from .arrays import Float, UInt32, namespace_of
 from .bounds import node_bounds
 from .build import build
 from .geometry import as_faces, as_points, slot_triangles, triangles_of
-from .packing import pack_state, packed_records
+from .layout.packing import pack_state, packed_records
+from .layout.slots import NODE_REF, SLOT, TRI_FACE, TRI_P
 from .refit import RefitState, refit, refit_packed, slot_faces
-from .slots import NODE_REF, SLOT, TRI_FACE, TRI_P
 from .tree import Tree
 
 #: A keyed tree's floats are addressed with 32-bit indices.

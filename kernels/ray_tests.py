@@ -1,5 +1,5 @@
 """The two tests a ray makes in the traversal (:mod:`hlbvh.kernels.traversal`), on the
-slots of :mod:`hlbvh.kernels.slots`, and the per-ray constants they share.
+slots of :mod:`hlbvh.kernels.layout.slots`, and the per-ray constants they share.
 
 - **Conservative slab test** (Ize, "Robust BVH ray traversal", JCGT 2013): the exit
   distance of a box is scaled by ``1 + 2·gamma(3)`` so rounding never culls a box the
@@ -27,7 +27,7 @@ from typing import Any
 
 import drjit as dr
 
-from .slots import EMPTY, NODE_HI, NODE_LO, NODE_REF, TRI_P
+from .layout.slots import EMPTY, NODE_HI, NODE_LO, NODE_REF, TRI_P
 
 _FLT_MIN = 2.0**-126  # smallest normal float: 1 / _FLT_MIN is finite
 _EPS = 2.0**-24  # unit roundoff of float32

@@ -17,9 +17,9 @@ from .arrays import Array3f, Array3u, Float, namespace_of
 from .bounds import node_bounds, sah_cost
 from .geometry import (BOX_RECORD, box_records, checked_vertices, slot_triangles,
                        triangles_of)
-from .packing import hand_over, is_built, pack_state
-from .placement import Placement
-from .slots import SLOT, TRI_HI, TRI_LO, box_rows, node_rows, triangle_rows
+from .layout.packing import hand_over, is_built, pack_state
+from .layout.placement import Placement
+from .layout.slots import SLOT, TRI_HI, TRI_LO, box_rows, node_rows, triangle_rows
 from .tree import Tree
 
 
@@ -123,15 +123,16 @@ def _write_packed(bvh, place, plan, points, slot_faces, key=None):
     gather each, not as six scalar gathers.
 
     Sets ``bvh.node_min``/``node_max`` and hands the slots over to the next
-    :func:`~hlbvh.kernels.packing.packed_records` or :func:`~hlbvh.kernels.layout.joined`
-    that asks for ``place`` (:func:`~hlbvh.kernels.packing.hand_over`). (Used by a refit:
-    for a new build, whose placement and plan are made anew, this measured no faster
-    than the binary bounds and a pack; see docs/decisions.md#refit.)
+    :func:`~hlbvh.kernels.layout.packing.packed_records` or
+    :func:`~hlbvh.kernels.layout.joined` that asks for ``place``
+    (:func:`~hlbvh.kernels.layout.packing.hand_over`). (Used by a refit: for a new build,
+    whose placement and plan are made anew, this measured no faster than the binary bounds
+    and a pack; see docs/decisions.md#refit.)
 
     Args:
         bvh: a tree as the builder returned it (its shape only is read).
-        place: ``(slot_base, face_base, front)`` as :func:`hlbvh.kernels.packing.pack`
-            takes them.
+        place: ``(slot_base, face_base, front)`` as
+            :func:`hlbvh.kernels.layout.packing.pack` takes them.
         plan: the tree's placement at ``slot_base`` (``PackState.plan``).
         points: flat Float[3·V] vertex positions.
         slot_faces: Array3u[F], the vertex indices of each slot's face.

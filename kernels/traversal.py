@@ -48,8 +48,9 @@ builds and refits trees and so sits above traversal. Which reads a query makes i
 chosen in Python when the kernel is traced, so the still kernel is unchanged.
 
 The slots are packed once per BVH (or per set of BVHs, :func:`layout.joined`) and
-kept for it: call :func:`~hlbvh.kernels.packing.packed_records` (or ``joined``) outside any symbolic loop if
-the traversal is then traced inside one, since packing evaluates arrays.
+kept for it: call :func:`~hlbvh.kernels.layout.packing.packed_records` (or ``joined``)
+outside any symbolic loop if the traversal is then traced inside one, since packing
+evaluates arrays.
 """
 
 from __future__ import annotations
@@ -61,10 +62,10 @@ import drjit as dr
 
 from .arrays import Bool, Float, high_half, low_half, namespace_of, pack_halves, plain
 from .layout import Packed
-from .packing import packed_records
+from .layout.packing import packed_records
+from .layout.slots import LEAF_BIT, MAX_DEPTH, SLOT, TRI_FACE, WIDTH, open_ref
 from .ray_tests import (TFAR_SCALE, Ray, ray_setup, select_max, select_min, slab_test,
                         triangle_test)
-from .slots import LEAF_BIT, MAX_DEPTH, SLOT, TRI_FACE, WIDTH, open_ref
 from .tree import Tree
 from .two_level import NO_INSTANCE, RETURN_REF, TwoLevel, enter_instance, select_ray
 

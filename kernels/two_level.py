@@ -13,8 +13,8 @@ from typing import Any
 import drjit as dr
 
 from .arrays import namespace_of
+from .layout.slots import LEAF_BIT, MAX_SLOTS, TRI_FACE, leaf_ref
 from .ray_tests import Ray, ray_setup
-from .slots import LEAF_BIT, MAX_SLOTS, TRI_FACE, leaf_ref
 from .srt import KeyTable, inverse_or_nan
 
 #: Two levels: ``inst`` of a ray at the top level (in no instance).

@@ -5,7 +5,7 @@ from __future__ import annotations
 import drjit as dr
 import numpy as np
 
-from hlbvh.kernels.packing import check_tree
+from hlbvh.kernels.layout.packing import check_tree
 
 
 def rows(a) -> np.ndarray:
@@ -23,7 +23,7 @@ def check_bvh(bvh, V: np.ndarray, F: np.ndarray, leaf_size: int) -> dict:
       1..leaf_size primitives; siblings are adjacent and children follow their parent;
     - every leaf box contains its triangles and every child box lies inside its parent's
       (equality of floats: boxes are unions, so containment is exact);
-    - the packer's own validation passes (:func:`hlbvh.kernels.packing.check_tree`:
+    - the packer's own validation passes (:func:`hlbvh.kernels.layout.packing.check_tree`:
       parents, ranges, levels and the packed slots), which it skips for the builder's
       trees when packing them per frame.
     """

@@ -7,7 +7,7 @@ import pytest
 import hlbvh
 import mitsuba as mi
 from bvh_check import check_bvh, rows
-from hlbvh.kernels.packing import check_tree
+from hlbvh.kernels.layout.packing import check_tree
 from meshes import grid, soup
 from reference import median_split_bvh, sweep_sah_bvh, tree_sah_cost
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from hlbvh.kernels.instances import two_level, world_boxes
-from hlbvh.kernels.packing import packed_records
+from hlbvh.kernels.layout.packing import packed_records
 from hlbvh.kernels.traversal import any_hit, closest_instance_hit
 from reference import brute_force, random_soup, triangle_grid
 
@@ -136,7 +136,7 @@ def test05_the_top_level_is_written_in_place_behind_the_kept_trees(leaf_size):
     room enough for any top level over as many instances, the trees' slots untouched,
     and the hits those of the new poses."""
     from hlbvh.kernels.instances import refit_top_level, top_level_room
-    from hlbvh.kernels.slots import SLOT
+    from hlbvh.kernels.layout.slots import SLOT
 
     rng = np.random.default_rng(11)
     config = hlbvh.BuildConfig(leaf_size=leaf_size)

@@ -21,7 +21,7 @@ from reference import brute_force, median_split_bvh, random_soup, triangle_grid 
 
 from hlbvh.kernels import keyed as keyed_module  # noqa: E402
 from hlbvh.kernels.keyed import build_keyed, keyed_tree, ray_keys  # noqa: E402
-from hlbvh.kernels.slots import LEAF_BIT, NODE_HI, NODE_LO, NODE_REF, SLOT, TRI_P  # noqa: E402
+from hlbvh.kernels.layout.slots import LEAF_BIT, NODE_HI, NODE_LO, NODE_REF, SLOT, TRI_P  # noqa: E402
 from hlbvh.kernels.traversal import any_hit, closest_hit, intersect, occluded  # noqa: E402
 
 T_REL = 1e-5  # t against the float64 reference, relative to the hit's conditioning

@@ -18,10 +18,11 @@ import mitsuba as mi
 sys.path.insert(0, os.path.dirname(__file__))
 from reference import brute_force, median_split_bvh, random_soup, triangle_grid  # noqa: E402
 
-from hlbvh.kernels import layout, packing, traversal  # noqa: E402
-from hlbvh.kernels import slots as slot_format  # noqa: E402
+from hlbvh.kernels import layout, traversal  # noqa: E402
 from hlbvh.kernels.arrays import namespace_of  # noqa: E402
 from hlbvh.kernels.bvh import BVH, BuildConfig, BuildStats  # noqa: E402
+from hlbvh.kernels.layout import packing  # noqa: E402
+from hlbvh.kernels.layout import slots as slot_format  # noqa: E402
 from hlbvh.kernels.traversal import any_hit, closest_hit  # noqa: E402
 
 BUILDERS = ("median", "lbvh", "hlbvh", "sah")

@@ -1,9 +1,9 @@
-"""Where a BVH's nodes and triangles go in the packed slots (:mod:`hlbvh.kernels.slots`):
-the binary tree becomes a BVH4 by dropping every other level (the internal nodes at odd
-depths), and the records are laid out depth first, a wide node, then its children's
-subtrees in child order, a leaf's triangles where the leaf stands. The placement
-depends on the tree's shape only, so the packer keeps it across refits
-(``PackState.plan``, :mod:`hlbvh.kernels.packing`)."""
+"""Where a BVH's nodes and triangles go in the packed slots
+(:mod:`hlbvh.kernels.layout.slots`): the binary tree becomes a BVH4 by dropping every other
+level (the internal nodes at odd depths), and the records are laid out depth first, a wide
+node, then its children's subtrees in child order, a leaf's triangles where the leaf stands.
+The placement depends on the tree's shape only, so the packer keeps it across refits
+(``PackState.plan``, :mod:`hlbvh.kernels.layout.packing`)."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ from typing import Any
 
 import drjit as dr
 
-from .arrays import concat, namespace_of
+from ..arrays import concat, namespace_of
+from ..tree import Tree
 from .slots import MAX_DEPTH, MAX_SLOTS, NODE_SLOTS, leaf_ref, node_ref
-from .tree import Tree
 from .validation import check_layout, checked_levels, too_deep
 
 

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import drjit as dr
 
-from .arrays import namespace_of
+from ..arrays import namespace_of
 
 #: Floats per slot: a triangle takes one, a wide node two.
 SLOT = 16

@@ -1,11 +1,12 @@
-"""Packing a tree into the slots traversal reads (:mod:`hlbvh.kernels.slots`), and what
-is kept between packs (:class:`PackState`, the packer's entry in ``Tree.kept``): the
-slots of each place, the placement of the tree's shape (:mod:`hlbvh.kernels.placement`),
-and slots written elsewhere for a place (a fused refit's, :func:`hand_over`).
+"""Packing a tree into the slots traversal reads (:mod:`hlbvh.kernels.layout.slots`), and
+what is kept between packs (:class:`PackState`, the packer's entry in ``Tree.kept``): the
+slots of each place, the placement of the tree's shape
+(:mod:`hlbvh.kernels.layout.placement`), and slots written elsewhere for a place (a fused
+refit's, :func:`hand_over`).
 
 A tree as the builder returned it (``bvh.built_topology`` matches its arrays) is packed
 from its own levels without validation; any other is validated first
-(:mod:`hlbvh.kernels.validation`).
+(:mod:`hlbvh.kernels.layout.validation`).
 """
 
 from __future__ import annotations
@@ -14,10 +15,10 @@ from dataclasses import dataclass
 
 import drjit as dr
 
-from .arrays import namespace_of
+from ..arrays import namespace_of
+from ..tree import Tree
 from .placement import Placement, placement
 from .slots import SLOT, is_leaf, node_rows, triangle_rows
-from .tree import Tree
 
 
 @dataclass
@@ -31,7 +32,7 @@ class PackState:
         records: ``(arrays and place, (records, root))``: the packed slots
             (:func:`packed_records`).
         plan: ``((topology, slot base), Placement)``: where each node and triangle goes
-            (:func:`hlbvh.kernels.placement.placement`); a refit keeps it.
+            (:func:`hlbvh.kernels.layout.placement.placement`); a refit keeps it.
         last: ``(slot_base, face_base, front)`` of the last pack meant for tracing:
             where a fused refit writes its slots.
         ready: ``(arrays and place, records)``: slots written elsewhere for that place
@@ -57,7 +58,7 @@ def hand_over(tree: Tree, place: tuple, records):
 
 
 def packed_records(bvh: Tree, slot_base: int = 0, face_base: int = 0):
-    """The packed slots of ``bvh`` (:mod:`hlbvh.kernels.slots`), built on first use
+    """The packed slots of ``bvh`` (:mod:`hlbvh.kernels.layout.slots`), built on first use
     and kept in its :class:`PackState` (keyed by the Dr.Jit variables of its arrays, so a
     refit, which assigns new arrays, repacks on the next call, from the placement kept
     for the tree's shape).
@@ -176,7 +177,7 @@ _STAGED_LO, _STAGED_HI, _STAGED_REF, _STAGED_FIRST = 0, 3, 6, 7
 
 
 def _wide_rows(bvh, first, ref, wide):
-    """The 32 floats of each wide node in ``wide`` (:mod:`hlbvh.kernels.slots`).
+    """The 32 floats of each wide node in ``wide`` (:mod:`hlbvh.kernels.layout.slots`).
 
     Every node's box, reference and first child are staged first as one 32-byte record
     (one coherent pass over the nodes), so a wide node reads each of its binary and

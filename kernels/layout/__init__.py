@@ -9,16 +9,16 @@ when it is internal. One traversal step then tests up to four boxes.
 
 The parts, one concept a module:
 
-- :mod:`hlbvh.kernels.slots`: the slot format (fields, references, rows), the one
+- :mod:`hlbvh.kernels.layout.slots`: the slot format (fields, references, rows), the one
   place that encodes and decodes it;
-- :mod:`hlbvh.kernels.placement`: where each node and triangle goes, depth first;
-- :mod:`hlbvh.kernels.packing`: the slots written, and kept per place for the tree
+- :mod:`hlbvh.kernels.layout.placement`: where each node and triangle goes, depth first;
+- :mod:`hlbvh.kernels.layout.packing`: the slots written, and kept per place for the tree
   (``PackState``);
-- :mod:`hlbvh.kernels.validation`: the checks a tree made by hand passes first;
+- :mod:`hlbvh.kernels.layout.validation`: the checks a tree made by hand passes first;
 - :func:`hlbvh.kernels.refit.refit_packed`: a refit of a tree packed before, which
   writes its slots in the same passes as its boxes, where it was last packed; the next
-  :func:`~hlbvh.kernels.packing.packed_records` or :func:`joined` for that place takes
-  them as they are.
+  :func:`~hlbvh.kernels.layout.packing.packed_records` or :func:`joined` for that place
+  takes them as they are.
 """
 
 from __future__ import annotations
@@ -28,10 +28,10 @@ from typing import Any
 
 import drjit as dr
 
-from .arrays import concat, namespace_of
+from ..arrays import concat, namespace_of
+from ..tree import Tree
 from .packing import is_built, pack, packed_records
 from .slots import NODE_SLOTS, SLOT, WIDTH, node_ref, node_rows
-from .tree import Tree
 
 
 @dataclass
@@ -52,7 +52,7 @@ def joined(bvhs: list[Tree]) -> Packed:
 
     Raises:
         ValueError: no BVH, or more than ``WIDTH``; and as
-            :func:`~hlbvh.kernels.packing.packed_records`.
+            :func:`~hlbvh.kernels.layout.packing.packed_records`.
     """
     if not 1 <= len(bvhs) <= WIDTH:
         raise ValueError(f"joined: {len(bvhs)} BVHs, expected 1 to {WIDTH}")

@@ -5,14 +5,14 @@ subtree, an out-of-range child, stale levels or a slot in no leaf or in two is a
 ValueError); its depths come from a breadth-first walk when its levels do not hold
 every internal node. A tree as the builder returned it is packed without these checks
 (they cost a third of the packing and a host round trip each): the tests run them on
-every builder's trees (:func:`hlbvh.kernels.packing.check_tree`).
+every builder's trees (:func:`hlbvh.kernels.layout.packing.check_tree`).
 """
 
 from __future__ import annotations
 
 import drjit as dr
 
-from .arrays import namespace_of
+from ..arrays import namespace_of
 from .slots import MAX_DEPTH, MAX_LEAF_SIZE
 
 
