@@ -218,7 +218,9 @@ def _sorted(keys, bits: int, coarse_bits: int, previous, prim_count: int,
         seed = None  # it would sort every key anyway: the gathers through it cost
     csd = csd_sort(keys, bits, coarse_bits, seed)
     stats.csd_seeded = seed is not None
-    stats.csd_runs, stats.csd_resorted, stats.coarse_clusters = csd.runs, csd.resorted, csd.coarse_clusters
+    stats.csd_runs = csd.runs
+    stats.csd_resorted = csd.resorted
+    stats.coarse_clusters = csd.coarse_clusters
     return csd
 
 
