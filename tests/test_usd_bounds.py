@@ -126,28 +126,29 @@ def test03_joint_indices_past_the_skeleton_are_our_one_line(tmp_path, capfd):
     assert corners[:, 0].min() == -1 and corners[:, 0].max() == 1
 
 
-def _morphing(path):
-    """A glTF converter's morph targets: time codes 0..2, a quad under a SkelRoot with
-    two blend shapes, "lift" (every point +z) and "widen" (points 1 and 2 +x/2), bound
-    to a skeleton whose animation weighs both 0 at time code 0 and 1 at 2, the mesh's
-    bindings authored without SkelBindingAPI."""
+def _morphing(path, skeleton=True):
+    """A glTF converter's morph targets: time codes 0..2, a quad with two blend
+    shapes, "lift" (every point +z) and "widen" (points 1 and 2 +x/2), its bindings
+    authored without SkelBindingAPI; with ``skeleton``, under a SkelRoot and bound to
+    a skeleton whose animation weighs both 0 at time code 0 and 1 at 2."""
     stage = _stage(path, 0, 2, quad="/Char/Body")
     UsdLux.DomeLight.Define(stage, "/Sky")
-    UsdSkel.Root.Define(stage, "/Char")
-    skeleton = UsdSkel.Skeleton.Define(stage, "/Char/Skel")
-    animation = UsdSkel.Animation.Define(stage, "/Char/Skel/Morph")
-    animation.CreateBlendShapesAttr(["lift", "widen"])
-    for t, w in ((0, 0.0), (2, 1.0)):
-        animation.CreateBlendShapeWeightsAttr().Set([w, w], t)
-    UsdSkel.BindingAPI.Apply(skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets(
-        [animation.GetPath()])
+    binding = UsdSkel.BindingAPI(stage.GetPrimAtPath("/Char/Body"))  # not applied
+    if skeleton:
+        UsdSkel.Root.Define(stage, "/Char")
+        bound = UsdSkel.Skeleton.Define(stage, "/Char/Skel")
+        animation = UsdSkel.Animation.Define(stage, "/Char/Skel/Morph")
+        animation.CreateBlendShapesAttr(["lift", "widen"])
+        for t, w in ((0, 0.0), (2, 1.0)):
+            animation.CreateBlendShapeWeightsAttr().Set([w, w], t)
+        UsdSkel.BindingAPI.Apply(bound.GetPrim()).CreateAnimationSourceRel().SetTargets(
+            [animation.GetPath()])
+        binding.CreateSkeletonRel().SetTargets([bound.GetPath()])
     lift = UsdSkel.BlendShape.Define(stage, "/Char/Body/Lift")
     lift.CreateOffsetsAttr([Gf.Vec3f(0, 0, 1)] * 4)
     widen = UsdSkel.BlendShape.Define(stage, "/Char/Body/Widen")
     widen.CreateOffsetsAttr([Gf.Vec3f(0.5, 0, 0)] * 2)
     widen.CreatePointIndicesAttr([1, 2])
-    binding = UsdSkel.BindingAPI(stage.GetPrimAtPath("/Char/Body"))  # not applied
-    binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
     binding.CreateBlendShapesAttr(["lift", "widen"])
     binding.CreateBlendShapeTargetsRel().SetTargets([lift.GetPath(), widen.GetPath()])
     stage.GetRootLayer().Save()
@@ -182,22 +183,13 @@ def test08_blend_shapes_bound_without_skelbindingapi_follow_their_weights(tmp_pa
 def test09_blend_shapes_with_no_skeleton_bound_are_said_and_rest(tmp_path):
     """skel:blendShapes on a mesh that no Skeleton binds (none on the stage): one line
     naming it (UsdSkel has no weights for them), the quad still (nothing said before)."""
-    path = tmp_path / "unbound.usda"
-    stage = _stage(path, 0, 2)
-    UsdLux.DomeLight.Define(stage, "/Sky")
-    lift = UsdSkel.BlendShape.Define(stage, "/Quad/Lift")
-    lift.CreateOffsetsAttr([Gf.Vec3f(0, 0, 1)] * 4)
-    binding = UsdSkel.BindingAPI(stage.GetPrimAtPath("/Quad"))  # as converters: not applied
-    binding.CreateBlendShapesAttr(["lift"])
-    binding.CreateBlendShapeTargetsRel().SetTargets([lift.GetPath()])
-    stage.GetRootLayer().Save()
+    path = _morphing(tmp_path / "unbound.usda", skeleton=False)
     said = []
-    animation = UsdScene(path, warn=said.append)
+    assert UsdScene(path, warn=said.append).animated_ids() == []
     assert [line for line in said if "blend" in line] == [
-        f"stage {str(path)!r}: /Quad: blend shapes (skel:blendShapes) are not applied: "
-        f"UsdSkel weighs them by the animation of a Skeleton bound to the mesh "
+        f"stage {str(path)!r}: /Char/Body: blend shapes (skel:blendShapes) are not "
+        f"applied: UsdSkel weighs them by the animation of a Skeleton bound to the mesh "
         f"(skel:skeleton) under a SkelRoot, and none is; the rest points render"]
-    assert animation.animated_ids() == []
 
 
 # ---- The scene digest and the texture cache ----------------------------------------------
