@@ -470,9 +470,10 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             elif kind == "Skeleton" and not self._skinned:
                 self._warn(f"{self._where}: {prim.GetPath()}: UsdSkel skinning is not "
                            f"applied (bake it into points); its meshes render at rest")
-        for who, file in self._materialx.items():
-            self._warn(materialx_line(self._where, who, file, sorted(
-                bound for bound in self._unbuilt if Sdf.Path(bound).HasPrefix(Sdf.Path(who)))))
+        for file, prims in sorted(self._materialx.items()):
+            self._warn(materialx_line(self._where, file, prims, sorted(
+                bound for bound in self._unbuilt
+                if any(Sdf.Path(bound).HasPrefix(Sdf.Path(who)) for who in prims))))
         for line in stats_lines(stats, self._where):
             self._warn(line)
         return [f"{path} ({said})" for path, said in unresolved]

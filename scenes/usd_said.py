@@ -31,31 +31,34 @@ def grouped_arcs(arcs: list[tuple[str, str]]) -> list[tuple[str, str]]:
     return result
 
 
-def materialx_arcs(arcs: list[tuple[str, str]]) -> tuple[dict[str, str], list]:
-    """``({prim path: .mtlx file}, the other arcs)`` of ``(prim path, what USD said)``
-    arcs: a
-    reference to a MaterialX document that exists does not compose because usd-core
-    (pxr's wheels) has no ``.mtlx`` file format (pxr built without MaterialX), not
-    because the file is missing; it is said as such (:func:`materialx_line`)."""
+def materialx_arcs(arcs: list[tuple[str, str]]) -> tuple[dict[str, list[str]], list]:
+    """``({.mtlx file: the prim paths referencing it}, the other arcs)`` of ``(prim
+    path, what USD said)`` arcs: a reference to a MaterialX document that exists does
+    not compose because usd-core (pxr's wheels) has no ``.mtlx`` file format (pxr
+    built without MaterialX), not because the file is missing; it is said as such
+    (:func:`materialx_line`)."""
     found, others = {}, []
     for who, said in arcs:
         match = re.search(r"@([^@]*\.mtlx)@", said)
         if match and Path(match.group(1)).is_file():
-            found[who] = match.group(1)
+            found.setdefault(match.group(1), []).append(who)
         else:
             others.append((who, said))
     return found, others
 
 
-def materialx_line(where: str, who: str, file: str, bound: list[str]) -> str:
-    """The line for a reference (on prim ``who``) to MaterialX document ``file``,
-    naming the materials meshes are bound to under it (``bound``)."""
-    named = (f"{bound[0]}{f' and {len(bound) - 1} more' if len(bound) > 1 else ''}, "
-             f"bound to meshes," if bound else "what it defines")
+def materialx_line(where: str, file: str, prims: list[str], bound: list[str]) -> str:
+    """The line for the references (on ``prims``) to MaterialX document ``file``,
+    naming the materials meshes are bound to under them (``bound``)."""
+    prims = sorted(prims)
+    who = prims[0] if len(prims) == 1 else f"{prims[0]} and {len(prims) - 1} other prims"
+    named = (f"the materials bound there ({bound[0]}"
+             f"{f' and {len(bound) - 1} more' if len(bound) > 1 else ''})"
+             if bound else "its materials")
     return (f"{where}: {who}: MaterialX file {Path(file).name!r} is not read: usd-core "
-            f"reads no .mtlx (no MaterialX file format in pxr's wheels), so {named} "
-            f"does not exist on the stage and has no UsdPreviewSurface to fall back on; "
-            f"those meshes render their displayColor, else grey")
+            f"reads no .mtlx (no MaterialX file format in pxr's wheels), so {named} do "
+            f"not exist on the stage and have no UsdPreviewSurface to fall back on; "
+            f"their meshes render their displayColor, else grey")
 
 
 def usd_quiet(method):

@@ -287,6 +287,6 @@ def test07_materialx_falls_back_to_the_preview_surface_else_is_said(tmp_path):
         f"read, and it has no UsdPreviewSurface (outputs:surface) to fall back on; its "
         f"meshes render their displayColor, else grey",
         f"{where}: /Wood: MaterialX file 'look.mtlx' is not read: usd-core reads no .mtlx "
-        f"(no MaterialX file format in pxr's wheels), so /Wood/M_Wood, bound to meshes, "
-        f"does not exist on the stage and has no UsdPreviewSurface to fall back on; those "
-        f"meshes render their displayColor, else grey"], said
+        f"(no MaterialX file format in pxr's wheels), so the materials bound there "
+        f"(/Wood/M_Wood) do not exist on the stage and have no UsdPreviewSurface to fall "
+        f"back on; their meshes render their displayColor, else grey"], said
