@@ -576,3 +576,19 @@ def test17_the_first_frames_pay_no_probe():
         accel = integrator.scene_accel
         assert not accel.prepared.probed and accel.prepared.traced_by == "hlbvh"
     assert accel.native_moving.builds == 0 and not accel.moving_meshes.costs.query_ns
+
+
+def test18_a_frames_update_replaces_the_first_builds_cost():
+    """Without a probe, our update's cost is the first build's (which compiles) only
+    until a frame's update is measured: that one replaces it, the next are averaged."""
+    animation, scene = _world()
+    params = hlbvh.traverse(scene)
+    accel = hlbvh.SceneAccel(scene, moving="flag")
+    costs = accel.moving_meshes.costs
+    assert costs.update_ms["hlbvh"] == accel.dynamic.last.ms  # the build's
+    apply_frame(scene, params, animation.frame(1))
+    refit = accel.update().dynamic.last
+    assert refit.decision == "refit" and costs.update_ms["hlbvh"] == refit.ms
+    apply_frame(scene, params, animation.frame(2))
+    second = accel.update().dynamic.last.ms
+    assert costs.update_ms["hlbvh"] == pytest.approx(0.5 * (refit.ms + second))

@@ -71,6 +71,8 @@ class MovingMeshes:
         # HLBVH traces a ray at its time, Mitsuba's structures have one pose
         self.keyed = False
         self._forced = moving_accel
+        # Whether our update's cost is a build's (first or catch-up), not a frame's
+        self._ours_from_build = False
         self._choosable = choosable
         # Structures whose view of the moving meshes is out of date: the scene's own
         # accelerator may predate writes made before the accelerator existed.
@@ -136,11 +138,18 @@ class MovingMeshes:
                                                      for i in changed))
         group.update(Change(shapes, group.indices, moved=moved, reshaped=reshaped, first=first,
                             policy=policy, config=config))
-        if group.last.decision != "kept":
-            if group.indices and (not (first or behind) or "hlbvh" not in self.costs.update_ms):
-                # a frame's update as the policy makes it (a first or catch-up build only
-                # until one is measured)
+        if group.last.decision != "kept" and group.indices:
+            # a frame's update as the policy makes it; a first or catch-up build (which
+            # compiles, often) only until one is measured, then replaced, not averaged in
+            if not (first or behind):
+                if self._ours_from_build:
+                    self.costs.update_ms["hlbvh"] = group.last.ms
+                else:
+                    self.costs.record_update("hlbvh", group.last.ms)
+                self._ours_from_build = False
+            elif "hlbvh" not in self.costs.update_ms:
                 self.costs.record_update("hlbvh", group.last.ms)
+                self._ours_from_build = True
         self._behind.discard("hlbvh")
 
     def measure_ours(self, shapes, config, policy):
@@ -161,6 +170,7 @@ class MovingMeshes:
             group.update(Change(shapes, group.indices, moved=True, policy=policy,
                                 config=config))
         self.costs.update_ms["hlbvh"] = group.last.ms
+        self._ours_from_build = False
         group.last = built
 
     def update_native(self, shapes, moved: bool = False):
