@@ -79,7 +79,7 @@ import drjit as dr
 from .arrays import Float, UInt32, namespace_of
 from .bounds import node_bounds
 from .build import build
-from .geometry import as_faces, as_points, slot_triangles, triangles_of
+from .geometry import BOX_RECORD, as_faces, as_points, triangle_boxes, triangles_of
 from .layout.packing import pack_state, packed_records
 from .layout.slots import NODE_REF, SLOT, TRI_FACE, TRI_P
 from .refit import RefitState, refit, refit_packed, slot_faces
@@ -402,8 +402,15 @@ def sah_over_shutter(bvh: Tree, keys) -> float:
         return e.x * e.y + e.y * e.z + e.z * e.x
 
     integral, last = dr.zeros(Float64, bvh.size), None
+    n = dr.width(faces[0])
+    at = dr.arange(ns.UInt32, n)
+    zero = dr.zeros(ns.Float, n)
     for p in points:
-        _, boxes = slot_triangles(triangles_of(p, faces))
+        # the slots' boxes as node_bounds reads them (the triangles themselves not kept)
+        lo, hi = triangle_boxes(triangles_of(p, faces))
+        boxes = dr.empty(ns.Float, BOX_RECORD * n)
+        dr.scatter(boxes, ns.ArrayXf([lo.x, lo.y, lo.z, hi.x, hi.y, hi.z, zero, zero]), at)
+        dr.eval(boxes)
         lo, hi = node_bounds(bvh.node_first, bvh.node_count, boxes, bvh.levels,
                              bvh.config.leaf_size)
         extent = dr.maximum(Array3d(hi) - Array3d(lo), 0.0)
