@@ -359,11 +359,13 @@ def time_to_equal_error(renderers: dict, frame: int = 0, spps=ERROR_SPPS,
     ours = renderers["ours blurred"]
     base = ours.settings
     halves = []
-    for seed in (base.seed + 1_000_003, base.seed + 2_000_003):  # other seeds than the levels'
-        ours.settings = dataclasses.replace(base, seed=seed)
-        halves.append(np.asarray(_blur_frame(ours, "ours blurred", frame, reference_spp // 2)[1],
-                                 np.float64)[..., :3])
-    ours.settings = base
+    try:
+        for seed in (base.seed + 1_000_003, base.seed + 2_000_003):  # not the levels' seeds
+            ours.settings = dataclasses.replace(base, seed=seed)
+            halves.append(np.asarray(_blur_frame(ours, "ours blurred", frame,
+                                                 reference_spp // 2)[1], np.float64)[..., :3])
+    finally:
+        ours.settings = base
     reference = 0.5 * (halves[0] + halves[1])
     noise = 0.25 * float(np.mean((halves[0] - halves[1]) ** 2))
     levels = {}

@@ -90,7 +90,7 @@ class MeshGroup:
             self._build_keyed(shapes, keys, change.config, change.policy)
             self.last = MeshUpdate(decision="build" if change.first else "rebuild",
                                    ms=clock_ms() - start, triangles=self.triangles,
-                                   sah_cost=self._sah(), drift=self.keyed.degradation)
+                                   sah_cost=self.traced_sah(), drift=self.keyed.degradation)
             return
         self.keyed = self.shutter = self.key_points = None
         reshaped = change.reshaped or self.bvh is None or self.stale
@@ -100,7 +100,7 @@ class MeshGroup:
         decision = "build" if change.first else "rebuild"
         self.last = MeshUpdate(
             decision=decision if chosen == "rebuild" else chosen, ms=clock_ms() - start,
-            triangles=self.triangles, sah_cost=self._sah(), seeded=seeded, drift=drift)
+            triangles=self.triangles, sah_cost=self.traced_sah(), seeded=seeded, drift=drift)
 
     def release(self):
         """Drop the tree and its geometry while the meshes are traced by another
@@ -113,9 +113,9 @@ class MeshGroup:
     def keep(self):
         """Record that the last update left the group as it was."""
         self.last = MeshUpdate(decision="kept", ms=0.0, triangles=self.triangles,
-                               sah_cost=self._sah())
+                               sah_cost=self.traced_sah())
 
-    def _sah(self) -> float | None:
+    def traced_sah(self) -> float | None:
         """The SAH cost of what the group traces: a keyed tree's over the shutter (a ray
         at a uniform time in it), else the tree's."""
         if self.keyed is not None:
@@ -197,11 +197,11 @@ def joined_sah_cost(groups: list) -> float | None:
     around them (a ray through that box enters each group through its root box); None
     without a group."""
     if len(groups) < 2:
-        return groups[0]._sah() if groups else None
+        return groups[0].traced_sah() if groups else None
     boxes = [g.root_box() for g in groups]
     union = _half_area([min(lo[k] for lo, _ in boxes) for k in range(3)],
                        [max(hi[k] for _, hi in boxes) for k in range(3)])
-    return sum((_half_area(*box) / union if union > 0 else 1.0) * g._sah()
+    return sum((_half_area(*box) / union if union > 0 else 1.0) * g.traced_sah()
                for g, box in zip(groups, boxes))
 
 
