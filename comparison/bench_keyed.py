@@ -183,8 +183,8 @@ def topology_ab(scene: str, triangles: int = 1_000_000, shutter: float = 1.0,
                          "cpu_ns_per_ray": 1e6 * best[t][1] / n,
                          "cpu_vs_mid": best[t][1] / best["mid"][1],
                          "steps": dr.mean(mi.Float(count))[0]})
-    return {"scene": scene, "frame": frame, "builder": builder, "triangles": len(faces) // 3, "rays": n,
-            "shutter": shutter,
+    return {"scene": scene, "frame": frame, "builder": builder,
+            "triangles": len(faces) // 3, "rays": n, "shutter": shutter,
             "motion_keys": motion_keys, "cpu": cpu_model(), "rows": rows,
             "load": os.getloadavg()[0]}
 
@@ -197,10 +197,9 @@ def format_topology_ab(result: dict) -> str:
                      f"{r['degradation']:.3f} | {r['ns_per_ray']:.0f} | "
                      f"{r['cpu_ns_per_ray']:.0f} | {r['cpu_vs_mid']:.2f}× | {r['steps']:.1f} |")
     lines.append(f"\n{result['scene']} frame {result['frame']}, {result['builder']} builder: "
-                 f"{result['triangles']} moving "
-                 f"triangles, shutter {result['shutter']} frame, S={result['motion_keys']}, {result['rays']} rays "
-                 f"(camera and one bounce); {result['cpu']}; load average "
-                 f"{result['load']:.1f}")
+                 f"{result['triangles']} moving triangles, shutter {result['shutter']} "
+                 f"frame, S={result['motion_keys']}, {result['rays']} rays (camera and one "
+                 f"bounce); {result['cpu']}; load average {result['load']:.1f}")
     return "\n".join(lines)
 
 

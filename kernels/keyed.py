@@ -386,10 +386,11 @@ def union_tree(points: list, faces, **options) -> Tree:
 
 def sah_over_shutter(bvh: Tree, keys) -> float:
     """The expected SAH cost of ``bvh``'s topology keyed over ``keys`` (as
-    :func:`keyed_tree` takes them, checked as it checks them) for a ray at a uniform time in the shutter: the node boxes at
-    each key (the keyed tree's, before the ulp it widens them by), each node's half
-    area integrated exactly over each segment (Simpson's rule: the area of a box whose
-    corners move linearly is a quadratic in time), weighted as
+    :func:`keyed_tree` takes them, checked as it checks them) for a ray at a uniform
+    time in the shutter: the node boxes at each key (the keyed tree's, before the ulp
+    it widens them by), each node's half area integrated exactly over each segment
+    (Simpson's rule: the area of a box whose corners move linearly is a quadratic in
+    time), weighted as
     :func:`hlbvh.kernels.bounds.sah_cost` weighs a node (1 an internal node, its
     triangle count a leaf) and divided by the root's integral. Equal keys give
     ``sah_cost`` of that pose. In double precision, as ``sah_cost``."""
