@@ -399,3 +399,22 @@ def test11_time_to_equal_error_interpolates_each_methods_time_at_one_rmse():
     assert bench_frame._time_at(points, 0.025) == (pytest.approx(160.0), True)
     assert bench_frame._common_rmse([[0.1, 0.05], [0.08, 0.02]]) == pytest.approx(
         (0.05 * 0.08) ** 0.5)
+
+
+def test12_bench_keyed_topology_ab_prints_both_topologies(capsys):
+    """``bench_keyed --topology-ab``: the mid-shutter and the union-box keyed trees of a
+    scene's moving meshes, each query's row with its SAH over the shutter, its
+    degradation over the still SAH (one number for both queries) and its times."""
+    from hlbvh.comparison import bench_keyed
+
+    assert bench_keyed.main(["--topology-ab", "twist", "--triangles", "600", "--frame", "2",
+                             "--frame-resolution", "8x6", "--repeats", "1", "--shutter", "2",
+                             "--builder", "sah"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in lines[2:6]]
+    assert [(r[0], r[1]) for r in rows] == [("closest", "mid"), ("closest", "union"),
+                                            ("any", "mid"), ("any", "union")]
+    for r in rows:
+        assert positive(float(r[2])) and float(r[3]) > 0.5 and positive(float(r[4]))
+    assert rows[0][2:4] == rows[2][2:4] and rows[1][2:4] == rows[3][2:4]
+    assert "twist frame 2, sah builder" in lines[7]
