@@ -83,11 +83,10 @@ class AccelIntegrator(mi.SamplingIntegrator):
         """
         if self.accel_name == "native":
             return NativeAccel(scene)
+        sensor = _sensor(scene, sensor)
         self._budget = self.ray_budget(scene, sensor, spp)
         if self._accel is None or not self._accel.is_for(scene):
             self._accel = SceneAccel(scene, policy=self._policy, config=self._config)
-        if isinstance(sensor, int):
-            sensor = scene.sensors()[sensor] if scene.sensors() else None
         self._accel.prepare(scene, self._budget, sensor)
         return self._accel
 
@@ -115,8 +114,7 @@ class AccelIntegrator(mi.SamplingIntegrator):
         """What a render of ``sensor`` (an index or a sensor) at ``spp`` samples per pixel
         (0: its sampler's) traces: film pixels times samples, and this integrator's
         depth (``max_depth``; 1 for integrators without one)."""
-        if isinstance(sensor, int):
-            sensor = scene.sensors()[sensor] if scene.sensors() else None
+        sensor = _sensor(scene, sensor)
         if sensor is None:
             return RayBudget(samples=0, depth=1)
         size = sensor.film().crop_size()
@@ -178,6 +176,13 @@ class AccelIntegrator(mi.SamplingIntegrator):
     def _options_string(self) -> str:
         options = "".join(f", {k}={v!r}" for k, v in self.accel_options.items())
         return f"accel={self.accel_name!r}{options}"
+
+
+def _sensor(scene, sensor):
+    """``sensor``, or the scene's sensor of that index (None where it has none)."""
+    if isinstance(sensor, int):
+        return scene.sensors()[sensor] if scene.sensors() else None
+    return sensor
 
 
 #: The largest value of a Mitsuba integer property (``max_depth``, ``rr_depth``): Mitsuba
