@@ -155,12 +155,12 @@ class MovingMeshes:
     def measure_ours(self, shapes, config, policy):
         """Take as our HLBVH's update cost what a frame's refit of it costs, timed on the
         tree just built (the last of :data:`MEASURED_REFITS` refits over the meshes as
-        they are: the first compiles, the first two allocate their buffers). The build that made the tree, often the
-        accelerator's first, compiles too and is no frame's cost, yet it is all that is
-        known of a structure the choice has not used. Only under ``"auto"`` and
-        ``"refit"``, whose frames refit, and only right after a build, where a refit of
-        the same positions gives the same boxes and is accepted: the tree and what the
-        policy remembers stay as they were."""
+        they are: the first compiles, the first two allocate their buffers). The build
+        that made the tree, often the accelerator's first, compiles too and is no
+        frame's cost, yet it is all that is known of a structure the choice has not
+        used. Only under ``"auto"`` and ``"refit"``, whose frames refit, and only right
+        after a build, where a refit of the same positions gives the same boxes and is
+        accepted: the tree and what the policy remembers stay as they were."""
         group = self.ours
         if (group.bvh is None or policy.update not in ("auto", "refit")
                 or group.last.decision not in ("build", "rebuild")):
