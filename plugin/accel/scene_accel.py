@@ -39,7 +39,7 @@ from hlbvh.accel.instance_group import InstanceGroup, group_of
 from hlbvh.accel.instance_shading import InstanceShading, is_instance
 from hlbvh.accel.mesh_group import MeshGroup, joined_sah_cost
 from hlbvh.accel.keyed_shading import at_ray_time, shutter_points
-from hlbvh.accel.keys import motion_keys
+from hlbvh.accel.keys import motion_keys, moves_in_shutter
 from hlbvh.accel.motion import MeshState, shape_states
 from hlbvh.accel.moving import MovingMeshes, still_share
 from hlbvh.accel.groups import Change
@@ -187,7 +187,8 @@ class SceneAccel(SceneQueries):
         changed = [] if first else [i for i in states if states[i].moved(self._states[i])]
         # ---- Shapes that changed for the first time start moving ----
         # (a mesh with motion keys moves inside the frame, even unchanged since the last)
-        keyed = {i for i in self.meshes if motion_keys(self.shapes[i]) is not None}
+        keyed = {i for i in self.meshes if motion_keys(self.shapes[i]) is not None} | {
+            i for i, s in enumerate(self.shapes) if is_instance(s) and moves_in_shutter(s)}
         started = sorted((set(changed) | keyed) - set(self.moving))
         for i in changed:
             self._check_movable(i)
