@@ -45,9 +45,12 @@ Inside a frame (motion blur)
     :meth:`UsdScene.frame_at` gives each moving mesh its points as pxr evaluates them at
     the fractional time code (interpolated samples, ``velocities`` and ``accelerations``
     from the frame's sample), placed by its xformOps at that time code, the motion
-    scaled by its ``motion:blurScale``; instances keep their frame's pose (said when
-    they move and the shutter is open). ``motion:nonlinearSampleCount`` on a mesh with
-    ``accelerations`` is reported as the ``--motion-keys`` that follows it.
+    scaled by its ``motion:blurScale``; instances likewise take their transform at that
+    time code (xformOps, and a point instancer's points through
+    ``ComputeInstanceTransformsAtTime`` with the frame as its base, so time-sampled
+    ``velocities`` and ``angularVelocities`` move them). ``motion:nonlinearSampleCount``
+    on a mesh with ``accelerations`` is reported as the ``--motion-keys`` that follows
+    it.
 No light
     A stage without UsdLux lights is said, and lit by a default sky and sun
     (``default_light=False``: not).
@@ -137,7 +140,7 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         shutter: ``(open, close)`` in frames relative to each frame, the times
             :meth:`frame_at` will be asked for around the frames (``(0, 0)``: none): the
             skinning is baked over them too, and with an open shutter what does not blur
-            is said (moving instances; a curve that wants more keys).
+            is said (a curve that wants more keys).
 
     Raises:
         ValueError: naming the file: it does not exist, USD cannot open it, its time
@@ -281,8 +284,11 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         interpolated, or moved by its velocities and accelerations from the frame's
         sample) and its xformOps at that time code, the time from the frame scaled by
         the mesh's ``motion:blurScale`` (0: no blur); a moving camera at that very time
-        code (:meth:`camera_at`, clamped to the animation); instances at the frame's
-        pose (not keyed yet). The meshes' time is not clamped: a shutter reaching past
+        code (:meth:`camera_at`, clamped to the animation); each moving instance's
+        transform at its own scaled time code (its xformOps there; a point instancer's
+        points by ``ComputeInstanceTransformsAtTime`` from the frame's samples, moved by
+        their velocities and angular velocities where authored). The time is not
+        clamped: a shutter reaching past
         the stage's first or last frame reads what pxr gives there (samples held,
         velocities extrapolated), so a one-frame stage blurs by its velocities.
 
@@ -302,43 +308,57 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
 
     @usd_quiet
     def _frame(self, i: int, offset: float) -> dict[str, FrameGeometry | FrameSensor]:
-        """:meth:`frame` ``i`` with its moving meshes ``offset`` frames from it (each
-        scaled by its ``motion:blurScale``; see :meth:`frame_at`)."""
+        """:meth:`frame` ``i`` with its moving meshes and instances ``offset`` frames
+        from it (each scaled by its ``motion:blurScale``; see :meth:`frame_at`)."""
         at = self._baked_at(i)
         time = Usd.TimeCode(self.time_code(i))
         cache = UsdGeom.XformCache(time)
         caches = {time.GetValue(): cache}  # a cache per time code the meshes are read at
         frame = {}
         given = self.__dict__.setdefault("_faces_given", set())
-        moving = [m for m in self._instances if m.motion != "static"]
-        moved = self._placements.instances(moving, cache)
-        for instance in moving:
-            check_instance_transform(self._where, self._path.name, instance,
-                                     moved[instance.id], at)
-        for mesh in self._shapes:
-            if mesh.motion == "static":
-                continue
+        moving = [m for m in self._shapes if m.motion != "static"]
+        codes = {m.id: self._blurred_code(m, time, offset, at) for m in moving}
+        for code in set(codes.values()) - set(caches):
+            caches[code] = UsdGeom.XformCache(Usd.TimeCode(code))
+
+        def inside(code):
+            return at if code == time.GetValue() else self._baked(
+                code, f"time code {code:g} (inside {at})")
+
+        instances = [m for m in moving if isinstance(m, Instance)]
+        for code in sorted({codes[m.id] for m in instances}):
+            chosen = [m for m in instances if codes[m.id] == code]
+            moved = self._placements.instances(chosen, caches[code], base=time)
+            for instance in chosen:
+                check_instance_transform(self._where, self._path.name, instance,
+                                         moved[instance.id], inside(code))
+                frame[instance.id] = FrameGeometry(to_world=moved[instance.id])
+        for mesh in moving:
             if isinstance(mesh, Instance):
-                frame[mesh.id] = FrameGeometry(to_world=moved[mesh.id])
                 continue
-            code = time.GetValue()
-            if offset:
-                prim = self.stage.GetPrimAtPath(mesh.path)
-                scale = UsdGeom.MotionAPI(prim).ComputeMotionBlurScale(time)
-                if not math.isfinite(scale):
-                    raise ValueError(f"{self._where}: {mesh.path}: motion:blurScale {scale} at "
-                                     f"{at}: expected a finite scale")
-                code += offset * scale
-            if code not in caches:
-                caches[code] = UsdGeom.XformCache(Usd.TimeCode(code))
-            frame[mesh.id] = mesh_frame(
-                self._placements, mesh, Usd.TimeCode(code), caches[code],
-                at if code == time.GetValue() else self._baked(code, f"time code {code:g} "
-                                                                     f"(inside {at})"),
-                self._where, given, base=time)
+            code = codes[mesh.id]
+            frame[mesh.id] = mesh_frame(self._placements, mesh, Usd.TimeCode(code),
+                                        caches[code], inside(code), self._where, given,
+                                        base=time)
+        frame = {m.id: frame[m.id] for m in moving}  # in the stage's order
         if self.camera_moves():
             frame[SENSOR_ID] = self.camera_at(self.time_code(i))
         return frame
+
+    def _blurred_code(self, shape, time, offset: float, at: str) -> float:
+        """The time code a moving mesh or instance is read at ``offset`` frames from
+        frame time code ``time``: the offset scaled by the prim's ``motion:blurScale``
+        (an instance proxy's, a rigid mesh's or a point instancer's; inherited as pxr
+        computes it), so a prim authored not to blur holds the frame's pose."""
+        code = time.GetValue()
+        if not offset:
+            return code
+        prim = self.stage.GetPrimAtPath(shape.path)
+        scale = UsdGeom.MotionAPI(prim).ComputeMotionBlurScale(time)
+        if not math.isfinite(scale):
+            raise ValueError(f"{self._where}: {shape.path}: motion:blurScale {scale} at "
+                             f"{at}: expected a finite scale")
+        return code + offset * scale
 
     @usd_quiet
     def world_triangles(self, i: int) -> dict[str, np.ndarray]:
@@ -644,18 +664,11 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         return at
 
     def _unblurred_lines(self) -> list[str]:
-        """What an open shutter does not blur as the stage authors it: moving
-        instances (point instancers' too) keep their frame's pose, since only meshes
-        are keyed; a mesh whose ``accelerations`` curve its motion gets the keys
-        ``--motion-keys`` asks for, joined linearly, and its
-        ``motion:nonlinearSampleCount`` is said as the ``--motion-keys`` it asks."""
+        """What an open shutter does not blur as the stage authors it: a mesh whose
+        ``accelerations`` curve its motion gets the keys ``--motion-keys`` asks for,
+        joined linearly, and its ``motion:nonlinearSampleCount`` is said as the
+        ``--motion-keys`` it asks."""
         lines = []
-        moving = [shape for shape in self._instances if shape.motion != "static"]
-        if moving:
-            lines.append(f"{self._where}: {len(moving)} moving instance(s) ({moving[0].path}"
-                         f"{', ...' if len(moving) > 1 else ''}) keep their frame's pose "
-                         f"inside the shutter: instances are not keyed yet, only meshes "
-                         f"blur")
         time = Usd.TimeCode(self._start)
         for mesh in {m.path: m for m in self._meshes if m.motion == "deforming"}.values():
             prim = self.stage.GetPrimAtPath(mesh.path)

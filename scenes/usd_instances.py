@@ -15,10 +15,12 @@ triangles once per instance, a rigid mesh's points rewritten every frame).
 Point instancers (``UsdGeom.PointInstancer``): each mesh of each prototype is a shape
 group (in the prototype root's space) and each point an instance of its prototype's
 groups, its ``to_world`` the instancer's transform through the point's position,
-orientation and scale at each time code (the points move with their frames when any of
-those is time-sampled). Points hidden at the first frame (``invisibleIds``, inactive
-ids) or scaled to nothing at some frame are left out; an instancer whose number of
-points changes over time, or that names no prototype, is not rendered (each said once).
+orientation and scale at each time code as ``ComputeInstanceTransformsAtTime`` gives
+it, inside a frame too (the points move with their frames when any of those is
+time-sampled, or time-sampled ``velocities`` or ``angularVelocities`` move them).
+Points hidden at the first frame (``invisibleIds``, inactive ids) or scaled to nothing
+at some frame are left out; an instancer whose number of points changes over time, or
+that names no prototype, is not rendered (each said once).
 Needs ``instancing``.
 """
 
@@ -113,24 +115,30 @@ class Placements:
             prim = self.stage.GetPrimAtPath(prim)
         return self.root @ _matrix(cache.GetLocalToWorldTransform(prim))
 
-    def points(self, path, time) -> np.ndarray:
+    def points(self, path, time, base=None) -> np.ndarray:
         """``(N, 4, 4)``: each instance of the point instancer at ``path`` from its
-        prototype root's space to the instancer's at ``time`` (every instance, masked
-        or not, so indices stay the authored ones); the last time's kept."""
+        prototype root's space to the instancer's at ``time``, as pxr evaluates it for a
+        renderer drawing the frame at ``base`` (default ``time``):
+        ``ComputeInstanceTransformsAtTime(time, base)``, the samples at or before
+        ``base`` moved by their ``velocities`` and ``angularVelocities`` where authored,
+        else interpolated at ``time``. Every instance, masked or not, so indices stay
+        the authored ones; the last time's kept."""
+        base = time if base is None else base
         kept = self._points_at
-        key = (str(path), time.GetValue())
+        key = (str(path), time.GetValue(), base.GetValue())
         if key not in kept:
             instancer = UsdGeom.PointInstancer(self.stage.GetPrimAtPath(path))
             xforms = instancer.ComputeInstanceTransformsAtTime(
-                time, time, UsdGeom.PointInstancer.IncludeProtoXform,
+                time, base, UsdGeom.PointInstancer.IncludeProtoXform,
                 UsdGeom.PointInstancer.IgnoreMask)
             kept.pop(next((k for k in kept if k[0] == key[0]), None), None)
             kept[key] = np.array(xforms, np.float64).reshape(-1, 4, 4).transpose(0, 2, 1)
         return kept[key]
 
-    def instances(self, instances: list, cache) -> dict:
+    def instances(self, instances: list, cache, base=None) -> dict:
         """Each instance's object-to-world 4x4 (Mitsuba's Y-up metres) in ``cache``'s
-        time, by id; a point instancer's points in one batch."""
+        time, by id; a point instancer's points in one batch, for the frame at time code
+        ``base`` (default: ``cache``'s time; see :meth:`points`)."""
         result, points = {}, {}
         for instance in instances:
             if instance.point is None:
@@ -141,7 +149,7 @@ class Placements:
             index = np.array([m.point[0] for m in chosen])
             relative = np.stack([m.point[1] for m in chosen])
             placed = (self.of(path, cache)
-                      @ self.points(path, cache.GetTime())[index] @ relative)
+                      @ self.points(path, cache.GetTime(), base)[index] @ relative)
             result.update(zip((m.id for m in chosen), placed))
         return result
 
@@ -195,5 +203,8 @@ def instancer_points(prim, time, placements: Placements, first: float, last: flo
             return None
         shown &= np.isfinite(m).all(axis=(1, 2)) & (
             np.abs(np.linalg.det(np.nan_to_num(m[:, :3, :3]))) > 1e-30)
-    moving = _transform_varies(prim) or any(a.GetNumTimeSamples() > 1 for a in attributes)
+    # pxr moves the points by time-sampled velocities (a default value alone is ignored)
+    moves = [instancer.GetVelocitiesAttr(), instancer.GetAngularVelocitiesAttr()]
+    moving = (_transform_varies(prim) or any(a.GetNumTimeSamples() > 1 for a in attributes)
+              or any(a.GetNumTimeSamples() > 0 for a in moves))
     return InstancerPoints(indices, targets, shown, moving)
