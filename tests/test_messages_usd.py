@@ -133,7 +133,8 @@ def test_a_long_time_range_costs_what_its_samples_and_the_frames_asked_for_cost(
     monkeypatch.setattr(UsdGeom, "XformCache",
                         lambda *a: made.append(a) or real_cache(*a))
     monkeypatch.setattr(Placements, "points",
-                        lambda self, p, t: evaluated.append(t.GetValue()) or real_points(self, p, t))
+                        lambda self, p, t, base=None: evaluated.append(t.GetValue())
+                        or real_points(self, p, t, base))
     animation = UsdScene(path, warn=lambda line: None)
     assert animation.frame_count == 1_000_001
     assert set(animation.motions().values()) == {"rigid"}
