@@ -317,7 +317,9 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
         frame = {}
         given = self.__dict__.setdefault("_faces_given", set())
         moving = [m for m in self._shapes if m.motion != "static"]
-        codes = {m.id: self._blurred_code(m, time, offset, at) for m in moving}
+        paths = {str(m.path): m.path for m in moving}  # a point instancer's points share one
+        scaled = {key: self._blurred_code(path, time, offset, at) for key, path in paths.items()}
+        codes = {m.id: scaled[str(m.path)] for m in moving}
         for code in set(codes.values()) - set(caches):
             caches[code] = UsdGeom.XformCache(Usd.TimeCode(code))
 
@@ -345,18 +347,19 @@ class UsdScene(_Materials, _Lights, _Camera, AnimatedScene):
             frame[SENSOR_ID] = self.camera_at(self.time_code(i))
         return frame
 
-    def _blurred_code(self, shape, time, offset: float, at: str) -> float:
-        """The time code a moving mesh or instance is read at ``offset`` frames from
-        frame time code ``time``: the offset scaled by the prim's ``motion:blurScale``
-        (an instance proxy's, a rigid mesh's or a point instancer's; inherited as pxr
-        computes it), so a prim authored not to blur holds the frame's pose."""
+    def _blurred_code(self, path, time, offset: float, at: str) -> float:
+        """The time code the moving mesh or instance at prim ``path`` is read at
+        ``offset`` frames from frame time code ``time``: the offset scaled by the prim's
+        ``motion:blurScale`` (an instance proxy's, a rigid mesh's or a point
+        instancer's; inherited as pxr computes it), so a prim authored not to blur holds
+        the frame's pose."""
         code = time.GetValue()
         if not offset:
             return code
-        prim = self.stage.GetPrimAtPath(shape.path)
+        prim = self.stage.GetPrimAtPath(path)
         scale = UsdGeom.MotionAPI(prim).ComputeMotionBlurScale(time)
         if not math.isfinite(scale):
-            raise ValueError(f"{self._where}: {shape.path}: motion:blurScale {scale} at "
+            raise ValueError(f"{self._where}: {path}: motion:blurScale {scale} at "
                              f"{at}: expected a finite scale")
         return code + offset * scale
 
