@@ -80,16 +80,9 @@ def compose(keys: np.ndarray) -> np.ndarray:
     """The affine 4x4 matrices (``(..., 4, 4)``) of keys (``(..., KEY)``): ``R S`` and
     ``T``."""
     keys = np.asarray(keys, np.float64)
-    x, y, z, w = (keys[..., i] for i in range(4))
-    r = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-                  np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-                  np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)],
-                 -2)
-    xx, xy, xz, yy, yz, zz = (keys[..., 4 + i] for i in range(6))
-    s = np.stack([np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1),
-                  np.stack([xz, yz, zz], -1)], -2)
+    r = np.stack([np.stack(row, -1) for row in _rotation([keys[..., i] for i in range(4)])], -2)
     out = np.zeros(keys.shape[:-1] + (4, 4))
-    out[..., :3, :3] = r @ s
+    out[..., :3, :3] = r @ _stretch(keys)
     out[..., :3, 3] = keys[..., 10:13]
     out[..., 3, 3] = 1.0
     return out
@@ -168,8 +161,8 @@ def swept_boxes(keys: list, lo, hi) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _stretch(keys: np.ndarray) -> np.ndarray:
-    """The symmetric 3x3 ``S`` of keys (``(G, KEY)``)."""
-    xx, xy, xz, yy, yz, zz = (keys[:, 4 + i] for i in range(6))
+    """The symmetric 3x3 ``S`` of keys (``(..., KEY)``)."""
+    xx, xy, xz, yy, yz, zz = (keys[..., 4 + i] for i in range(6))
     return np.stack([np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1),
                      np.stack([xz, yz, zz], -1)], -2)
 
@@ -184,7 +177,8 @@ def _quaternions(r: np.ndarray) -> np.ndarray:
         which = int(np.argmax(candidates))
         if which == 0:
             s = 2 * np.sqrt(max(1 + trace, 0.0))
-            q[k] = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
+            q[k] = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s,
+                    (m[1, 0] - m[0, 1]) / s, s / 4]
         else:
             i = which - 1
             j, l = (i + 1) % 3, (i + 2) % 3
@@ -305,7 +299,8 @@ def _slerp(a: list, b: list, f) -> list:
 
 
 def _rotation(q: list) -> list:
-    """The 3x3 rotation (rows of Float) of the unit quaternion ``(x, y, z, w)``."""
+    """The 3x3 rotation (rows of three) of the unit quaternion ``(x, y, z, w)``: Dr.Jit
+    Floats per lane, or numpy arrays on the host."""
     x, y, z, w = q
     return [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
             [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
