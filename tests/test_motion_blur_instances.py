@@ -26,9 +26,12 @@ def _turn(degrees: float) -> np.ndarray:
     return np.array(T().rotate([0, 0, 1], degrees).matrix, np.float64)
 
 
-def _scene(integrator, spp=16, shutter=SHUTTER, width=32):
-    """A bar (an instance of a shape group holding one rectangle) before a floor."""
-    return mi.load_dict({
+def _scene(integrator, spp=16, shutter=SHUTTER, width=32, second=False):
+    """A bar (an instance of a shape group holding one rectangle) before a floor;
+    ``second``: another instance of it, below."""
+    more = {"second": {"type": "instance", "shape": {"type": "ref", "id": "group"},
+                       "to_world": T().translate([0, -0.6, 0])}} if second else {}
+    return mi.load_dict({**more,
         "type": "scene", "integrator": integrator,
         "sensor": {"type": "perspective", "to_world": T().look_at([0, 0, 3], [0, 0, 0], [0, 1, 0]),
                    "shutter_open": shutter[0], "shutter_close": shutter[1],
@@ -233,6 +236,15 @@ def test06_bad_keys_are_one_line_each():
     floor = next(s for s in scene.shapes() if s.id() == "floor")
     with pytest.raises(ValueError, match="shape 'floor' .* is not an instance"):
         hlbvh.set_instance_keys(floor, [np.eye(4)] * 2, SHUTTER)
+    # two instances keyed over different shutters: the accelerator names them, one line
+    scene = _scene({"type": "hlbvh_direct"}, spp=1, second=True)
+    hlbvh.set_instance_keys(_instance(scene), [_turn(0), _turn(90)], SHUTTER)
+    second = next(s for s in scene.shapes() if s.id() == "second")
+    hlbvh.set_instance_keys(second, [_turn(0), _turn(90)], (0.0, 2.0))
+    with pytest.raises(ValueError, match=r"^instances '\w+' and '\w+' have keys over "
+                       r"different shutters \(\(0.0, [12].0\) and \(0.0, [12].0\)\): give "
+                       "every instance keys over the same shutter$"):
+        hlbvh.SceneAccel(scene)
 
 
 def test07_keys_end_when_to_world_is_written_without_them():

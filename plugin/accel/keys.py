@@ -352,7 +352,7 @@ def instances_keys(instances: list) -> tuple:
     first, shutter = moving[0][0], moving[0][1].shutter
     for instance, keys in moving:
         if keys.shutter != shutter:
-            raise ValueError(f"instance {instance.id()!r}: keys over the shutter "
-                             f"{keys.shutter}, but instance {first.id()!r}'s over "
-                             f"{shutter}: give every instance keys over the same shutter")
+            raise ValueError(f"instances {first.id()!r} and {instance.id()!r} have keys "
+                             f"over different shutters ({shutter} and {keys.shutter}): "
+                             "give every instance keys over the same shutter")
     return [None if k is None else k.keys for _, k in given], shutter
