@@ -117,7 +117,7 @@ from hlbvh.render.settings import (MAX_SEED, RenderSettings, check_seed, frames_
 
 #: Largest absolute per-channel difference of a pixel counted as within tolerance in
 #: the report's figure (not the verdict): the absolute part of
-#: tests/test_integrators.py::test11's tolerance, several times the worst pixel
+#: tests/integrators/test_integrators.py::test11's tolerance, several times the worst pixel
 #: difference seen there (docs/decisions.md#compare-tolerance).
 TOLERANCE = 5e-4
 

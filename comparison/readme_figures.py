@@ -35,12 +35,14 @@ from pathlib import Path
 import drjit as dr
 import mitsuba as mi
 
-from hlbvh.comparison import bench_build, bench_frame, bench_trace, sweep
+from hlbvh.comparison import sweep
+from hlbvh.comparison.bench import (build as bench_build, frame as bench_frame,
+                                    trace as bench_trace)
 from hlbvh.comparison.machine import cpu_model
 from hlbvh.comparison.tables import flatten, markdown_table, read_results, to_json
 from hlbvh.render.images import atomic_output
-from hlbvh.render.source import SceneSpec, open_animation
 from hlbvh.render.settings import RenderSettings
+from hlbvh.render.source import SceneSpec, open_animation
 
 #: What the README's figures are measured on (each overridable on the command line).
 SIZES = {
@@ -160,7 +162,7 @@ def write(out_dir, results: dict, sizes: dict, command: str) -> dict[str, Path]:
         bench_trace.format_table(results["trace"]),
         "```",
         "",
-        f"## Frame (`python -m hlbvh.comparison.bench_frame --scenes "
+        f"## Frame (`python -m hlbvh.comparison.bench.frame --scenes "
         f"{','.join(sizes['frame_scenes'])} --sizes {_join(sizes['frame_sizes'])} "
         f"--resolution {sizes['resolution']} --spp {_join(sizes['spp_curve'])} "
         f"--repeats {sizes['repeats']} --drift-frames 20`"

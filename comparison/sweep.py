@@ -61,22 +61,22 @@ from pathlib import Path
 import drjit as dr
 import mitsuba as mi
 
+from hlbvh.cli.options import (add_scene_options, out_flag, render_settings,
+                               with_scene_integrator)
 from hlbvh.comparison import plots, report
-from hlbvh.comparison.machine import cpu_model
-from hlbvh.comparison.bench_trace import primary_rays, secondary_rays
+from hlbvh.comparison.bench.trace import primary_rays, secondary_rays
 from hlbvh.comparison.compare import TOLERANCE
 from hlbvh.comparison.crossover import crossover_spp
+from hlbvh.comparison.machine import cpu_model
 from hlbvh.comparison.metrics import image_metrics
 from hlbvh.comparison.sweep_settings import NATIVE, SETTINGS, Setting, parse_settings
 from hlbvh.errors import UserError
+from hlbvh.errors import int_flag
 from hlbvh.render.frame import FrameRenderer, check_frame_fits
 from hlbvh.render.images import as_image
-from hlbvh.cli.options import (add_scene_options, out_flag, render_settings,
-                               with_scene_integrator)
-from hlbvh.errors import int_flag
-from hlbvh.render.source import SceneSpec, open_animation
 from hlbvh.render.output import output_directory
 from hlbvh.render.settings import RenderSettings, check_seed, frames_argument
+from hlbvh.render.source import SceneSpec, open_animation
 from hlbvh.timing import timed
 
 #: Samples per pixel of the frame-time curve unless ``--spp-curve`` says otherwise.

@@ -225,8 +225,8 @@ def choose_morton_bits(prim_lo, prim_hi, lo, hi) -> int:
     when at least 1% of the primitives are small. A share, not the median or the mean:
     a small detailed object on a huge, finely tessellated ground holds few of the
     primitives but all of the collisions, and the median and mean extent are those of
-    the ground (measured in docs/decisions.md#key-width; ``tests/test_morton.py`` checks such
-    scenes). Thin slivers fanning around one point (a UV sphere's poles) collide
+    the ground (measured in docs/decisions.md#key-width; ``tests/kernels/test_morton.py``
+    checks such scenes). Thin slivers fanning around one point (a UV sphere's poles) collide
     without being small; a criterion on extents cannot see them. All centroids equal
     (zero extent) gives 30: finer cells would not separate them either.
 
