@@ -73,10 +73,7 @@ def set_motion_keys(mesh, keys, shutter) -> None:
                          "its mid-shutter pose while our rays see it move; give its "
                          "motion without keys (each frame an instant), or light the "
                          "scene otherwise")
-    open_, close = (float(v) for v in shutter)
-    if not (math.isfinite(open_) and math.isfinite(close) and close > open_):
-        raise ValueError(f"mesh {name!r}: shutter ({open_}, {close}): expected finite "
-                         "open < close (a closed shutter needs no keys)")
+    open_, close = _checked_shutter(f"mesh {name!r}", shutter)
     try:
         points = checked_keys(keys, mesh.faces_buffer())
     except (TypeError, ValueError) as error:
@@ -151,15 +148,8 @@ def set_camera_keys(sensor, to_worlds, shutter) -> None:
             not rigid, naming the sensor and the key.
     """
     name = sensor.id() or "<unnamed sensor>"
-    open_, close = (float(v) for v in shutter)
-    if not (math.isfinite(open_) and math.isfinite(close) and close > open_):
-        raise ValueError(f"sensor {name!r}: shutter ({open_}, {close}): expected finite "
-                         "open < close (a closed shutter needs no keys)")
-    matrices = [np.asarray(m.matrix if hasattr(m, "matrix") else m, np.float64)
-                for m in to_worlds]
-    if len(matrices) < 2:
-        raise ValueError(f"sensor {name!r}: {len(matrices)} camera pose(s): expected at "
-                         "least two keys")
+    open_, close = _checked_shutter(f"sensor {name!r}", shutter)
+    matrices = _key_matrices(f"sensor {name!r}", to_worlds, "camera pose(s)", "")
     rotations, translations = [], []
     for k, m in enumerate(matrices):
         if m.shape != (4, 4) or not np.all(np.isfinite(m)):
@@ -283,15 +273,9 @@ def set_instance_keys(instance, to_worlds, shutter) -> None:
     if instance.class_name() != "Instance":
         raise ValueError(f"shape {name!r} ({instance.class_name()}) is not an instance: "
                          "give a mesh its keys with set_motion_keys")
-    open_, close = (float(v) for v in shutter)
-    if not (math.isfinite(open_) and math.isfinite(close) and close > open_):
-        raise ValueError(f"instance {name!r}: shutter ({open_}, {close}): expected finite "
-                         "open < close (a closed shutter needs no keys)")
-    matrices = [np.asarray(m.matrix if hasattr(m, "matrix") else m, np.float64)
-                for m in to_worlds]
-    if len(matrices) < 2:
-        raise ValueError(f"instance {name!r}: {len(matrices)} transform(s): expected at "
-                         "least two keys (S + 1 over the shutter, S >= 1)")
+    open_, close = _checked_shutter(f"instance {name!r}", shutter)
+    matrices = _key_matrices(f"instance {name!r}", to_worlds, "transform(s)",
+                             " (S + 1 over the shutter, S >= 1)")
     for k, m in enumerate(matrices):
         if m.shape != (4, 4) or not np.all(np.isfinite(m)):
             raise ValueError(f"instance {name!r}: key {k} is not a finite 4x4 transform")
@@ -356,3 +340,23 @@ def instances_keys(instances: list) -> tuple:
                              f"over different shutters ({shutter} and {keys.shutter}): "
                              "give every instance keys over the same shutter")
     return [None if k is None else k.keys for _, k in given], shutter
+
+
+def _checked_shutter(what: str, shutter) -> tuple[float, float]:
+    """``shutter`` as ``(open, close)``, finite with open < close, or a ValueError that
+    names ``what`` (the object given keys)."""
+    open_, close = (float(v) for v in shutter)
+    if not (math.isfinite(open_) and math.isfinite(close) and close > open_):
+        raise ValueError(f"{what}: shutter ({open_}, {close}): expected finite "
+                         "open < close (a closed shutter needs no keys)")
+    return open_, close
+
+
+def _key_matrices(what: str, to_worlds, noun: str, hint: str) -> list:
+    """The keys' transforms (``mi.Transform4f`` or 4x4 arrays) as float64 numpy arrays,
+    at least two of them, or a ValueError naming ``what`` and counting ``noun``."""
+    matrices = [np.asarray(m.matrix if hasattr(m, "matrix") else m, np.float64)
+                for m in to_worlds]
+    if len(matrices) < 2:
+        raise ValueError(f"{what}: {len(matrices)} {noun}: expected at least two keys{hint}")
+    return matrices
